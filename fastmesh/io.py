@@ -1,0 +1,355 @@
+"""Loading, normalising, sampling and exporting shapes.
+
+Everything the rest of the library consumes is a :class:`Shape`: a triangle mesh
+or a point cloud (with normals), always in the *input's own frame*.  Models work in
+the unit cube; :class:`Normalization` is the exact, reversible map between the two,
+so results can be written back where the input was.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+MESH_FORMATS = ("obj", "glb", "gltf", "ply", "stl", "off")
+POINT_FORMATS = ("xyz", "txt", "npy", "npz")  # plus ply without faces
+SUPPORTED_FORMATS = MESH_FORMATS + tuple(f for f in POINT_FORMATS if f not in MESH_FORMATS)
+EXPORT_FORMATS = ("glb", "obj", "ply")
+
+# Default limits; the service narrows them through its settings.
+MAX_POINTS = 2_000_000
+MAX_FACES = 2_000_000
+
+
+class ShapeError(ValueError):
+    """Input that cannot become a shape.  ``code`` is a stable machine-readable reason."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+
+@dataclass
+class Shape:
+    """A mesh or a point cloud in its original frame.
+
+    Attributes
+    ----------
+    vertices : (N, 3) float64
+        Vertex (or point) positions, input units.
+    faces : (F, 3) int64 or None
+        Triangles for a mesh, None for a point cloud.
+    normals : (N, 3) float64 or None
+        Unit normals of a point cloud (given or estimated); None for a mesh.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray | None = None
+    normals: np.ndarray | None = None
+
+    @property
+    def kind(self) -> str:
+        return "mesh" if self.faces is not None else "points"
+
+    @property
+    def bounds(self) -> np.ndarray:
+        return np.stack([self.vertices.min(0), self.vertices.max(0)])
+
+
+@dataclass(frozen=True)
+class Normalization:
+    """Map ``v -> (v - center) * scale`` into [-0.5, 0.5]^3 and back.
+
+    The longest bounding-box side becomes 1, the box centre the origin; the other
+    sides keep their proportions (uniform scale, so angles survive).
+    """
+
+    center: np.ndarray  # (3,)
+    scale: float
+
+    @classmethod
+    def fit(cls, points: np.ndarray) -> Normalization:
+        lo, hi = points.min(0), points.max(0)
+        extent = float((hi - lo).max())
+        if not np.isfinite(extent) or extent <= 0:
+            raise ShapeError("degenerate", "shape has zero extent (all points coincide)")
+        return cls(center=(lo + hi) / 2.0, scale=1.0 / extent)
+
+    def apply(self, v: np.ndarray) -> np.ndarray:
+        return (np.asarray(v, dtype=np.float64) - self.center) * self.scale
+
+    def invert(self, v: np.ndarray) -> np.ndarray:
+        return np.asarray(v, dtype=np.float64) / self.scale + self.center
+
+    def to_dict(self) -> dict:
+        return {"center": [float(c) for c in self.center], "scale": float(self.scale)}
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def _ext(name: str) -> str:
+    return Path(name).suffix.lower().lstrip(".")
+
+
+def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
+               max_points: int = MAX_POINTS, max_faces: int = MAX_FACES) -> Shape:
+    """Read a mesh or point cloud from a path or from bytes.
+
+    Parameters
+    ----------
+    source : path or bytes
+        The file, or its content (then ``filename`` gives the format by extension).
+    filename : str, optional
+        Name used for the format when ``source`` is bytes.
+    max_points, max_faces : int
+        Larger inputs are refused (``ShapeError('too_large')``) before heavy work.
+
+    Raises
+    ------
+    ShapeError
+        With code ``unsupported_format``, ``unreadable``, ``empty``, ``non_finite``,
+        ``degenerate`` or ``too_large``.
+    """
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        data = bytes(source)
+        name = filename or ""
+    else:
+        name = filename or str(source)
+        try:
+            data = Path(source).read_bytes()
+        except OSError as e:
+            raise ShapeError("unreadable", f"cannot read {source}: {e.strerror}") from None
+    ext = _ext(name)
+    if ext not in SUPPORTED_FORMATS:
+        raise ShapeError("unsupported_format",
+                         f"unsupported file type '.{ext}'; use one of {', '.join(SUPPORTED_FORMATS)}")
+    if len(data) == 0:
+        raise ShapeError("empty", "file is empty")
+    try:
+        if ext in ("xyz", "txt"):
+            shape = _load_text_points(data)
+        elif ext in ("npy", "npz"):
+            shape = _load_numpy_points(data, ext)
+        else:
+            shape = _load_trimesh(data, ext)
+    except ShapeError:
+        raise
+    except MemoryError:
+        raise ShapeError("too_large", "file declares more data than can be loaded") from None
+    except Exception as e:  # parsers raise anything from IndexError to struct.error
+        raise ShapeError("unreadable", f"cannot parse .{ext} file: {type(e).__name__}: {e}"[:300]) from None
+    return validate_shape(shape, max_points=max_points, max_faces=max_faces)
+
+
+def _load_text_points(data: bytes) -> Shape:
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ShapeError("unreadable", "text point file is not UTF-8") from None
+    rows = [ln.replace(",", " ").split() for ln in text.splitlines()]
+    rows = [r for r in rows if r and not r[0].startswith("#")]
+    if not rows:
+        raise ShapeError("empty", "no points in file")
+    width = len(rows[0])
+    if width not in (3, 6) or any(len(r) != width for r in rows):
+        raise ShapeError("unreadable", "each line must hold 3 (x y z) or 6 (x y z nx ny nz) numbers")
+    arr = np.array(rows, dtype=np.float64)
+    return _points_from_array(arr)
+
+
+def _load_numpy_points(data: bytes, ext: str) -> Shape:
+    # allow_pickle=False: an .npy upload must never execute code.
+    obj = np.load(io.BytesIO(data), allow_pickle=False)
+    if ext == "npz":
+        keys = list(obj.keys())
+        if not keys:
+            raise ShapeError("empty", "npz archive holds no arrays")
+        key = next((k for k in ("points", "pointcloud", "xyz", "arr_0") if k in keys), keys[0])
+        arr = obj[key]
+        if "normals" in keys and arr.ndim == 2 and arr.shape[1] == 3:
+            arr = np.concatenate([arr, obj["normals"]], axis=1)
+    else:
+        arr = obj
+    if arr.dtype.kind not in "fiu" or arr.ndim != 2 or arr.shape[1] not in (3, 6):
+        raise ShapeError("unreadable", f"expected an N x 3 or N x 6 numeric array, got {arr.dtype} {arr.shape}")
+    return _points_from_array(arr.astype(np.float64))
+
+
+def _points_from_array(arr: np.ndarray) -> Shape:
+    if len(arr) == 0:
+        raise ShapeError("empty", "no points in file")
+    normals = arr[:, 3:6] if arr.shape[1] == 6 else None
+    return Shape(vertices=arr[:, :3].copy(), normals=normals)
+
+
+def _load_trimesh(data: bytes, ext: str) -> Shape:
+    import trimesh
+
+    loaded = trimesh.load(io.BytesIO(data), file_type=ext, process=False)
+    if isinstance(loaded, trimesh.Scene):
+        geoms = [g for g in loaded.dump() if hasattr(g, "vertices")] if loaded.geometry else []
+        meshes = [g for g in geoms if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+        if meshes:
+            loaded = trimesh.util.concatenate(meshes)
+        elif geoms:
+            loaded = trimesh.PointCloud(np.concatenate([np.asarray(g.vertices) for g in geoms]))
+        else:
+            raise ShapeError("empty", "file holds no geometry")
+    if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces) > 0:
+        return Shape(vertices=np.asarray(loaded.vertices, dtype=np.float64),
+                     faces=np.asarray(loaded.faces, dtype=np.int64))
+    if hasattr(loaded, "vertices"):
+        verts = np.asarray(loaded.vertices, dtype=np.float64)
+        normals = None
+        vn = getattr(loaded, "metadata", {}).get("_ply_raw", None)
+        if vn is not None:  # PLY point cloud with nx, ny, nz properties
+            props = vn.get("vertex", {}).get("data", None)
+            if props is not None and all(k in props.dtype.names for k in ("nx", "ny", "nz")):
+                normals = np.stack([props["nx"], props["ny"], props["nz"]], axis=1).astype(np.float64)
+        return Shape(vertices=verts.reshape(-1, 3), normals=normals)
+    raise ShapeError("unreadable", f"no mesh or points found in .{ext} file")
+
+
+def validate_shape(shape: Shape, max_points: int = MAX_POINTS, max_faces: int = MAX_FACES) -> Shape:
+    """Check a shape for the failures every consumer would trip over; fill in normals."""
+    v = np.asarray(shape.vertices, dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+        raise ShapeError("empty", "shape has no vertices")
+    if len(v) > max_points:
+        raise ShapeError("too_large", f"{len(v)} points/vertices exceed the limit of {max_points}")
+    if not np.isfinite(v).all():
+        raise ShapeError("non_finite", "coordinates contain NaN or infinity")
+    faces = shape.faces
+    if faces is not None:
+        faces = np.asarray(faces, dtype=np.int64)
+        if len(faces) > max_faces:
+            raise ShapeError("too_large", f"{len(faces)} faces exceed the limit of {max_faces}")
+        if faces.size and (faces.min() < 0 or faces.max() >= len(v)):
+            raise ShapeError("unreadable", "face indices out of range")
+        area = _face_areas(v, faces)
+        faces = faces[area > 0]
+        if len(faces) == 0:
+            raise ShapeError("degenerate", "every face has zero area")
+    Normalization.fit(v)  # raises on zero extent
+    if faces is None:
+        if len(v) < 4:
+            raise ShapeError("degenerate", f"a point cloud needs at least 4 points, got {len(v)}")
+        centred = v - v.mean(0)
+        sv = np.linalg.svd(centred[:: max(1, len(v) // 20000)], compute_uv=False)
+        if sv[1] <= 1e-9 * sv[0]:
+            raise ShapeError("degenerate", "points are collinear; no surface can be built")
+    normals = shape.normals
+    if faces is None:
+        if normals is not None:
+            normals = np.asarray(normals, dtype=np.float64)
+            if normals.shape != v.shape or not np.isfinite(normals).all():
+                normals = None
+        normals = _unit(normals) if normals is not None else estimate_normals(v)
+    return Shape(vertices=v, faces=faces, normals=normals)
+
+
+def _face_areas(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    tri = v[faces]
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(x, axis=-1, keepdims=True)
+    return np.where(n > 0, x / np.maximum(n, 1e-12), np.array([0.0, 0.0, 1.0]))
+
+
+def estimate_normals(points: np.ndarray, k: int = 12) -> np.ndarray:
+    """PCA normals from ``k`` nearest neighbours, flipped to face away from the centroid.
+
+    Outward orientation by centroid is a heuristic (wrong inside concavities), but the
+    models only need a consistent-ish signal; the authors' data had true normals.
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    k = min(k, n)
+    _, idx = cKDTree(points).query(points, k=k)
+    nb = points[idx] - points[idx].mean(1, keepdims=True)  # (N, k, 3)
+    cov = np.einsum("nki,nkj->nij", nb, nb)
+    _, vecs = np.linalg.eigh(cov)
+    normals = vecs[:, :, 0]  # smallest eigenvalue
+    outward = points - points.mean(0)
+    flip = (normals * outward).sum(1) < 0
+    normals[flip] *= -1
+    return _unit(normals)
+
+
+# --------------------------------------------------------------------------- sampling
+
+
+def sample_surface(shape: Shape, n: int, seed: int | None = 0,
+                   vertices: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Area-weighted surface samples with normals.
+
+    Parameters
+    ----------
+    shape : Shape
+        A mesh (sampled on its triangles) or a point cloud (resampled to ``n``).
+    n : int
+        Number of samples.
+    seed : int or None
+        Seed of the generator; equal seeds give equal samples.
+    vertices : (N, 3) array, optional
+        Positions to use instead of ``shape.vertices`` (e.g. normalised ones).
+
+    Returns
+    -------
+    points : (n, 3) float32
+    normals : (n, 3) float32, unit length
+    """
+    rng = np.random.default_rng(seed)
+    v = shape.vertices if vertices is None else np.asarray(vertices, dtype=np.float64)
+    if shape.faces is None:
+        idx = rng.choice(len(v), size=n, replace=len(v) < n)
+        return v[idx].astype(np.float32), shape.normals[idx].astype(np.float32)
+    return sample_triangles(v, shape.faces, n, rng)
+
+
+def sample_triangles(v: np.ndarray, faces: np.ndarray, n: int,
+                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Uniform samples on triangles ``v[faces]``; returns (n, 3) points and face normals."""
+    tri = v[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    total = area.sum()
+    if total <= 0:
+        raise ShapeError("degenerate", "mesh has zero surface area")
+    fi = rng.choice(len(faces), size=n, p=area / total)
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    a, b, c = 1 - s, s * (1 - r2), s * r2
+    pts = a[:, None] * tri[fi, 0] + b[:, None] * tri[fi, 1] + c[:, None] * tri[fi, 2]
+    normals = cross[fi] / np.maximum(area[fi, None], 1e-20)
+    return pts.astype(np.float32), normals.astype(np.float32)
+
+
+# --------------------------------------------------------------------------- export
+
+
+def export_mesh(vertices: np.ndarray, faces: np.ndarray, fmt: str) -> bytes:
+    """Serialise a triangle mesh to ``glb``, ``obj`` or ``ply`` bytes."""
+    import trimesh
+
+    fmt = fmt.lower()
+    if fmt not in EXPORT_FORMATS:
+        raise ShapeError("unsupported_format", f"cannot export '{fmt}'; use one of {', '.join(EXPORT_FORMATS)}")
+    mesh = trimesh.Trimesh(vertices=np.asarray(vertices, dtype=np.float64),
+                           faces=np.asarray(faces, dtype=np.int64).reshape(-1, 3), process=False)
+    out = mesh.export(file_type=fmt)
+    return out.encode("utf-8") if isinstance(out, str) else bytes(out)
+
+
+def write_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, fmt: str | None = None) -> None:
+    fmt = fmt or _ext(str(path))
+    Path(path).write_bytes(export_mesh(vertices, faces, fmt))

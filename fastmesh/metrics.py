@@ -1,0 +1,139 @@
+"""Quality metrics, exactly as ../shared/EVAL.md defines them.
+
+Chamfer and Hausdorff distances: each shape is normalised on its own (bounding-box centre
+to the origin, longest side 1), 5,000 points are sampled on it (area-weighted, fixed seed),
+nearest neighbours come from a KD-tree, and both numbers are in percent of the longest
+side (plain L2 distances, not squared):
+
+    CD = 100 * (mean_a min_b |a - b| + mean_b min_a |b - a|) / 2
+    HD = 100 * max(max_a min_b |a - b|, max_b min_a |b - a|)
+
+Edge metrics compare predicted and true undirected edges of the face stage.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .io import Normalization, sample_triangles
+
+N_SAMPLES = 5000
+SEED = 0
+
+
+@dataclass(frozen=True)
+class SurfaceDistance:
+    """Chamfer and Hausdorff distance in % of the longest bounding-box side."""
+
+    cd: float
+    hd: float
+
+    def to_dict(self) -> dict:
+        return {"cd": self.cd, "hd": self.hd}
+
+
+def normalized_samples(vertices: np.ndarray, faces: np.ndarray | None, n: int = N_SAMPLES,
+                       seed: int = SEED) -> np.ndarray:
+    """Points on a shape after the EVAL normalisation.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+    faces : (F, 3) int or None
+        None (or empty) for a point cloud: ``n`` of its points are drawn (all of them,
+        in order, when it has ``n`` or fewer).
+    n : int
+        Number of samples.
+    seed : int
+        Seed of the sampler; the same seed gives the same points.
+
+    Returns
+    -------
+    (n, 3) float64 points (fewer for a small point cloud), unit-longest-side frame.
+    """
+    v = Normalization.fit(np.asarray(vertices, dtype=np.float64)).apply(vertices)
+    rng = np.random.default_rng(seed)
+    if faces is None or len(faces) == 0:
+        if len(v) <= n:
+            return v
+        return v[np.sort(rng.choice(len(v), size=n, replace=False))]
+    pts, _ = sample_triangles(v, np.asarray(faces, dtype=np.int64), n, rng)
+    return pts.astype(np.float64)
+
+
+def nearest_distances(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(|A|,) distances from each point of ``a`` to ``b`` and (|B|,) from ``b`` to ``a`` (KD-trees)."""
+    from scipy.spatial import cKDTree
+
+    d_ab, _ = cKDTree(b).query(a, k=1)
+    d_ba, _ = cKDTree(a).query(b, k=1)
+    return d_ab, d_ba
+
+
+def surface_distance(a: tuple[np.ndarray, np.ndarray | None], b: tuple[np.ndarray, np.ndarray | None],
+                     n: int = N_SAMPLES, seed: int = SEED) -> SurfaceDistance:
+    """Chamfer and Hausdorff distance between two shapes given as ``(vertices, faces)`` pairs.
+
+    Both shapes are sampled with the same ``seed``; faces may be None for a point cloud.
+    """
+    pa = normalized_samples(*a, n=n, seed=seed)
+    pb = normalized_samples(*b, n=n, seed=seed)
+    d_ab, d_ba = nearest_distances(pa, pb)
+    cd = 100.0 * (d_ab.mean() + d_ba.mean()) / 2.0
+    hd = 100.0 * max(d_ab.max(), d_ba.max())
+    return SurfaceDistance(cd=float(cd), hd=float(hd))
+
+
+def chamfer(a: tuple[np.ndarray, np.ndarray | None], b: tuple[np.ndarray, np.ndarray | None],
+            n: int = N_SAMPLES, seed: int = SEED) -> float:
+    """Chamfer distance (% of the longest side) between ``(vertices, faces)`` pairs."""
+    return surface_distance(a, b, n=n, seed=seed).cd
+
+
+def hausdorff(a: tuple[np.ndarray, np.ndarray | None], b: tuple[np.ndarray, np.ndarray | None],
+              n: int = N_SAMPLES, seed: int = SEED) -> float:
+    """Hausdorff distance (% of the longest side) between ``(vertices, faces)`` pairs."""
+    return surface_distance(a, b, n=n, seed=seed).hd
+
+
+# --------------------------------------------------------------------------- edges
+
+
+def edges_from_faces(faces: np.ndarray) -> np.ndarray:
+    """(F, 3) triangles -> (E, 2) int64 unique undirected edges, each (i, j) with i < j, sorted."""
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    return normalize_edges(e)
+
+
+def normalize_edges(edges: np.ndarray) -> np.ndarray:
+    """(E, 2) int pairs -> unique (i, j) rows with i < j, self-loops dropped, sorted."""
+    e = np.sort(np.asarray(edges, dtype=np.int64).reshape(-1, 2), axis=1)
+    e = e[e[:, 0] != e[:, 1]]
+    return np.unique(e, axis=0) if len(e) else e
+
+
+def edge_metrics(pred_edges: np.ndarray, true_edges: np.ndarray) -> dict:
+    """Precision, recall and F1 of predicted vs true undirected edges.
+
+    Parameters
+    ----------
+    pred_edges, true_edges : (E, 2) int
+        Vertex index pairs in any order and orientation; duplicates count once.
+
+    Returns
+    -------
+    dict with ``precision``, ``recall``, ``f1`` (fractions in [0, 1]) and the counts
+    ``tp``, ``fp``, ``fn``.  With nothing predicted precision is 0 (1 when there is also
+    nothing to find); with nothing to find recall is 1.
+    """
+    p, t = normalize_edges(pred_edges), normalize_edges(true_edges)
+    n = int(max(p.max(initial=-1), t.max(initial=-1))) + 1
+    tp = int(np.isin(p[:, 0] * n + p[:, 1], t[:, 0] * n + t[:, 1]).sum())
+    fp, fn = len(p) - tp, len(t) - tp
+    precision = tp / len(p) if len(p) else float(len(t) == 0)
+    recall = tp / len(t) if len(t) else 1.0
+    f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return {"precision": precision, "recall": recall, "f1": f1, "tp": tp, "fp": fp, "fn": fn}

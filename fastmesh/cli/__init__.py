@@ -8,7 +8,7 @@ import importlib
 import sys
 
 # One module per verb (group); add yours here.
-VERBS = ["data"]
+VERBS = ["data", "tokens", "metrics"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -190,7 +190,8 @@ def drop_degenerate(vertices: np.ndarray, faces: np.ndarray, area_tol: float = 1
     return f[np.sort(first)]
 
 
-def drop_coplanar_diagonals(vertices: np.ndarray, faces: np.ndarray, coplanar_tol: float = 0.5 / 128) -> np.ndarray:
+def drop_coplanar_diagonals(vertices: np.ndarray, faces: np.ndarray, coplanar_tol: float = 0.5 / 128,
+                            cases: tuple[str, ...] = ("convex", "inner")) -> np.ndarray:
     """Resolve coplanar 4-cliques of the faces' edge graph (see ``FaceConfig``).
 
     Parameters
@@ -200,6 +201,9 @@ def drop_coplanar_diagonals(vertices: np.ndarray, faces: np.ndarray, coplanar_to
         Triangles (typically all 3-cycles of a predicted adjacency).
     coplanar_tol : float
         Plane distance allowed, as a fraction of the bounding-box longest side.
+    cases : tuple of str
+        Which cliques to resolve: ``"convex"`` quads (drop the longer diagonal) and/or
+        ``"inner"`` ones (a point inside the others' triangle: drop that outer triangle).
     """
     from .metrics import edges_from_faces
 
@@ -227,8 +231,8 @@ def drop_coplanar_diagonals(vertices: np.ndarray, faces: np.ndarray, coplanar_to
         return (np.cross(e - o, x - o) * normal[:, None]).sum(-1)
 
     cross = (side(a, b, c) * side(a, b, d) < 0) & (side(c, d, a) * side(c, d, b) < 0)  # (K, 3)
-    convex = flat & (cross.sum(1) == 1)
-    inner = flat & (cross.sum(1) == 0)
+    convex = flat & (cross.sum(1) == 1) & ("convex" in cases)
+    inner = flat & (cross.sum(1) == 0) & ("inner" in cases)
     drop_edges = np.zeros((0, 2), dtype=np.int64)
     if convex.any():
         kk = np.flatnonzero(convex)

@@ -22,13 +22,12 @@ rows grow downwards, its centre is at ``+0.5``.  Depth is carried as inverse vie
 
 from __future__ import annotations
 
-import struct
-import zlib
 from dataclasses import dataclass
 
 import numpy as np
 
 from fastmesh.io import ShapeError
+from fastmesh.png import to_png  # re-exported: render + encode in one import
 
 _EMPTY = np.iinfo(np.int64).max  # z-buffer value of a pixel no fragment reached
 _DEPTH_LEVELS = (1 << 31) - 1  # depth quantisation: fits above a 32-bit id in a positive int64
@@ -59,11 +58,12 @@ class RenderConfig:
     wire_color: tuple[float, float, float] = (0.10, 0.12, 0.16)
     wire_opacity: float = 0.85
     wire_width: float = 1.0  # output pixels
+    outline_opacity: float = 0.5  # silhouette darkening, one working pixel wide (0 = off)
     point_color: tuple[float, float, float] = (0.90, 0.42, 0.16)  # overlay points on a mesh
-    cloud_color: tuple[float, float, float] = (0.40, 0.56, 0.78)  # render_points
+    cloud_color: tuple[float, float, float] = (0.60, 0.72, 0.90)  # render_points
     overlay_point_radius: float = 1.3  # output pixels
     # render_points picks a splat radius that roughly closes the surface: k * size / sqrt(N).
-    cloud_radius_scale: float = 0.9
+    cloud_radius_scale: float = 1.2
     cloud_radius_range: tuple[float, float] = (0.8, 4.0)
     # Overlay points lie on the surface they are drawn over; pulling them this fraction of the
     # scene's depth range towards the camera stops them z-fighting with it.
@@ -71,7 +71,9 @@ class RenderConfig:
     max_points: int = 200_000  # larger clouds are evenly subsampled (preview, not archive)
     batch_pixels: int = 1 << 20  # candidate pixels per numpy batch (memory ~ 40 B each)
     min_size: int = 16
-    max_size: int = 4096
+    max_size: int = 2048
+    # Supersampling is reduced so the working image stays <= this side (memory ~ 24 B per pixel).
+    max_working_side: int = 2048
 
 
 DEFAULT_CONFIG = RenderConfig()
@@ -318,7 +320,18 @@ def _compose(zbuf: np.ndarray, colors: np.ndarray, side: int, cfg: RenderConfig,
     img[idx] = rgb
     cov = np.zeros(side * side, dtype=np.float32)
     cov[idx] = 1.0
-    return img.reshape(side, side, 3), cov.reshape(side, side)
+    img, cov = img.reshape(side, side, 3), cov.reshape(side, side)
+    if cfg.outline_opacity > 0:
+        # Covered pixels next to an empty one form the silhouette; darkening them a little keeps
+        # light top faces from melting into the light background.
+        edge = np.zeros((side, side), dtype=bool)
+        inside = cov > 0
+        edge[1:] |= inside[1:] & ~inside[:-1]
+        edge[:-1] |= inside[:-1] & ~inside[1:]
+        edge[:, 1:] |= inside[:, 1:] & ~inside[:, :-1]
+        edge[:, :-1] |= inside[:, :-1] & ~inside[:, 1:]
+        img[edge] += (np.asarray(cfg.wire_color, dtype=np.float32) - img[edge]) * np.float32(cfg.outline_opacity)
+    return img, cov
 
 
 def _wire_alpha(x, y, faces, n_faces: int, side: int, width: float, cfg: RenderConfig):
@@ -398,7 +411,7 @@ def render_mesh(vertices, faces, size: int = 512, wireframe: bool = False, point
     f = _as_faces(faces, len(v))
     pts = None if points is None else _subsample(_as_points(points, "points", allow_empty=True), config)
     used = v[np.unique(f)]  # unreferenced vertices must not shrink the framing
-    ss = max(1, int(config.supersample))
+    ss = _supersample(size, config)
     side = size * ss
     cam = fit_camera(used if pts is None or len(pts) == 0 else np.concatenate([used, pts]), side, config)
     x, y, iz = cam.project(v)
@@ -446,7 +459,7 @@ def render_points(points, normals=None, size: int = 512, alpha: bool = False,
     keep = _subsample_index(len(p), config)
     p = p[keep]
     n = None if n is None else n[keep]
-    ss = max(1, int(config.supersample))
+    ss = _supersample(size, config)
     side = size * ss
     cam = fit_camera(p, side, config)
     x, y, iz = cam.project(p)
@@ -474,6 +487,10 @@ def render_shape(shape, size: int = 512, wireframe: bool = False, alpha: bool = 
     return render_points(shape.vertices, shape.normals, size=size, alpha=alpha, config=config)
 
 
+def _supersample(size: int, cfg: RenderConfig) -> int:
+    return max(1, min(int(cfg.supersample), cfg.max_working_side // size))
+
+
 def _subsample_index(n: int, cfg: RenderConfig) -> np.ndarray:
     """Evenly spaced indices, at most ``max_points`` (deterministic: same input, same picture)."""
     if n <= cfg.max_points:
@@ -483,47 +500,6 @@ def _subsample_index(n: int, cfg: RenderConfig) -> np.ndarray:
 
 def _subsample(p: np.ndarray, cfg: RenderConfig) -> np.ndarray:
     return p[_subsample_index(len(p), cfg)]
-
-
-# --------------------------------------------------------------------------- PNG
-
-
-def to_png(image, compress_level: int = 6) -> bytes:
-    """Encode an 8-bit grey, RGB or RGBA image as PNG bytes (stdlib zlib, no imaging library).
-
-    Each row uses the "Up" filter when the whole image compresses better that way
-    (it usually does for smooth shading); otherwise no filter.
-
-    Parameters
-    ----------
-    image : (H, W), (H, W, 1), (H, W, 3) or (H, W, 4) uint8
-    compress_level : int
-        zlib level 0-9.
-    """
-    img = np.asarray(image)
-    if img.dtype != np.uint8:
-        raise ValueError(f"image must be uint8, got {img.dtype}")
-    if img.ndim == 2:
-        img = img[:, :, None]
-    if img.ndim != 3 or img.shape[2] not in (1, 3, 4) or img.shape[0] == 0 or img.shape[1] == 0:
-        raise ValueError(f"image must be (H, W), (H, W, 1|3|4), got {img.shape}")
-    h, w, c = img.shape
-    rows = img.reshape(h, w * c)
-    up = rows.copy()
-    up[1:] -= rows[:-1]  # uint8 wrap-around is exactly PNG's modulo-256 filter arithmetic
-    best = None
-    for ftype, data in ((0, rows), (2, up)):
-        raw = np.concatenate([np.full((h, 1), ftype, dtype=np.uint8), data], axis=1).tobytes()
-        comp = zlib.compress(raw, compress_level)
-        if best is None or len(comp) < len(best):
-            best = comp
-    color_type = {1: 0, 3: 2, 4: 6}[c]
-    header = struct.pack(">IIBBBBB", w, h, 8, color_type, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", header) + _chunk(b"IDAT", best) + _chunk(b"IEND", b"")
-
-
-def _chunk(kind: bytes, data: bytes) -> bytes:
-    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
 
 
 __all__ = ["RenderConfig", "DEFAULT_CONFIG", "Camera", "fit_camera", "view_direction", "render_mesh",

@@ -1,0 +1,317 @@
+"""The HTTP API: upload a shape, poll the job, download the artist mesh.
+
+``create_app(settings)`` builds the app; ``uvicorn service.app:create_app --factory`` serves it with
+settings from the environment.  Routes are thin: checks and answers here, state in :mod:`service.store`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import logging
+import re
+import threading
+import time
+from contextlib import asynccontextmanager
+from pathlib import PurePath
+
+import anyio
+from fastapi import Depends, FastAPI, File, Form, Header, Path, Query, Request, Response, UploadFile
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import JSONResponse
+
+from fastmesh.io import EXPORT_FORMATS, ShapeError, export_mesh, load_shape
+
+from . import errors
+from .errors import ApiError
+from .metrics import Metrics
+from .middleware import BodyLimit, RequestMetrics
+from .params import build_params, generation_defaults, input_info, safe_filename
+from .schemas import Health, Job, Ready, error_responses
+from .settings import Settings
+from .store import FINAL, Store, mesh_from_bytes, shape_to_bytes
+
+log = logging.getLogger("fastmesh.service")
+
+JOB_ID = Path(..., description="Job id as returned by POST /v1/jobs.",
+              examples=["3f2b9c1d4e5f40718293a4b5c6d7e8f9"])
+ID_RE = re.compile(r"[0-9a-f]{32}")
+MEDIA = {"glb": "model/gltf-binary", "obj": "model/obj", "ply": "application/ply"}
+DESCRIPTION = """Upload a point cloud or a dense mesh, poll the job, download a clean artist-style mesh.
+
+1. `POST /v1/jobs` with a multipart `file` (obj, glb, gltf, ply, stl, off, xyz, txt, npy, npz) -> 202 + job.
+2. `GET /v1/jobs/{id}` until `status` is `succeeded` (or `failed` / `cancelled`).
+3. `GET /v1/jobs/{id}/result?format=glb` (add `&wait=60` to long-poll instead of step 2).
+
+When the server has API keys, send `Authorization: Bearer <key>`; a key sees only its own jobs.
+Every error is JSON `{"error": {"code", "message"}}`."""
+
+
+def create_app(settings: Settings | None = None, store: Store | None = None) -> FastAPI:
+    settings = settings or Settings()
+    store = store or Store(settings)
+    metrics = Metrics(store)
+    defaults = generation_defaults()
+    keys = {hashlib.sha256(k.encode()).hexdigest()[:16]: k for k in settings.api_keys}
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        stop = threading.Event()
+        reaper = threading.Thread(target=_reap_loop, args=(store, stop), name="fastmesh-reaper", daemon=True)
+        reaper.start()
+        yield
+        stop.set()
+
+    app = FastAPI(title="FastMesh", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
+                  openapi_tags=[{"name": "jobs", "description": "Submit, watch, download, cancel."},
+                                {"name": "ops", "description": "Health, readiness, metrics."}])
+    app.state.settings, app.state.store, app.state.metrics = settings, store, metrics
+    errors.install(app)
+
+    # ------------------------------------------------------------------ access
+    def owner(request: Request, authorization: str | None = Header(None, include_in_schema=False)) -> str:
+        """Who is asking: the hash of their API key, or 'anonymous' when keys are off.  Rate-limits them."""
+        if keys:
+            scheme, _, token = (authorization or "").partition(" ")
+            who = next((h for h, k in keys.items()
+                        if scheme.lower() == "bearer" and hmac.compare_digest(token.strip(), k)), None)
+            if who is None:
+                raise ApiError(401, "unauthorized", "missing or unknown API key; send 'Authorization: Bearer <key>'",
+                               {"WWW-Authenticate": "Bearer"})
+            bucket = who
+        else:
+            who = "anonymous"
+            bucket = request.client.host if request.client else "anonymous"
+        wait = store.rate_hit("req", bucket, settings.rate_limit_per_minute)
+        if wait:
+            raise ApiError(429, "rate_limited",
+                           f"more than {settings.rate_limit_per_minute} requests per minute for this key",
+                           {"Retry-After": str(wait)})
+        request.state.bucket = bucket
+        return who
+
+    def job_of(job_id: str, who: str) -> dict:
+        job = store.get(job_id) if ID_RE.fullmatch(job_id) else None
+        if job is None or job["owner"] != who:  # another key's job is indistinguishable from no job
+            raise ApiError(404, "not_found", f"no job '{job_id}'")
+        return job
+
+    def job_response(job: dict, status: int = 200) -> JSONResponse:
+        headers = {"Location": f"/v1/jobs/{job['id']}"}
+        pos = store.queue_position(job)
+        if pos is not None:
+            headers["X-Queue-Position"] = str(pos)
+        return JSONResponse(store.public(job), status_code=status, headers=headers)
+
+    # ------------------------------------------------------------------ jobs
+    def d(name: str) -> str:
+        return f"default {defaults.get(name)!r}"
+
+    @app.post("/v1/jobs", tags=["jobs"], status_code=202, response_model=Job,
+              summary="Submit a shape; returns the queued job",
+              responses={**error_responses(401, 409, 413, 415, 422, 429, 503),
+                         202: {"description": "Accepted; `Location` names the job",
+                               "headers": {"Location": {"schema": {"type": "string"}}}}})
+    def submit(request: Request,
+               file: UploadFile = File(..., description="Mesh or point cloud; the extension names the format."),
+               seed: int | None = Form(None, ge=0, le=2**32 - 1, description=f"Sampling seed ({d('seed')}).",
+                                       examples=[0]),
+               temperature: float | None = Form(None, allow_inf_nan=False,
+                                                description=f"Sampling temperature ({d('temperature')}).",
+                                                examples=[defaults.get("temperature")]),
+               top_k: int | None = Form(None, description=f"Top-k sampling ({d('top_k')}).",
+                                        examples=[defaults.get("top_k")]),
+               top_p: float | None = Form(None, allow_inf_nan=False, description=f"Nucleus sampling ({d('top_p')}).",
+                                          examples=[defaults.get("top_p")]),
+               max_vertices: int | None = Form(None, description=f"Vertex budget ({d('max_vertices')}).",
+                                               examples=[defaults.get("max_vertices")]),
+               enhancer: bool | None = Form(None, description=f"Run the vertex enhancer ({d('enhancer')})."),
+               filtering: bool | None = Form(None, description=f"Filter bad faces ({d('filtering')})."),
+               formats: str | None = Form(None, description="Comma list of glb, obj, ply exported with the job "
+                                                            f"(default {','.join(settings.default_formats)}).",
+                                          examples=["glb,obj"]),
+               idempotency_key: str | None = Header(None, alias="Idempotency-Key", max_length=200,
+                                                    description="Retrying with the same key returns the same job."),
+               who: str = Depends(owner)) -> JSONResponse:
+        wait = store.rate_hit("submit", request.state.bucket, settings.submit_rate_limit_per_minute)
+        if wait:
+            raise ApiError(429, "rate_limited", f"more than {settings.submit_rate_limit_per_minute} submissions "
+                                                "per minute for this key", {"Retry-After": str(wait)})
+        params = build_params({"seed": seed, "temperature": temperature, "top_k": top_k, "top_p": top_p,
+                               "max_vertices": max_vertices, "enhancer": enhancer, "filtering": filtering},
+                              formats, settings.default_formats)
+        data = file.file.read(settings.max_upload_bytes + 1)
+        if len(data) > settings.max_upload_bytes:
+            raise ApiError(413, "too_large", f"upload larger than the {settings.max_upload_bytes} byte limit")
+        filename = safe_filename(file.filename)
+        fingerprint = hashlib.sha256(data + json.dumps(params, sort_keys=True).encode()).hexdigest()[:32]
+        if idempotency_key:
+            existing = _idempotent_job(store, who, idempotency_key, fingerprint)
+            if existing is not None:
+                return job_response(existing, 200)
+        depth = store.queue_depth()
+        if depth >= settings.max_queue_depth:
+            raise ApiError(429, "queue_full", f"{depth} jobs are waiting (limit {settings.max_queue_depth}); "
+                                              "retry later", {"Retry-After": str(_retry_after(store, depth))})
+        t0 = time.perf_counter()
+        try:
+            shape = load_shape(data, filename=filename, max_points=settings.max_points, max_faces=settings.max_faces)
+        except ShapeError as e:
+            raise ApiError(errors.SHAPE_STATUS.get(e.code, 422), e.code, e.message) from None
+        load_seconds = time.perf_counter() - t0
+        info = input_info(filename, shape)
+        blob = shape_to_bytes(shape)
+        if idempotency_key:
+            claim = f"pending {fingerprint}"
+            other = store.idempotency_claim(who, idempotency_key, claim)
+            if other is not None:  # a concurrent retry won the race: answer with its job
+                existing = _idempotent_job(store, who, idempotency_key, fingerprint, wait=5.0)
+                if existing is not None:
+                    return job_response(existing, 200)
+                raise ApiError(409, "conflict", "a request with this Idempotency-Key is still being processed")
+        try:
+            job_id = store.create(who, params, info, blob, load_seconds)
+        except BaseException:
+            if idempotency_key:
+                store.idempotency_release(who, idempotency_key)
+            raise
+        if idempotency_key:
+            store.idempotency_replace(who, idempotency_key, claim, f"{job_id} {fingerprint}")
+        return job_response(store.get(job_id), 202)
+
+    @app.get("/v1/jobs/{job_id}", tags=["jobs"], response_model=Job, summary="A job's status, progress, timings",
+             responses={**error_responses(401, 404, 422, 429, 503),
+                        200: {"headers": {"X-Queue-Position": {"description": "0-based, while queued",
+                                                               "schema": {"type": "integer"}}}}})
+    def get_job(job_id: str = JOB_ID, who: str = Depends(owner)) -> JSONResponse:
+        return job_response(job_of(job_id, who))
+
+    @app.get("/v1/jobs/{job_id}/result", tags=["jobs"], summary="Download the mesh (input's original frame)",
+             response_class=Response,
+             responses={**error_responses(401, 404, 409, 422, 429, 503),
+                        200: {"description": "The mesh file",
+                              "content": {m: {"schema": {"type": "string", "format": "binary"}}
+                                          for m in MEDIA.values()}}})
+    async def get_result(job_id: str = JOB_ID,
+                         format: str = Query("glb", pattern=f"^({'|'.join(EXPORT_FORMATS)})$",
+                                             description="glb, obj or ply", examples=["glb"]),
+                         wait: float = Query(0, ge=0, le=settings.max_wait_seconds,
+                                             description="Seconds to wait for the job to finish (long poll)."),
+                         who: str = Depends(owner)) -> Response:
+        job = await anyio.to_thread.run_sync(job_of, job_id, who)
+        deadline = time.monotonic() + wait
+        while job["status"] not in FINAL and time.monotonic() < deadline:
+            await anyio.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
+            job = await anyio.to_thread.run_sync(job_of, job_id, who)
+        if job["status"] in ("queued", "running"):
+            raise ApiError(409, "not_ready", f"job is {job['status']}; poll GET /v1/jobs/{job_id} or add ?wait=",
+                           {"Retry-After": "1"})
+        if job["status"] != "succeeded":
+            err = job.get("error") or {}
+            raise ApiError(409, f"job_{job['status']}",
+                           f"job {job['status']}, no result: {err.get('message', 'no detail')}")
+        data = await anyio.to_thread.run_sync(_result_bytes, store, job_id, format)
+        stem = PurePath(job["input"]["filename"]).stem or "result"
+        return Response(data, media_type=MEDIA[format],
+                        headers={"Content-Disposition": f'attachment; filename="{_ascii(stem)}.{format}"'})
+
+    @app.delete("/v1/jobs/{job_id}", tags=["jobs"], summary="Cancel a queued/running job, or delete a finished one",
+                responses={**error_responses(401, 404, 422, 429, 503),
+                           200: {"model": Job, "description": "Cancelled; the job as it is now"},
+                           204: {"description": "Deleted with its input and results"}})
+    def delete_job(job_id: str = JOB_ID, who: str = Depends(owner)) -> Response:
+        job = job_of(job_id, who)
+        if job["status"] in ("queued", "running") and store.cancel(job_id):
+            return job_response(store.get(job_id))
+        store.delete(job_id)
+        return Response(status_code=204)
+
+    # ------------------------------------------------------------------ ops
+    @app.get("/healthz", tags=["ops"], response_model=Health, summary="The process is up")
+    def healthz() -> dict:
+        return {"status": "ok"}
+
+    @app.get("/readyz", tags=["ops"], response_model=Ready, summary="Redis reachable and a worker alive",
+             responses=error_responses(503))
+    def readyz() -> dict:
+        try:
+            store.r.ping()
+            workers, depth = len(store.workers_alive()), store.queue_depth()
+        except Exception as e:
+            raise ApiError(503, "not_ready", f"Redis unreachable: {type(e).__name__}") from None
+        if workers == 0:
+            raise ApiError(503, "not_ready", "Redis reachable but no worker alive")
+        return {"status": "ready", "redis": True, "workers": workers, "queue_depth": depth}
+
+    @app.get("/metrics", tags=["ops"], summary="Prometheus metrics", response_class=Response,
+             responses={200: {"content": {"text/plain": {"example": "fastmesh_queue_depth 0.0\n"}}}})
+    def prometheus() -> Response:
+        return Response(metrics.render(), media_type="text/plain; version=0.0.4; charset=utf-8")
+
+    # Each add_middleware wraps the previous ones: CORS ends outermost, so 413s and 429s carry its headers too.
+    app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes)
+    app.add_middleware(RequestMetrics, metrics=metrics)
+    if settings.cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
+                           allow_methods=["GET", "POST", "DELETE"],
+                           allow_headers=["Authorization", "Idempotency-Key", "Content-Type"],
+                           expose_headers=["Location", "Retry-After", "X-Queue-Position"])
+    return app
+
+
+def _idempotent_job(store: Store, who: str, key: str, fingerprint: str, wait: float = 0.0) -> dict | None:
+    """The job an Idempotency-Key already names (same request), None if unclaimed; 409 for another request."""
+    deadline = time.monotonic() + wait
+    while True:
+        k = f"{store.p}:idem:{who}:{hashlib.sha256(key.encode()).hexdigest()}"
+        raw = store.r.get(k)
+        if raw is None:
+            return None
+        job_id, _, fp = raw.decode().partition(" ")
+        job = store.get(job_id) if job_id != "pending" else None
+        if job_id != "pending" and (job is None or job["owner"] != who):
+            store.idempotency_release(who, key)  # its job was deleted or expired: the key is free again
+            return None
+        if fp != fingerprint:
+            raise ApiError(409, "idempotency_conflict",
+                           "this Idempotency-Key was used for a different file or parameters")
+        if job is not None:
+            return job
+        if time.monotonic() >= deadline:
+            return None
+        time.sleep(0.05)
+
+
+def _retry_after(store: Store, depth: int) -> int:
+    """Seconds until a queue slot is likely free: mean job time / live workers, within [1, 600]."""
+    stats = store.stage_stats().get("total", {})
+    mean = stats.get("sum", 0.0) / stats["count"] if stats.get("count") else 5.0
+    workers = max(1, len(store.workers_alive()))
+    return int(min(600, max(1, round(mean / workers))))
+
+
+def _result_bytes(store: Store, job_id: str, fmt: str) -> bytes:
+    data = store.get_result(job_id, fmt)
+    if data is not None:
+        return data
+    mesh = store.get_result(job_id, "npz")
+    if mesh is None:
+        raise ApiError(404, "not_found", "the result is no longer stored (retention expired or deleted)")
+    data = export_mesh(*mesh_from_bytes(mesh), fmt)  # a format not exported with the job: convert once, keep
+    store.put_result(job_id, fmt, data, ttl=store.ttl_of(job_id))
+    return data
+
+
+def _ascii(name: str) -> str:
+    return "".join(c if c.isascii() and c.isprintable() and c not in '"\\' else "_" for c in name)[:100] or "result"
+
+
+def _reap_loop(store: Store, stop: threading.Event) -> None:
+    """Requeue jobs of dead workers even when no worker is alive to notice."""
+    while not stop.wait(store.settings.reaper_interval):
+        try:
+            for job_id, action in store.reap():
+                log.warning("reaper: job %s %s", job_id, action)
+        except Exception as e:  # Redis down: try again next tick
+            log.warning("reaper: %s", e)

@@ -1,0 +1,110 @@
+"""Response models: they document the API (OpenAPI with examples); the handlers return plain dicts."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Status = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+
+JOB_EXAMPLE = {
+    "id": "3f2b9c1d4e5f40718293a4b5c6d7e8f9",
+    "status": "succeeded",
+    "progress": {"stage": "done", "fraction": 1.0},
+    "created_at": "2025-05-01T12:00:00.000000Z",
+    "started_at": "2025-05-01T12:00:00.210000Z",
+    "finished_at": "2025-05-01T12:00:04.870000Z",
+    "params": {"seed": 0, "temperature": 0.5, "top_k": 10, "top_p": 0.95, "max_vertices": 1000,
+               "enhancer": True, "filtering": True, "formats": ["glb"]},
+    "input": {"filename": "chair.ply", "kind": "points", "points": 20000, "vertices": None, "faces": None},
+    "result": {"vertices": 412, "faces": 806, "tokens": 412, "formats": ["glb"]},
+    "timings": {"queue": 0.21, "load": 0.05, "encode": 0.12, "vertices": 3.1, "enhancer": 0.2, "faces": 0.9,
+                "filtering": 0.05, "export": 0.02, "total": 4.87},
+    "error": None,
+}
+
+
+class ErrorDetail(BaseModel):
+    code: str = Field(description="Stable machine-readable reason, e.g. 'unreadable', 'queue_full'.")
+    message: str = Field(description="What went wrong, for people.")
+
+
+class ErrorBody(BaseModel):
+    error: ErrorDetail
+    model_config = ConfigDict(json_schema_extra={
+        "examples": [{"error": {"code": "unreadable", "message": "cannot parse .ply file: ..."}}]})
+
+
+class Progress(BaseModel):
+    stage: str | None = Field(description="queued, starting, encode, vertices, enhancer, faces, filtering, export, "
+                                          "done, failed or cancelled.")
+    fraction: float = Field(description="Fraction of the current stage done, 0..1.")
+
+
+class InputInfo(BaseModel):
+    filename: str
+    kind: Literal["mesh", "points"]
+    points: int | None = Field(description="Number of points of a point cloud (null for a mesh).")
+    vertices: int | None = Field(description="Vertices of a mesh input (null for a point cloud).")
+    faces: int | None = Field(description="Faces of a mesh input (null for a point cloud).")
+
+
+class ResultInfo(BaseModel):
+    vertices: int
+    faces: int
+    tokens: int = Field(description="Vertex tokens generated.")
+    formats: list[str] = Field(description="Formats exported with the job; the others are converted on request.")
+
+
+class Timings(BaseModel):
+    """Seconds.  ``queue``: created -> started; ``load``: parsing the upload; then the pipeline's stages;
+    ``export``: writing the formats; ``total``: created -> finished.  Null until known."""
+
+    queue: float | None = None
+    load: float | None = None
+    encode: float | None = None
+    vertices: float | None = None
+    enhancer: float | None = None
+    faces: float | None = None
+    filtering: float | None = None
+    export: float | None = None
+    total: float | None = None
+
+
+class Job(BaseModel):
+    id: str
+    status: Status
+    progress: Progress
+    created_at: str | None
+    started_at: str | None
+    finished_at: str | None
+    params: dict
+    input: InputInfo
+    result: ResultInfo | None
+    timings: Timings
+    error: ErrorDetail | None
+    model_config = ConfigDict(json_schema_extra={"examples": [JOB_EXAMPLE]})
+
+
+class Health(BaseModel):
+    status: str
+    model_config = ConfigDict(json_schema_extra={"examples": [{"status": "ok"}]})
+
+
+class Ready(BaseModel):
+    status: str
+    redis: bool
+    workers: int
+    queue_depth: int | None
+    model_config = ConfigDict(json_schema_extra={
+        "examples": [{"status": "ready", "redis": True, "workers": 1, "queue_depth": 0}]})
+
+
+def error_responses(*codes: int) -> dict:
+    """OpenAPI ``responses=`` entries for the error statuses a route can answer."""
+    text = {400: "Bad request", 401: "Missing or unknown API key", 404: "No such job (for this key)",
+            409: "Conflict with the job's state", 413: "Upload or input too large", 415: "Unsupported file type",
+            422: "Invalid file or parameter", 429: "Queue full or rate limited (see Retry-After)",
+            503: "Redis unreachable"}
+    return {c: {"model": ErrorBody, "description": text.get(c, "Error")} for c in codes}

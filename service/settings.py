@@ -1,0 +1,76 @@
+"""Every knob of the service and its workers, read from ``FASTMESH_*`` environment variables.
+
+One class for the API, the workers and ``make run``: a worker on another machine needs only
+``FASTMESH_REDIS_URL`` (plus the same prefix and queue name if those were changed).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from fastmesh.io import EXPORT_FORMATS
+
+CommaList = Annotated[list[str], NoDecode]
+
+
+class Settings(BaseSettings):
+    """Configuration; each field is the environment variable ``FASTMESH_<NAME>``."""
+
+    model_config = SettingsConfigDict(env_prefix="FASTMESH_", extra="ignore")
+
+    # --- where things live
+    redis_url: str = Field("redis://127.0.0.1:6379/0", description="Redis holding jobs, inputs, results and the queue.")
+    redis_prefix: str = Field("fastmesh", description="Prefix of every key the service writes (the RQ queue aside).")
+    queue_name: str = Field("fastmesh", description="RQ queue the API fills and the workers drain.")
+    host: str = "127.0.0.1"
+    port: int = 8000
+
+    # --- access
+    api_keys: CommaList = Field(default_factory=list,
+                                description="Comma-separated bearer keys; empty = no authentication.")
+    cors_origins: CommaList = Field(default_factory=list,
+                                    description="Comma-separated origins allowed by CORS ('*' for any); empty = off.")
+    rate_limit_per_minute: int = Field(1200, ge=0, description="/v1 requests per key (or IP) per minute; 0 = off.")
+    submit_rate_limit_per_minute: int = Field(120, ge=0, description="Job submissions per key per minute; 0 = off.")
+
+    # --- input limits
+    max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0, description="Largest accepted upload (413 above).")
+    max_points: int = Field(500_000, gt=0, description="Most points / vertices in an input.")
+    max_faces: int = Field(1_000_000, gt=0, description="Most faces in an input mesh.")
+    max_queue_depth: int = Field(100, ge=1, description="Queued jobs above which submissions get 429.")
+    default_formats: CommaList = Field(default_factory=lambda: ["glb"],
+                                       description="Formats exported by the worker when a job names none.")
+    max_wait_seconds: float = Field(300.0, ge=0, description="Longest long-poll of GET .../result?wait=S.")
+
+    # --- jobs and workers
+    retention_seconds: int = Field(24 * 3600, gt=0, description="How long jobs, inputs and results stay in Redis.")
+    job_timeout: float = Field(600.0, gt=0, description="Seconds a job may run before it fails with 'timeout'.")
+    max_attempts: int = Field(3, ge=1, description="Runs of a job whose worker died before it fails 'worker_lost'.")
+    heartbeat_interval: float = Field(2.0, gt=0, description="Seconds between a worker's heartbeats.")
+    heartbeat_ttl: float = Field(10.0, gt=0, description="A running job whose heartbeat is older is taken as lost.")
+    reaper_interval: float = Field(3.0, gt=0, description="Seconds between scans for lost and overdue jobs.")
+    progress_interval: float = Field(0.25, ge=0, description="Least seconds between two progress writes of a job.")
+    weights: str | None = Field(None, description="Weights directory for the workers; unset = shipped weights.")
+    device: str | None = Field(None, description="Torch device for the workers (cpu, cuda); unset = best available.")
+    debug_step_delay: float = Field(0.0, ge=0, description="Testing only: a worker sleeps this long in every "
+                                    "progress callback, so fault and cancellation tests can catch a job mid-run.")
+    torch_threads: int | None = Field(None, ge=1, description="torch.set_num_threads in a worker; unset = default.")
+
+    @field_validator("api_keys", "cors_origins", "default_formats", mode="before")
+    @classmethod
+    def _split_commas(cls, v):
+        if isinstance(v, str):
+            return [s.strip() for s in v.split(",") if s.strip()]
+        return v
+
+    @field_validator("default_formats")
+    @classmethod
+    def _known_formats(cls, v: list[str]) -> list[str]:
+        v = [f.lower() for f in v]
+        bad = [f for f in v if f not in EXPORT_FORMATS]
+        if bad or not v:
+            raise ValueError(f"default_formats must be a non-empty subset of {', '.join(EXPORT_FORMATS)}")
+        return v

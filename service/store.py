@@ -1,0 +1,437 @@
+"""Jobs, inputs and results in Redis; shared by the API and the workers.
+
+Layout (``P`` is ``Settings.redis_prefix``)::
+
+    P:job:<id>              hash: owner status attempt stage fraction created_at started_at finished_at
+                                  params input result timings error filename worker   (JSON-encoded values)
+    P:input:<id>            npz bytes of the parsed input shape
+    P:result:<id>:<fmt>     exported mesh (glb/obj/ply) and ``npz`` (vertices, faces) for other formats
+    P:hb:<id>               heartbeat of the attempt running the job (value = attempt), short TTL
+    P:running               set of job ids in status "running" (what the reaper scans)
+    P:idem:<owner>:<sha>    "<job id> <request fingerprint>" for Idempotency-Key
+    P:rate:<kind>:<owner>:<minute>   fixed-window request counters
+    P:workers               zset worker name -> last heartbeat (unix seconds)
+    P:worker:<name>         hash: pid host loads jobs weights started_at
+    P:stats:jobs            hash: submitted succeeded failed cancelled retried
+    P:stats:stage:<stage>   hash: count sum b:<le> (a histogram of stage durations)
+
+Every status change is a compare-and-set on (status, attempt) in one Lua script, so a late
+write from a worker that was presumed dead, or that lost a race with a DELETE, changes nothing.
+The RQ queue only carries ``(job id, attempt)``; this hash is the truth about a job.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import time
+import uuid
+from datetime import datetime, timezone
+
+import numpy as np
+import redis
+from rq import Queue
+
+from fastmesh.io import EXPORT_FORMATS, Shape
+
+from .settings import Settings
+
+STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")
+FINAL = ("succeeded", "failed", "cancelled")
+TIMING_KEYS = ("queue", "load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total")
+STAGE_BUCKETS = (0.01, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0)
+TASK = "worker.tasks.run_job"  # by name: the API never imports the worker (or torch)
+RQ_GRACE = 30  # RQ's hard timeout backs up our cooperative one by this many seconds
+
+# KEYS: job, hb, running set, keys to EXPIRE...
+# ARGV: allowed statuses (comma list), attempt ('' = any), ttl ('' = keep), job id, final ('1' = leave running),
+#       field, value, ...
+_TRANSITION = """
+local st = redis.call('HGET', KEYS[1], 'status')
+if not st then return 0 end
+local ok = false
+for s in string.gmatch(ARGV[1], '[^,]+') do if s == st then ok = true end end
+if not ok then return 0 end
+if ARGV[2] ~= '' and redis.call('HGET', KEYS[1], 'attempt') ~= ARGV[2] then return 0 end
+if #ARGV > 5 then redis.call('HSET', KEYS[1], unpack(ARGV, 6)) end
+if ARGV[5] == '1' then redis.call('SREM', KEYS[3], ARGV[4]); redis.call('DEL', KEYS[2]) end
+if ARGV[3] ~= '' then
+  for i = 1, #KEYS do if i ~= 2 and i ~= 3 then redis.call('EXPIRE', KEYS[i], ARGV[3]) end end
+end
+return 1
+"""
+
+# KEYS: job, hb, running set.  ARGV: attempt, now, worker, hb ttl ms, job id
+_START = """
+if redis.call('HGET', KEYS[1], 'status') ~= 'queued' then return 0 end
+if redis.call('HGET', KEYS[1], 'attempt') ~= ARGV[1] then return 0 end
+redis.call('HSET', KEYS[1], 'status', 'running', 'started_at', ARGV[2], 'worker', ARGV[3],
+           'stage', '"starting"', 'fraction', '0')
+redis.call('SET', KEYS[2], ARGV[1], 'PX', ARGV[4])
+redis.call('SADD', KEYS[3], ARGV[5])
+return 1
+"""
+
+# KEYS: job, hb.  ARGV: attempt, hb ttl ms
+_HEARTBEAT = """
+if redis.call('HGET', KEYS[1], 'status') ~= 'running' then return 0 end
+if redis.call('HGET', KEYS[1], 'attempt') ~= ARGV[1] then return 0 end
+redis.call('SET', KEYS[2], ARGV[1], 'PX', ARGV[2])
+return 1
+"""
+
+
+def iso(t: float | None) -> str | None:
+    """Unix seconds -> ISO 8601 UTC ('2025-01-01T12:00:00.123456Z'), None stays None."""
+    if t is None:
+        return None
+    return datetime.fromtimestamp(t, timezone.utc).isoformat().replace("+00:00", "Z")
+
+
+def shape_to_bytes(shape: Shape) -> bytes:
+    """The parsed input, as it travels to the worker (npz, float64 / int64, no pickle)."""
+    arrays = {"vertices": shape.vertices}
+    if shape.faces is not None:
+        arrays["faces"] = shape.faces
+    if shape.normals is not None:
+        arrays["normals"] = shape.normals
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def shape_from_bytes(data: bytes) -> Shape:
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        return Shape(vertices=z["vertices"], faces=z["faces"] if "faces" in z else None,
+                     normals=z["normals"] if "normals" in z else None)
+
+
+def mesh_to_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, vertices=np.asarray(vertices, np.float64), faces=np.asarray(faces, np.int64))
+    return buf.getvalue()
+
+
+def mesh_from_bytes(data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        return z["vertices"], z["faces"]
+
+
+class Store:
+    """Redis access for one settings object.  Thread-safe (redis-py pools connections)."""
+
+    def __init__(self, settings: Settings, client: redis.Redis | None = None):
+        self.settings = settings
+        # Bytes in, bytes out: RQ needs raw bytes and our blobs are binary; hashes are decoded by hand.
+        self.r = client or redis.Redis.from_url(settings.redis_url)
+        self.p = settings.redis_prefix
+        self.queue = Queue(settings.queue_name, connection=self.r)
+        self._transition = self.r.register_script(_TRANSITION)
+        self._start = self.r.register_script(_START)
+        self._heartbeat = self.r.register_script(_HEARTBEAT)
+
+    # ------------------------------------------------------------------ keys
+    def k_job(self, job_id: str) -> str:
+        return f"{self.p}:job:{job_id}"
+
+    def k_input(self, job_id: str) -> str:
+        return f"{self.p}:input:{job_id}"
+
+    def k_result(self, job_id: str, fmt: str) -> str:
+        return f"{self.p}:result:{job_id}:{fmt}"
+
+    def k_hb(self, job_id: str) -> str:
+        return f"{self.p}:hb:{job_id}"
+
+    @property
+    def k_running(self) -> str:
+        return f"{self.p}:running"
+
+    def result_keys(self, job_id: str) -> list[str]:
+        return [self.k_result(job_id, f) for f in (*EXPORT_FORMATS, "npz")]
+
+    # ------------------------------------------------------------------ reading
+    def get(self, job_id: str) -> dict | None:
+        """The job's hash, values decoded (JSON fields parsed), or None if unknown / expired."""
+        raw = self.r.hgetall(self.k_job(job_id))
+        if not raw:
+            return None
+        out = {}
+        for k, v in raw.items():
+            k, v = k.decode(), v.decode()
+            out[k] = v if k in ("owner", "status", "worker", "rq_id") else json.loads(v)
+        out["id"] = job_id
+        return out
+
+    def public(self, job: dict) -> dict:
+        """The job as ``GET /v1/jobs/{id}`` shows it (the interface of issue 4)."""
+        timings = {k: None for k in TIMING_KEYS}
+        timings.update({k: v for k, v in (job.get("timings") or {}).items() if k in TIMING_KEYS})
+        return {
+            "id": job["id"],
+            "status": job["status"],
+            "progress": {"stage": job.get("stage"), "fraction": job.get("fraction", 0.0)},
+            "created_at": iso(job.get("created_at")),
+            "started_at": iso(job.get("started_at")),
+            "finished_at": iso(job.get("finished_at")),
+            "params": job.get("params"),
+            "input": job.get("input"),
+            "result": job.get("result"),
+            "timings": timings,
+            "error": job.get("error"),
+        }
+
+    def queue_depth(self) -> int:
+        return self.queue.count
+
+    def running_count(self) -> int:
+        return int(self.r.scard(self.k_running))
+
+    def workers_alive(self) -> list[str]:
+        cutoff = time.time() - self.settings.heartbeat_ttl
+        return [w.decode() for w in self.r.zrangebyscore(f"{self.p}:workers", cutoff, "+inf")]
+
+    def queue_position(self, job: dict) -> int | None:
+        """0-based place in the queue of a queued job (None when not queued or unknown)."""
+        if job["status"] != "queued" or not job.get("rq_id"):
+            return None
+        ids = [i.decode() for i in self.r.lrange(self.queue.key, 0, -1)]
+        return ids.index(job["rq_id"]) if job["rq_id"] in ids else None
+
+    # ------------------------------------------------------------------ transitions
+    def transition(self, job_id: str, allowed: str | tuple[str, ...], fields: dict | None = None,
+                   attempt: int | None = None, final: bool = False, ttl: int | None = None,
+                   expire: list[str] | None = None) -> bool:
+        """Compare-and-set: apply ``fields`` only if status is in ``allowed`` (and attempt matches)."""
+        allowed = allowed if isinstance(allowed, str) else ",".join(allowed)
+        argv = [allowed, "" if attempt is None else str(attempt), "" if ttl is None else str(ttl), job_id,
+                "1" if final else "0"]
+        for k, v in (fields or {}).items():
+            argv += [k, v if k in ("owner", "status", "worker", "rq_id") else json.dumps(v)]
+        keys = [self.k_job(job_id), self.k_hb(job_id), self.k_running, *(expire or [])]
+        return bool(self._transition(keys=keys, args=argv))
+
+    def create(self, owner: str, params: dict, input_info: dict, shape_bytes: bytes, load_seconds: float) -> str:
+        """Store a new queued job and its input, and enqueue it.  Returns the job id."""
+        job_id = uuid.uuid4().hex
+        now = time.time()
+        ttl = self.settings.retention_seconds
+        fields = {"owner": owner, "status": "queued", "attempt": 1, "stage": "queued", "fraction": 0.0,
+                  "created_at": now, "started_at": None, "finished_at": None, "params": params,
+                  "input": input_info, "result": None, "timings": {"load": load_seconds}, "error": None}
+        with self.r.pipeline() as pipe:
+            pipe.set(self.k_input(job_id), shape_bytes, ex=ttl)
+            pipe.hset(self.k_job(job_id), mapping={
+                k: v if k in ("owner", "status") else json.dumps(v) for k, v in fields.items()})
+            pipe.expire(self.k_job(job_id), ttl)
+            pipe.hincrby(f"{self.p}:stats:jobs", "submitted", 1)
+            pipe.execute()
+        self.enqueue(job_id, 1)
+        return job_id
+
+    def enqueue(self, job_id: str, attempt: int) -> None:
+        rq_id = f"{job_id}-{attempt}"
+        self.r.hset(self.k_job(job_id), "rq_id", rq_id)
+        self.queue.enqueue_call(TASK, args=(job_id, attempt), job_id=rq_id,
+                                timeout=int(math.ceil(self.settings.job_timeout)) + RQ_GRACE,
+                                result_ttl=0, failure_ttl=self.settings.retention_seconds,
+                                description=f"fastmesh job {job_id} attempt {attempt}")
+
+    def start(self, job_id: str, attempt: int, worker: str) -> bool:
+        """queued -> running for this attempt (and its first heartbeat), atomically."""
+        hb_ms = int(self.settings.heartbeat_ttl * 1000)
+        return bool(self._start(keys=[self.k_job(job_id), self.k_hb(job_id), self.k_running],
+                                args=[str(attempt), json.dumps(time.time()), worker, hb_ms, job_id]))
+
+    def heartbeat(self, job_id: str, attempt: int) -> bool:
+        hb_ms = int(self.settings.heartbeat_ttl * 1000)
+        return bool(self._heartbeat(keys=[self.k_job(job_id), self.k_hb(job_id)], args=[str(attempt), hb_ms]))
+
+    def progress(self, job_id: str, attempt: int, stage: str, fraction: float) -> bool:
+        """Record progress; False when the job is no longer this attempt's to run (cancelled, requeued)."""
+        return self.transition(job_id, "running", {"stage": stage, "fraction": round(float(fraction), 4)},
+                               attempt=attempt)
+
+    def still_mine(self, job_id: str, attempt: int) -> bool:
+        st, at = self.r.hmget(self.k_job(job_id), "status", "attempt")
+        return st == b"running" and at is not None and int(at) == attempt
+
+    def finish(self, job_id: str, attempt: int | None, status: str, *, allowed=("running",),
+               result: dict | None = None, error: dict | None = None, timings: dict | None = None) -> bool:
+        """Move a job to a final status, set the retention clock on it, its input and results."""
+        job = self.get(job_id)
+        if job is None:
+            return False
+        now = time.time()
+        t = dict(job.get("timings") or {})
+        t.update(timings or {})
+        t["total"] = now - job["created_at"]
+        fields = {"status": status, "finished_at": now, "timings": t, "error": error,
+                  "stage": "done" if status == "succeeded" else status,
+                  "fraction": 1.0 if status == "succeeded" else job.get("fraction", 0.0)}
+        if result is not None:
+            fields["result"] = result
+        ok = self.transition(job_id, allowed, fields, attempt=attempt, final=True,
+                             ttl=self.settings.retention_seconds,
+                             expire=[self.k_input(job_id), *self.result_keys(job_id)])
+        if ok:
+            with self.r.pipeline() as pipe:
+                pipe.hincrby(f"{self.p}:stats:jobs", status, 1)
+                if status == "succeeded":
+                    for k, v in t.items():
+                        if v is not None:
+                            self._observe(pipe, k, v)
+                pipe.execute()
+        return ok
+
+    def _observe(self, pipe, stage: str, seconds: float) -> None:
+        key = f"{self.p}:stats:stage:{stage}"
+        pipe.hincrby(key, "count", 1)
+        pipe.hincrbyfloat(key, "sum", float(seconds))
+        for le in STAGE_BUCKETS:
+            if seconds <= le:
+                pipe.hincrby(key, f"b:{le}", 1)
+
+    def stage_stats(self) -> dict[str, dict[str, float]]:
+        out = {}
+        for key in self.r.scan_iter(f"{self.p}:stats:stage:*"):
+            stage = key.decode().rsplit(":", 1)[1]
+            out[stage] = {k.decode(): float(v) for k, v in self.r.hgetall(key).items()}
+        return out
+
+    def job_counters(self) -> dict[str, int]:
+        return {k.decode(): int(v) for k, v in self.r.hgetall(f"{self.p}:stats:jobs").items()}
+
+    # ------------------------------------------------------------------ user actions
+    def cancel(self, job_id: str) -> bool:
+        """queued or running -> cancelled.  A running worker notices at its next cancel check."""
+        job = self.get(job_id)
+        if job is None or job["status"] not in ("queued", "running"):
+            return False
+        ok = self.finish(job_id, None, "cancelled", allowed=("queued", "running"),
+                         error={"code": "cancelled", "message": "cancelled by request"})
+        if ok and job.get("rq_id"):
+            self.queue.remove(job["rq_id"])  # the worker would skip it anyway; this keeps the depth honest
+        return ok
+
+    def delete(self, job_id: str) -> None:
+        self.r.delete(self.k_job(job_id), self.k_input(job_id), self.k_hb(job_id), *self.result_keys(job_id))
+        self.r.srem(self.k_running, job_id)
+
+    # ------------------------------------------------------------------ blobs
+    def put_result(self, job_id: str, fmt: str, data: bytes, ttl: int | None = None) -> None:
+        self.r.set(self.k_result(job_id, fmt), data, ex=ttl or self.settings.retention_seconds)
+
+    def get_result(self, job_id: str, fmt: str) -> bytes | None:
+        return self.r.get(self.k_result(job_id, fmt))
+
+    def get_input(self, job_id: str) -> bytes | None:
+        return self.r.get(self.k_input(job_id))
+
+    def ttl_of(self, job_id: str) -> int:
+        t = self.r.ttl(self.k_job(job_id))
+        return t if t and t > 0 else self.settings.retention_seconds
+
+    # ------------------------------------------------------------------ idempotency and rate limits
+    def idempotency_claim(self, owner: str, key: str, job_id_fp: str) -> str | None:
+        """Claim ``key`` for ``job_id_fp`` ("<id> <fingerprint>").  Returns the existing claim, or None if ours."""
+        k = f"{self.p}:idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}"
+        if self.r.set(k, job_id_fp, nx=True, ex=self.settings.retention_seconds):
+            return None
+        old = self.r.get(k)
+        return old.decode() if old else None
+
+    def idempotency_replace(self, owner: str, key: str, old: str, new: str) -> bool:
+        """Swap a claim pointing at a job that no longer exists (compare-and-set)."""
+        k = f"{self.p}:idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}"
+        with self.r.pipeline() as pipe:
+            try:
+                pipe.watch(k)
+                cur = pipe.get(k)
+                if cur is not None and cur.decode() != old:
+                    return False
+                pipe.multi()
+                pipe.set(k, new, ex=self.settings.retention_seconds)
+                pipe.execute()
+                return True
+            except redis.WatchError:
+                return False
+
+    def idempotency_release(self, owner: str, key: str) -> None:
+        self.r.delete(f"{self.p}:idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}")
+
+    def rate_hit(self, kind: str, owner: str, limit: int) -> int:
+        """Count one request in this minute's window; return seconds to wait (0 = allowed)."""
+        if limit <= 0:
+            return 0
+        now = time.time()
+        window = int(now // 60)
+        k = f"{self.p}:rate:{kind}:{owner}:{window}"
+        with self.r.pipeline() as pipe:
+            pipe.incr(k)
+            pipe.expire(k, 61)
+            count = pipe.execute()[0]
+        return 0 if count <= limit else max(1, int(math.ceil((window + 1) * 60 - now)))
+
+    # ------------------------------------------------------------------ workers and the reaper
+    def worker_beat(self, name: str, info: dict | None = None) -> None:
+        ttl = int(math.ceil(max(self.settings.heartbeat_ttl * 3, 60)))
+        with self.r.pipeline() as pipe:
+            pipe.zadd(f"{self.p}:workers", {name: time.time()})
+            if info:
+                pipe.hset(f"{self.p}:worker:{name}", mapping={k: json.dumps(v) for k, v in info.items()})
+            pipe.expire(f"{self.p}:worker:{name}", ttl)
+            # Forget workers silent for long (their own hash has expired by then too).
+            pipe.zremrangebyscore(f"{self.p}:workers", "-inf", time.time() - ttl)
+            pipe.execute()
+
+    def worker_gone(self, name: str) -> None:
+        self.r.zrem(f"{self.p}:workers", name)
+
+    def worker_info(self, name: str) -> dict:
+        return {k.decode(): json.loads(v) for k, v in self.r.hgetall(f"{self.p}:worker:{name}").items()}
+
+    def reap(self) -> list[tuple[str, str]]:
+        """Requeue or fail running jobs whose worker stopped heart-beating; fail overdue ones.
+
+        Safe to run from any number of processes at once: each decision is a compare-and-set.
+        Returns ``(job id, action)`` pairs, action in {"requeued", "lost", "timeout", "forgotten"}.
+        """
+        actions = []
+        s = self.settings
+        for raw in self.r.smembers(self.k_running):
+            job_id = raw.decode()
+            job = self.get(job_id)
+            if job is None or job["status"] != "running":
+                self.r.srem(self.k_running, job_id)
+                actions.append((job_id, "forgotten"))
+                continue
+            attempt = int(job["attempt"])
+            if self.r.exists(self.k_hb(job_id)):
+                # Alive but overdue (a hung decoder keeps its heartbeat thread going): fail it; the worker's
+                # next cancel check sees the status change and stops.
+                if time.time() - job["started_at"] > s.job_timeout + s.heartbeat_ttl:
+                    if self.finish(job_id, attempt, "failed", error=timeout_error(s.job_timeout)):
+                        actions.append((job_id, "timeout"))
+                continue
+            if attempt < s.max_attempts:
+                ok = self.transition(job_id, "running", {
+                    "status": "queued", "attempt": attempt + 1, "stage": "queued", "fraction": 0.0,
+                    "worker": ""}, attempt=attempt, final=True)
+                if ok:
+                    self.r.hincrby(f"{self.p}:stats:jobs", "retried", 1)
+                    self.enqueue(job_id, attempt + 1)
+                    actions.append((job_id, "requeued"))
+            else:
+                err = {"code": "worker_lost",
+                       "message": f"the worker running this job stopped responding (killed or crashed) "
+                                  f"on each of {attempt} attempt(s); giving up"}
+                if self.finish(job_id, attempt, "failed", error=err):
+                    actions.append((job_id, "lost"))
+        return actions
+
+
+def timeout_error(seconds: float) -> dict:
+    return {"code": "timeout", "message": f"the job ran longer than the {seconds:g} s limit (job_timeout)"}

@@ -1,0 +1,184 @@
+"""Real-process plumbing for tests and benchmarks: Redis, a served API, ``fastmesh-worker`` processes.
+
+Nothing here is mocked: the API is served by uvicorn on a real port (in a thread of the calling
+process, so several differently-configured apps start in milliseconds), workers are subprocesses
+of the installed ``fastmesh-worker`` console script, Redis is the one on 127.0.0.1:6379 (a database
+number of the caller's choosing) or, when none answers there, a ``redis-server`` started on a
+free port.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import redis
+
+from .settings import Settings
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(pred: Callable[[], object], timeout: float = 20.0, interval: float = 0.05, what: str = "condition"):
+    """Poll ``pred`` until it returns something truthy; return that.  TimeoutError names ``what``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = pred()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out after {timeout:g} s waiting for {what}")
+        time.sleep(interval)
+
+
+class RedisServer:
+    """A throw-away ``redis-server`` (no persistence unless ``appendonly``), stopped by :meth:`stop`."""
+
+    def __init__(self, port: int | None = None, appendonly: bool = False, directory: str | None = None):
+        exe = shutil.which("redis-server")
+        if exe is None:
+            raise RuntimeError("redis-server is not installed; install it with: apt-get install redis-server")
+        self.port = port or free_port()
+        self.dir = directory or tempfile.mkdtemp(prefix="fastmesh-redis-")
+        self.appendonly = appendonly
+        self.exe = exe
+        self.proc: subprocess.Popen | None = None
+        self.start()
+
+    @property
+    def url(self) -> str:
+        return f"redis://127.0.0.1:{self.port}/0"
+
+    def start(self) -> None:
+        args = [self.exe, "--port", str(self.port), "--bind", "127.0.0.1", "--dir", self.dir, "--save", "",
+                "--appendonly", "yes" if self.appendonly else "no"]
+        self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        client = redis.Redis(port=self.port)
+
+        def up():
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"redis-server exited with code {self.proc.returncode}")
+            try:
+                return client.ping()
+            except redis.ConnectionError:
+                return False
+
+        wait_for(up, 10, what=f"redis-server on port {self.port}")
+
+    def stop(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+def redis_for_tests(db: int) -> tuple[str, RedisServer | None]:
+    """``(url, own server or None)``: database ``db`` of 127.0.0.1:6379 if it answers, else a new server."""
+    try:
+        redis.Redis(host="127.0.0.1", port=6379, socket_connect_timeout=1).ping()
+        return f"redis://127.0.0.1:6379/{db}", None
+    except redis.RedisError:
+        server = RedisServer()
+        return server.url.rsplit("/", 1)[0] + f"/{db}", server
+
+
+class ServedApp:
+    """``create_app(settings)`` served by uvicorn in a background thread on a free port."""
+
+    def __init__(self, settings: Settings):
+        import uvicorn
+
+        from .app import create_app
+
+        self.settings = settings
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.app = create_app(settings)
+        config = uvicorn.Config(self.app, host="127.0.0.1", port=self.port, log_level="warning", lifespan="on")
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, name=f"uvicorn-{self.port}", daemon=True)
+        self.thread.start()
+        wait_for(lambda: self.server.started, 15, what="uvicorn to start")
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(10)
+
+
+def worker_command() -> list[str]:
+    """The installed ``fastmesh-worker`` script next to this interpreter (a real console-script process)."""
+    exe = Path(sys.executable).with_name("fastmesh-worker")
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "worker.main"]
+
+
+def settings_env(settings: Settings, **extra: str) -> dict[str, str]:
+    """The environment that makes a subprocess read the same settings."""
+    env = dict(os.environ)
+    for name, value in settings.model_dump().items():
+        key = f"FASTMESH_{name.upper()}"
+        if value is None:
+            env.pop(key, None)
+        elif isinstance(value, list):
+            env[key] = ",".join(value)
+        else:
+            env[key] = str(value)
+    env.setdefault("OMP_NUM_THREADS", "1")
+    env.update(extra)
+    return env
+
+
+class WorkerProcess:
+    """A ``fastmesh-worker`` subprocess; :meth:`wait_ready` returns once it heart-beats in Redis."""
+
+    def __init__(self, settings: Settings, name: str, log_path: str | os.PathLike | None = None,
+                 args: tuple[str, ...] = (), **env: str):
+        self.settings, self.name = settings, name
+        self.log_path = Path(log_path) if log_path else Path(tempfile.mkstemp(prefix=f"{name}-", suffix=".log")[1])
+        self._log = open(self.log_path, "wb")
+        self.proc = subprocess.Popen([*worker_command(), "--name", name, *args], env=settings_env(settings, **env),
+                                     stdout=self._log, stderr=subprocess.STDOUT)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def wait_ready(self, timeout: float = 60.0) -> WorkerProcess:
+        client = redis.Redis.from_url(self.settings.redis_url)
+        key = f"{self.settings.redis_prefix}:workers"
+
+        def ready():
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"worker {self.name} exited ({self.proc.returncode}):\n{self.log()[-3000:]}")
+            return client.zscore(key, self.name) is not None
+
+        wait_for(ready, timeout, what=f"worker {self.name}")
+        return self
+
+    def stop(self, timeout: float = 10.0) -> int | None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._log.close()
+        return self.proc.returncode

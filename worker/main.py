@@ -1,0 +1,100 @@
+"""``fastmesh-worker``: an RQ worker that loads the pipeline once and runs FastMesh jobs.
+
+It runs jobs in its own process (RQ's SimpleWorker: RQ 3's default worker starts a fresh
+interpreter per job, which would reload the model every time).  A heartbeat thread keeps the
+worker and its current job visibly alive in Redis and runs the reaper, which requeues or fails
+the jobs of workers that died (SIGKILL, OOM, lost machine).
+
+Configuration: the ``FASTMESH_*`` environment (see ``service.settings.Settings``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import threading
+import time
+
+import redis
+from rq import SimpleWorker
+
+from service.settings import Settings
+from service.store import Store
+
+from .tasks import STATE
+
+log = logging.getLogger("fastmesh.worker")
+
+
+class FastMeshWorker(SimpleWorker):
+    """SimpleWorker whose warm shutdown also stops the running job at its next cancel check
+    (the job goes back to the queue), instead of waiting minutes for it to finish."""
+
+    def handle_warm_shutdown_request(self):
+        STATE.shutting_down = True
+        super().handle_warm_shutdown_request()
+
+
+def _heartbeat(store: Store, stop: threading.Event) -> None:
+    s = store.settings
+    last_reap = 0.0
+    while True:
+        try:
+            store.worker_beat(STATE.name, STATE.info())
+            cur = STATE.current
+            if cur is not None:
+                store.heartbeat(*cur)
+            if time.monotonic() - last_reap >= s.reaper_interval:
+                last_reap = time.monotonic()
+                for job_id, action in store.reap():
+                    log.warning("reaper: job %s %s", job_id, action)
+        except Exception as e:  # Redis away: keep trying; the job's own writes will fail loudly enough
+            log.warning("heartbeat: %s", e)
+        if stop.wait(s.heartbeat_interval):
+            return
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="fastmesh-worker", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--burst", action="store_true", help="exit when the queue is empty")
+    parser.add_argument("--max-jobs", type=int, default=None, help="exit after this many jobs")
+    parser.add_argument("--name", default=None, help="worker name (default fastmesh-<host>-<pid>)")
+    parser.add_argument("--log-level", default="INFO")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        settings = Settings()
+    except Exception as e:
+        print(f"fastmesh-worker: bad configuration: {e}", file=sys.stderr)
+        return 2
+    if args.name:
+        STATE.name = args.name
+    store = Store(settings)
+    try:
+        store.r.ping()
+    except redis.RedisError as e:
+        print(f"fastmesh-worker: cannot reach Redis at {settings.redis_url}: {e}", file=sys.stderr)
+        return 1
+    STATE.configure(settings, store)
+    STATE.ensure()  # load the model now: a worker is only "alive" once it can take a job
+    stop = threading.Event()
+    beat = threading.Thread(target=_heartbeat, args=(store, stop), name="fastmesh-heartbeat", daemon=True)
+    beat.start()
+    # RQ tunes the socket timeout of the connection it is given for its long BLMOVE: give it its own.
+    rq_conn = redis.Redis.from_url(settings.redis_url)
+    worker = FastMeshWorker([store.queue.name], connection=rq_conn, name=STATE.name)
+    log.info("worker %s ready on queue %s (%s)", STATE.name, settings.queue_name, settings.redis_url)
+    try:
+        worker.work(burst=args.burst, max_jobs=args.max_jobs, logging_level=args.log_level)
+    finally:
+        stop.set()
+        try:
+            store.worker_gone(STATE.name)
+        except redis.RedisError:
+            pass
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

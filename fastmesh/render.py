@@ -70,6 +70,7 @@ class RenderConfig:
     point_depth_bias: float = 0.01
     max_points: int = 200_000  # larger clouds are evenly subsampled (preview, not archive)
     batch_pixels: int = 1 << 20  # candidate pixels per numpy batch (memory ~ 40 B each)
+    face_batch: int = 1 << 18  # faces set up per batch (memory ~ 400 B each)
     min_size: int = 16
     max_size: int = 2048
     # Supersampling is reduced so the working image stays <= this side (memory ~ 24 B per pixel).
@@ -202,8 +203,9 @@ def _barycentric_planes(x: np.ndarray, y: np.ndarray, faces: np.ndarray) -> tupl
     return np.stack([a, b, c], axis=2), area2
 
 
-def _raster_triangles(x, y, depth, faces, zbuf: np.ndarray, side: int, cfg: RenderConfig) -> None:
-    """Depth-test every pixel centre covered by a triangle into ``zbuf`` (ids = face index).
+def _raster_triangles(x, y, depth, faces, zbuf: np.ndarray, side: int, cfg: RenderConfig,
+                      id_offset: int = 0) -> None:
+    """Depth-test every pixel centre covered by a triangle into ``zbuf`` (ids = id_offset + face index).
 
     ``depth`` (N,) is per vertex, normalised to [0, 1] and linear in screen space.
     """
@@ -252,7 +254,7 @@ def _raster_triangles(x, y, depth, faces, zbuf: np.ndarray, side: int, cfg: Rend
             d = dz_t[:, 0] * xx + dz_t[:, 1] * yy + dz_t[:, 2]
             f = sel[t]
             pix = (y0[live[f]] + yy) * side + x0[live[f]] + xx
-            _depth_test(zbuf, pix, d, live[f])
+            _depth_test(zbuf, pix, d, live[f] + id_offset)
 
 
 def _raster_splats(x, y, depth, radius: float, zbuf: np.ndarray, side: int, id_offset: int) -> None:
@@ -343,10 +345,12 @@ def _wire_alpha(x, y, faces, n_faces: int, side: int, width: float, cfg: RenderC
     The line is anti-aliased by a one-pixel ramp; each face draws half its width, the
     neighbour across the edge the other half.
     """
-    planes, _ = _barycentric_planes(x, y, faces)
     # Scale each plane by 1/|grad b_i| once per face: then |plane(pixel)| is the distance itself.
-    grad = np.maximum(np.hypot(planes[:, :, 0], planes[:, :, 1]), 1e-12)
-    dist_planes = (planes / grad[:, :, None]).reshape(-1, 9).astype(np.float32)
+    dist_planes = np.empty((len(faces), 9), dtype=np.float32)
+    for s in range(0, len(faces), cfg.face_batch):
+        planes, _ = _barycentric_planes(x, y, faces[s:s + cfg.face_batch])
+        grad = np.maximum(np.hypot(planes[:, :, 0], planes[:, :, 1]), 1e-12)
+        dist_planes[s:s + len(planes)] = (planes / grad[:, :, None]).reshape(-1, 9)
     ramp = np.float32(width / 2 + 0.5)
 
     def alpha(idx: np.ndarray, ids: np.ndarray) -> np.ndarray:
@@ -410,24 +414,30 @@ def render_mesh(vertices, faces, size: int = 512, wireframe: bool = False, point
     v = _as_points(vertices, "vertices")
     f = _as_faces(faces, len(v))
     pts = None if points is None else _subsample(_as_points(points, "points", allow_empty=True), config)
-    used = v[np.unique(f)]  # unreferenced vertices must not shrink the framing
+    referenced = np.zeros(len(v), dtype=bool)
+    referenced[f.ravel()] = True  # unreferenced vertices must not shrink the framing or depth range
+    used = v[referenced]
     ss = _supersample(size, config)
     side = size * ss
     cam = fit_camera(used if pts is None or len(pts) == 0 else np.concatenate([used, pts]), side, config)
     x, y, iz = cam.project(v)
-    lo, hi = iz[np.unique(f)].min(), iz[np.unique(f)].max()
+    lo, hi = iz[referenced].min(), iz[referenced].max()
     if pts is not None and len(pts):
         px, py, piz = cam.project(pts)
         lo, hi = min(lo, piz.min()), max(hi, piz.max())
     zbuf = np.full(side * side, _EMPTY, dtype=np.int64)
-    _raster_triangles(x, y, _normalised_depth(iz, lo, hi), f, zbuf, side, config)
-    colors = _face_shades(v, f, cam, config)
+    depth = _normalised_depth(iz, lo, hi)
+    colors = np.empty((len(f), 3), dtype=np.float32)
+    for s in range(0, len(f), config.face_batch):  # bounded memory for dense (input) meshes
+        chunk = f[s:s + config.face_batch]
+        _raster_triangles(x, y, depth, chunk, zbuf, side, config, id_offset=s)
+        colors[s:s + len(chunk)] = _face_shades(v, chunk, cam, config)
     if pts is not None and len(pts):
         depth = _normalised_depth(piz, lo, hi) - config.point_depth_bias
         _raster_splats(px, py, depth, config.overlay_point_radius * ss, zbuf, side, id_offset=len(f))
-        colors = np.concatenate([colors, np.tile(np.asarray(config.point_color), (len(pts), 1))])
+        colors = np.concatenate([colors, np.tile(np.asarray(config.point_color, dtype=np.float32), (len(pts), 1))])
     wire = _wire_alpha(x, y, f, len(f), side, config.wire_width * ss, config) if wireframe else None
-    img, cov = _compose(zbuf, colors.astype(np.float32), side, config, wire)
+    img, cov = _compose(zbuf, colors, side, config, wire)
     return _finish(img, cov, ss, alpha)
 
 

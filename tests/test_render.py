@@ -294,3 +294,10 @@ def test_png_round_trip_of_noise(shape):
     img = np.random.default_rng(3).integers(0, 256, size=shape, dtype=np.uint8)
     back = decode_png(to_png(img))
     assert (back == img.reshape(back.shape)).all()
+
+
+def test_face_batches_give_the_same_image():
+    m = trimesh.creation.icosphere(subdivisions=2)
+    whole = render_mesh(m.vertices, m.faces, SIZE, wireframe=True)
+    batched = render_mesh(m.vertices, m.faces, SIZE, wireframe=True, config=RenderConfig(face_batch=37))
+    assert (whole == batched).all()

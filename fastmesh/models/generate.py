@@ -1,0 +1,140 @@
+"""Sampling vertex sequences from a :class:`VertexDecoder`.
+
+Grammar-constrained: every step masks the logits to the tokens the vertex grammar
+allows (block then offsets, strictly increasing, EOS only after a vertex), so
+every sequence decodes to distinct, valid vertices.  ``max_vertices`` forces EOS
+once the budget is spent.  Temperature 0 is greedy decoding.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from ..tokenizer import vertex as vt
+from .kv_cache import KVCache
+from .vertex import VertexDecoder, grammar_mask, grammar_state
+
+
+@dataclass
+class SamplingConfig:
+    temperature: float = 0.5
+    top_k: int = 50
+    top_p: float = 0.95
+    max_vertices: int = 1000
+    seed: int = 0
+
+    def validate(self) -> None:
+        if not 0 <= self.temperature <= 5:
+            raise ValueError("temperature must be in [0, 5]")
+        if self.top_k < 0:
+            raise ValueError("top_k must be >= 0 (0 disables it)")
+        if not 0 < self.top_p <= 1:
+            raise ValueError("top_p must be in (0, 1]")
+        if self.max_vertices < 3:
+            raise ValueError("max_vertices must be at least 3")
+
+
+class Cancelled(Exception):
+    """Raised when a ``should_cancel`` callback asks generation to stop."""
+
+
+def filter_logits(logits: torch.Tensor, top_k: int, top_p: float) -> torch.Tensor:
+    """Keep the ``top_k`` largest logits and the smallest set whose probability reaches ``top_p``."""
+    if top_k > 0 and top_k < logits.shape[-1]:
+        kth = torch.topk(logits, top_k, dim=-1).values[..., -1:]
+        logits = logits.masked_fill(logits < kth, float("-inf"))
+    if top_p < 1.0:
+        sorted_logits, idx = torch.sort(logits, descending=True, dim=-1)
+        cum = sorted_logits.softmax(-1).cumsum(-1)
+        drop = cum - sorted_logits.softmax(-1) > top_p  # keep the token that crosses top_p
+        logits = logits.masked_fill(drop.scatter(-1, idx, drop), float("-inf"))
+    return logits
+
+
+def sample_next(logits: torch.Tensor, cfg: SamplingConfig, gen: torch.Generator | None) -> torch.Tensor:
+    """(B, V) masked logits -> (B,) token ids."""
+    if cfg.temperature == 0:
+        return logits.argmax(-1)
+    logits = filter_logits(logits / cfg.temperature, cfg.top_k, cfg.top_p)
+    return torch.multinomial(logits.softmax(-1), 1, generator=gen).squeeze(-1)
+
+
+@torch.inference_mode()
+def generate(model: VertexDecoder, prefix: torch.Tensor, cfg: SamplingConfig,
+             progress: Callable[[int, int], None] | None = None,
+             should_cancel: Callable[[], bool] | None = None, progress_every: int = 16) -> list[torch.Tensor]:
+    """Sample one vertex-token sequence per prefix row.
+
+    Parameters
+    ----------
+    prefix : (B, M, dim) condition from ``model.condition``.
+    cfg : sampling settings.
+    progress : called as ``progress(step, max_vertices_so_far)`` every ``progress_every`` steps.
+    should_cancel : polled at the same cadence; ``True`` raises :class:`Cancelled`.
+
+    Returns
+    -------
+    list of B int64 tensors: BOS ... EOS (EOS absent only if the token budget ran out).
+    """
+    cfg.validate()
+    b, m, _ = prefix.shape
+    device = prefix.device
+    # Worst case: a block token for every vertex, plus BOS and EOS.
+    max_tokens = 2 * cfg.max_vertices + 2
+    cache = KVCache(model.cfg.depth, b, model.cfg.heads, m + max_tokens, model.cfg.head_dim,
+                    device=device, dtype=prefix.dtype)
+    gen = torch.Generator(device=device).manual_seed(cfg.seed)
+    tokens = torch.full((b, 1), vt.BOS, dtype=torch.long, device=device)
+    logits = model.prefill(prefix, tokens, cache)
+    out = [tokens[:, 0]]
+    block = torch.full((b,), -1, dtype=torch.long, device=device)
+    offset = torch.full((b,), -1, dtype=torch.long, device=device)
+    prev = tokens[:, 0]
+    n_vert = torch.zeros(b, dtype=torch.long, device=device)
+    done = torch.zeros(b, dtype=torch.bool, device=device)
+    for step in range(1, max_tokens):
+        mask = grammar_mask(prev, block, offset, eos_only=n_vert >= cfg.max_vertices)
+        nxt = sample_next(logits.masked_fill(~mask, float("-inf")), cfg, gen)
+        nxt = torch.where(done, torch.full_like(nxt, vt.PAD), nxt)
+        out.append(nxt)
+        is_block = (nxt >= vt.BLOCK0) & (nxt < vt.OFFSET0)
+        is_off = nxt >= vt.OFFSET0
+        block = torch.where(is_block, nxt - vt.BLOCK0, block)
+        offset = torch.where(is_off, nxt - vt.OFFSET0, torch.where(is_block, -1, offset))
+        n_vert += is_off.long()
+        done |= (nxt == vt.EOS) | (nxt == vt.PAD)
+        prev = nxt
+        if step % progress_every == 0:
+            if should_cancel is not None and should_cancel():
+                raise Cancelled("generation cancelled")
+            if progress is not None:
+                progress(step, int(n_vert.max()))
+        if bool(done.all()):
+            break
+        logits = model.decode_step(nxt[:, None], block[:, None], m + step, cache)
+    seqs = torch.stack(out, dim=1)
+    result = []
+    for row in seqs:
+        end = (row == vt.EOS).nonzero()
+        result.append(row[: int(end[0]) + 1] if len(end) else row[row != vt.PAD])
+    return result
+
+
+@torch.inference_mode()
+def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: int) -> torch.Tensor:
+    """Greedy decoding without a cache: the slow reference the cached path must equal."""
+    tokens = torch.full((prefix.shape[0], 1), vt.BOS, dtype=torch.long, device=prefix.device)
+    for _ in range(2 * max_vertices + 1):
+        logits = model(tokens, prefix=prefix)[:, -1]
+        n_vert = (tokens >= vt.OFFSET0).sum(1)
+        block, offset = grammar_state(tokens)
+        eos_only = n_vert >= max_vertices
+        mask = grammar_mask(tokens[:, -1], block[:, -1], offset[:, -1], eos_only=eos_only)
+        nxt = logits.masked_fill(~mask, float("-inf")).argmax(-1)
+        tokens = torch.cat([tokens, nxt[:, None]], dim=1)
+        if bool(((tokens == vt.EOS).any(1)).all()):
+            break
+    return tokens

@@ -1,0 +1,146 @@
+"""Stage I: the vertex decoder.
+
+A decoder-only transformer over FastMesh vertex tokens (``tokenizer.vertex``),
+conditioned by a prefix of point-encoder latents:
+
+    [latent_1 .. latent_M] BOS B O O O B O O ... EOS
+
+Each token's input embedding adds what the grammar already implies: a block
+token embeds its block's three axis coordinates, an offset token the full 7-bit
+cell of its vertex (current block + offset), so the network never has to
+reconstruct absolute positions from the history.  The grammar also masks the
+logits, in training and decoding alike (``grammar_mask``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..tokenizer import vertex as vt
+from .encoder import EncoderConfig, PointEncoder
+from .layers import Block, CoordEmbedding, RMSNorm, init_weights, rotary
+
+
+@dataclass
+class VertexConfig:
+    dim: int = 256
+    depth: int = 6
+    heads: int = 8
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    max_vertices: int = 1000  # the data variant it was trained on (1000 or 4000)
+
+    @property
+    def head_dim(self) -> int:
+        return self.dim // self.heads
+
+
+def grammar_state(tokens: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Current block id and last offset id after each position of (B, T) token ids (-1 where none)."""
+    is_block = (tokens >= vt.BLOCK0) & (tokens < vt.OFFSET0)
+    is_off = tokens >= vt.OFFSET0
+    # Blocks strictly increase along a sequence, so the current block is a running max.
+    block = torch.where(is_block, tokens - vt.BLOCK0, torch.full_like(tokens, -1)).cummax(dim=1).values
+    offset = torch.where(is_off, tokens - vt.OFFSET0, torch.full_like(tokens, -1))
+    return block, offset
+
+
+def grammar_mask(prev: torch.Tensor, block: torch.Tensor, offset: torch.Tensor,
+                 eos_only: torch.Tensor | None = None) -> torch.Tensor:
+    """Boolean (…, VOCAB) mask of the tokens allowed after ``prev`` (see ``vertex.allowed_ranges``).
+
+    ``eos_only`` (…) forces EOS where the vertex budget is spent (``prev`` must be an offset).
+    """
+    ids = torch.arange(vt.VOCAB_SIZE, device=prev.device)
+    p, b, o = prev[..., None], block[..., None], offset[..., None]
+    after_bos = (p == vt.BOS) & (ids >= vt.BLOCK0) & (ids < vt.OFFSET0)
+    after_block = (p >= vt.BLOCK0) & (p < vt.OFFSET0) & (ids >= vt.OFFSET0)
+    is_off = p >= vt.OFFSET0
+    after_off = is_off & ((ids == vt.EOS) | ((ids > vt.BLOCK0 + b) & (ids < vt.OFFSET0)) | (ids > vt.OFFSET0 + o))
+    mask = after_bos | after_block | after_off
+    if eos_only is not None:
+        mask = torch.where(eos_only[..., None] & is_off, ids == vt.EOS, mask)
+    dead = (p == vt.EOS) | (p == vt.PAD)
+    return mask | (dead & (ids == vt.PAD))
+
+
+def next_token_loss(logits: torch.Tensor, tokens: torch.Tensor) -> torch.Tensor:
+    """Cross entropy of logits (B, T-1, V) against tokens[:, 1:], PAD ignored."""
+    target = tokens[:, 1:]
+    return F.cross_entropy(logits.reshape(-1, logits.shape[-1]), target.reshape(-1), ignore_index=vt.PAD)
+
+
+class VertexDecoder(nn.Module):
+    def __init__(self, cfg: VertexConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = PointEncoder(cfg.encoder)
+        self.cond_proj = nn.Linear(cfg.encoder.dim, cfg.dim, bias=False)
+        self.tok_emb = nn.Embedding(vt.VOCAB_SIZE, cfg.dim)
+        self.cell_emb = CoordEmbedding(cfg.dim)  # full cell of an offset token
+        self.block_emb = CoordEmbedding(cfg.dim, levels=8)  # block coordinates of a block token
+        self.layers = nn.ModuleList([Block(cfg.dim, cfg.heads) for _ in range(cfg.depth)])
+        self.norm = RMSNorm(cfg.dim)
+        self.head = nn.Linear(cfg.dim, vt.VOCAB_SIZE, bias=False)
+        init_weights(self)
+
+    # ------------------------------------------------------------------ pieces
+
+    def condition(self, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+        """(B, P, 3) points + normals -> (B, M, dim) prefix."""
+        return self.cond_proj(self.encoder(points, normals))
+
+    def embed(self, tokens: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
+        """(B, T) tokens and their current block (from ``grammar_state``) -> (B, T, dim)."""
+        x = self.tok_emb(tokens)
+        is_block = ((tokens >= vt.BLOCK0) & (tokens < vt.OFFSET0))[..., None]
+        is_off = (tokens >= vt.OFFSET0)[..., None]
+        b = block.clamp(min=0)
+        bxyz = torch.stack([b // 64, (b // 8) % 8, b % 8], dim=-1)
+        o = (tokens - vt.OFFSET0).clamp(min=0)
+        cell = bxyz * 16 + torch.stack([o // 256, (o // 16) % 16, o % 16], dim=-1)
+        return x + is_block * self.block_emb(bxyz) + is_off * self.cell_emb(cell)
+
+    def _run(self, x: torch.Tensor, start: int, kv_cache=None, is_causal: bool = True) -> torch.Tensor:
+        pos = torch.arange(start, start + x.shape[1], device=x.device)
+        rope = rotary(pos, self.cfg.head_dim)
+        for i, layer in enumerate(self.layers):
+            x = layer(x, rope=rope, is_causal=is_causal, kv_cache=kv_cache, layer=i, cache_pos=start)
+        return self.head(self.norm(x))
+
+    # ------------------------------------------------------------------ training / reference
+
+    def forward(self, tokens: torch.Tensor, prefix: torch.Tensor | None = None,
+                points: torch.Tensor | None = None, normals: torch.Tensor | None = None) -> torch.Tensor:
+        """Uncached pass: tokens (B, T) -> logits (B, T, VOCAB) for the *next* token.
+
+        The condition is ``prefix`` (B, M, dim), or computed from ``points``/``normals`` (B, P, 3)
+        (the training path, so DDP sees one forward).  Grammar masking is applied here
+        too, so training and decoding see the same distribution.
+        """
+        if prefix is None:
+            prefix = self.condition(points, normals)
+        block, offset = grammar_state(tokens)
+        x = torch.cat([prefix.to(self.tok_emb.weight.dtype), self.embed(tokens, block)], dim=1)
+        logits = self._run(x, 0)[:, prefix.shape[1]:]
+        return logits.float().masked_fill(~grammar_mask(tokens, block, offset), float("-inf"))
+
+    def loss(self, tokens: torch.Tensor, **cond) -> torch.Tensor:
+        """Next-token cross entropy over BOS..EOS of padded (B, T) sequences."""
+        return next_token_loss(self(tokens[:, :-1], **cond), tokens)
+
+    # ------------------------------------------------------------------ incremental
+
+    def prefill(self, prefix: torch.Tensor, tokens: torch.Tensor, kv_cache) -> torch.Tensor:
+        """Run prefix + first tokens at position 0 into the cache; logits (B, VOCAB) of the last."""
+        block, _ = grammar_state(tokens)
+        x = torch.cat([prefix, self.embed(tokens, block)], dim=1)
+        return self._run(x, 0, kv_cache=kv_cache)[:, -1].float()
+
+    def decode_step(self, tokens: torch.Tensor, block: torch.Tensor, pos: int, kv_cache) -> torch.Tensor:
+        """One token per sequence (B, 1) at cache position ``pos`` -> logits (B, VOCAB)."""
+        x = self.embed(tokens, block)
+        return self._run(x, pos, kv_cache=kv_cache, is_causal=False)[:, -1].float()

@@ -1,0 +1,1 @@
+"""Training: a generic loop (``loop``) and one task module per network."""

@@ -1,0 +1,225 @@
+"""The training loop shared by the three networks.
+
+Single process on CPU, or several through ``torchrun`` (DDP: gloo on CPU, nccl on
+GPUs).  Batches are length-bucketed (sequences of similar cost together, padded to
+a token budget), the batch schedule is a pure function of (seed, epoch), and each
+batch's augmentation is seeded from (seed, epoch, batch index): so resuming from a
+checkpoint replays exactly the batches an uninterrupted run would have seen.
+
+Outputs in ``--out``: ``model.safetensors`` + ``config.json`` (latest), ``best/`` (lowest
+validation loss), ``train_state.pt`` (optimizer and position, for ``--resume``),
+and ``log.jsonl`` (one JSON object per logged step: readable with ``jq`` or pandas).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+from ..data import MeshDataset, load_dataset
+from ..models.checkpoint import config_from_dict, load_model, save_model
+from .augment import AugmentConfig
+
+
+@dataclass
+class TrainConfig:
+    model: dict = field(default_factory=dict)  # overrides of the network's config dataclass
+    batch_cost: int = 6000  # padded tokens (vertex) or vertices (face/enhancer) per batch and process
+    max_batch: int = 32
+    lr: float = 6e-4
+    min_lr_ratio: float = 0.1
+    weight_decay: float = 0.05
+    warmup: int = 200
+    steps: int = 20000  # length of the cosine schedule; training stops here or at max_minutes
+    max_minutes: float = 0.0  # wall-clock budget (0 = none)
+    grad_clip: float = 1.0
+    log_every: int = 20
+    eval_every: int = 500
+    ckpt_every: int = 200
+    val_batches: int = 16
+    seed: int = 0
+    threads: int = 0  # torch intra-op threads (0 = all cores / world size)
+    amp: str = "auto"  # "auto" | "bf16" | "fp16" | "off"
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+    max_vertices: int = 0  # skip training meshes above this (0 = all); the face task's N^2 cost needs it
+
+
+def load_train_config(path: str | None, overrides: dict | None = None) -> TrainConfig:
+    d = json.loads(Path(path).read_text()) if path else {}
+    d.update(overrides or {})
+    return config_from_dict(TrainConfig, d)
+
+
+def _autocast(device: torch.device, amp: str):
+    if amp == "off":
+        return contextlib.nullcontext()
+    if amp == "auto":
+        amp = "bf16" if device.type == "cpu" or torch.cuda.is_bf16_supported() else "fp16"
+    dtype = torch.bfloat16 if amp == "bf16" else torch.float16
+    return torch.autocast(device_type=device.type, dtype=dtype)
+
+
+def make_batches(costs: np.ndarray, indices: np.ndarray, budget: int, max_batch: int,
+                 rng: np.random.Generator) -> list[np.ndarray]:
+    """Length-bucketed batches: sort by cost inside random chunks, cut at the padded budget, shuffle."""
+    idx = rng.permutation(indices)
+    chunk = max_batch * 50
+    batches = []
+    for c in range(0, len(idx), chunk):
+        part = idx[c:c + chunk]
+        part = part[np.argsort(costs[part], kind="stable")]
+        cur: list[int] = []
+        for i in part:
+            longest = max([costs[j] for j in cur] + [costs[i]])
+            if cur and (longest * (len(cur) + 1) > budget or len(cur) >= max_batch):
+                batches.append(np.array(cur))
+                cur = []
+            cur.append(int(i))
+        if cur:
+            batches.append(np.array(cur))
+    return [batches[i] for i in rng.permutation(len(batches))]
+
+
+def _is_main() -> bool:
+    return not dist.is_initialized() or dist.get_rank() == 0
+
+
+def train(task, data: str | MeshDataset, out: str, cfg: TrainConfig, resume: bool = False,
+          log=print) -> dict:
+    """Train ``task`` (see ``training.tasks``) on a dataset cache; return the last log record."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    if torch.cuda.is_available():
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        torch.cuda.set_device(device)
+    else:
+        device = torch.device("cpu")
+        torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // world))
+    ds = load_dataset(data) if isinstance(data, (str, os.PathLike)) else data
+    outdir = Path(out)
+    state_path = outdir / "train_state.pt"
+
+    if resume and state_path.exists():
+        model, _ = load_model(outdir, device="cpu")
+        state = torch.load(state_path, map_location="cpu", weights_only=False)
+    else:
+        model, state = task.build_model(cfg.model), None
+    model.to(device).train()
+    decay = [p for n, p in model.named_parameters() if p.ndim >= 2 and "emb" not in n]
+    no_decay = [p for n, p in model.named_parameters() if not (p.ndim >= 2 and "emb" not in n)]
+    opt = torch.optim.AdamW([{"params": decay, "weight_decay": cfg.weight_decay},
+                             {"params": no_decay, "weight_decay": 0.0}], lr=cfg.lr, betas=(0.9, 0.95))
+    step, epoch, pos, best = 0, 0, 0, float("inf")
+    if state is not None:
+        opt.load_state_dict(state["optimizer"])
+        step, epoch, pos, best = state["step"], state["epoch"], state["pos"], state["best"]
+    ddp_model = model
+    if world > 1:
+        ddp_model = torch.nn.parallel.DistributedDataParallel(model)
+
+    train_idx = ds.indices("train")
+    if cfg.max_vertices:
+        train_idx = train_idx[ds.num_vertices()[train_idx] <= cfg.max_vertices]
+    val_idx = ds.indices("val")
+    costs = task.costs(ds)
+
+    def lr_at(s: int) -> float:
+        if s < cfg.warmup:
+            return cfg.lr * (s + 1) / cfg.warmup
+        t = min(1.0, (s - cfg.warmup) / max(1, cfg.steps - cfg.warmup))
+        return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
+
+    def save(tag_dir: Path, extra: dict) -> None:
+        save_model(model, task.kind, tag_dir, extra={"train": extra})
+
+    t0 = time.time()
+    last_log, items, record = time.time(), 0, {}
+    if _is_main():
+        outdir.mkdir(parents=True, exist_ok=True)
+        (outdir / "train_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
+    logf = open(outdir / "log.jsonl", "a") if _is_main() else None
+    stop = False
+    while not stop:
+        batches = make_batches(costs, train_idx, cfg.batch_cost, cfg.max_batch,
+                               np.random.default_rng([cfg.seed, epoch]))
+        batches = batches[rank::world]
+        while pos < len(batches):
+            for g in opt.param_groups:
+                g["lr"] = lr_at(step)
+            rng = np.random.default_rng([cfg.seed, epoch, pos, rank])
+            batch = {k: v.to(device) for k, v in task.make_batch(ds, batches[pos], rng, cfg, train=True).items()}
+            with _autocast(device, cfg.amp):
+                loss, n = task.loss(ddp_model, batch)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            opt.step()
+            step, pos, items = step + 1, pos + 1, items + n
+            if step % cfg.log_every == 0 and _is_main():
+                now = time.time()
+                record = {"step": step, "epoch": epoch, "loss": round(loss.item(), 5), "lr": lr_at(step),
+                          "grad_norm": round(float(gnorm), 4), "items_per_s": round(items * world / (now - last_log), 1),
+                          "elapsed_s": round(now - t0, 1)}
+                last_log, items = now, 0
+                logf.write(json.dumps(record) + "\n")
+                logf.flush()
+                log(json.dumps(record))
+            out_of_time = cfg.max_minutes and (time.time() - t0) > cfg.max_minutes * 60
+            finished = step >= cfg.steps or out_of_time
+            if step % cfg.eval_every == 0 or finished:
+                val = evaluate(task, ddp_model, ds, val_idx, costs, cfg, device)
+                model.train()
+                if _is_main():
+                    record = {"step": step, "epoch": epoch, "val": val, "elapsed_s": round(time.time() - t0, 1)}
+                    logf.write(json.dumps(record) + "\n")
+                    logf.flush()
+                    log(json.dumps(record))
+                    if val["loss"] < best:
+                        best = val["loss"]
+                        save(outdir / "best", {"step": step, "val": val})
+            if (step % cfg.ckpt_every == 0 or finished) and _is_main():
+                save(outdir, {"step": step})
+                torch.save({"optimizer": opt.state_dict(), "step": step, "epoch": epoch, "pos": pos, "best": best},
+                           str(state_path) + ".tmp")
+                os.replace(str(state_path) + ".tmp", state_path)
+            if finished:
+                stop = True
+                break
+        if not stop:
+            epoch, pos = epoch + 1, 0
+    if logf:
+        logf.close()
+    if world > 1:
+        dist.barrier()
+    return record
+
+
+@torch.no_grad()
+def evaluate(task, model, ds: MeshDataset, val_idx: np.ndarray, costs: np.ndarray, cfg: TrainConfig,
+             device: torch.device) -> dict:
+    """Mean validation loss over a fixed set of batches (no augmentation, fixed seeds)."""
+    model.eval()
+    if len(val_idx) == 0:
+        return {"loss": float("nan")}
+    batches = make_batches(costs, val_idx, cfg.batch_cost, cfg.max_batch, np.random.default_rng(12345))
+    total, count = 0.0, 0
+    for i, b in enumerate(batches[: cfg.val_batches]):
+        batch = {k: v.to(device) for k, v in task.make_batch(ds, b, np.random.default_rng(i), cfg,
+                                                              train=False).items()}
+        with _autocast(device, cfg.amp):
+            loss, n = task.loss(model, batch)
+        total += float(loss) * n
+        count += n
+    return {"loss": round(total / max(count, 1), 5)}

@@ -210,8 +210,11 @@ def _load_trimesh(data: bytes, ext: str) -> Shape:
         vn = getattr(loaded, "metadata", {}).get("_ply_raw", None)
         if vn is not None:  # PLY point cloud with nx, ny, nz properties
             props = vn.get("vertex", {}).get("data", None)
-            if props is not None and all(k in props.dtype.names for k in ("nx", "ny", "nz")):
-                normals = np.stack([props["nx"], props["ny"], props["nz"]], axis=1).astype(np.float64)
+            # binary PLY gives a structured array, ASCII PLY a dict of columns
+            names = props.dtype.names if hasattr(props, "dtype") else props if isinstance(props, dict) else None
+            if names and all(k in names for k in ("nx", "ny", "nz")):
+                normals = np.stack([np.asarray(props[k]).reshape(-1) for k in ("nx", "ny", "nz")], axis=1)
+                normals = normals.astype(np.float64)
         return Shape(vertices=verts.reshape(-1, 3), normals=normals)
     raise ShapeError("unreadable", f"no mesh or points found in .{ext} file")
 

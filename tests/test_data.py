@@ -1,0 +1,121 @@
+"""Dataset cache: building from corpus files and folders, grouping, deterministic splits."""
+
+from __future__ import annotations
+
+import csv
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from fastmesh.data import build_dataset, dataset_stats, in_validation, load_dataset
+from fastmesh.io import Normalization, load_shape
+from fastmesh.tokenizer import quantize_mesh
+
+CORPUS = Path(__file__).resolve().parents[2] / "shared" / "corpus"
+# Small base meshes that have animation poses in the corpus (a pose shares its base's group).
+POSED = [
+    "ufoai-data/base__0models.pk3__models__aliens__hovernet__body01.md2.ply",
+    "megaglest-data/techs__megapack__factions__egypt__units__chicken__models__chicken_dying.g3d.ply",
+    "megaglest-data/techs__megapack__factions__egypt__units__obelisk__models__obelisk_dying.g3d.ply",
+    "megaglest-data/techs__megapack__factions__egypt__units__snake__models__snake_attacking.g3d.ply",
+]
+
+
+def _manifest() -> list[dict]:
+    with open(CORPUS / "manifest.csv", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+@pytest.fixture(scope="module")
+def mini_corpus(tmp_path_factory) -> Path:
+    """A corpus-shaped folder: 4 posed groups (base + poses), 6 plain small meshes, and a manifest."""
+    rows = _manifest()
+    plain = [r for r in rows if r["kind"] == "mesh" and int(r["vertices"]) < 60 and r["group"] not in POSED][:6]
+    keep = [r for r in rows if r["group"] in POSED] + plain
+    root = tmp_path_factory.mktemp("mini") / "corpus"
+    for r in keep:
+        dst = root / r["file"]
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(CORPUS / r["file"], dst)
+    with open(root / "manifest.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(keep[0].keys()))
+        w.writeheader()
+        w.writerows(keep)
+    return root
+
+
+def test_build_from_corpus_folder(mini_corpus, tmp_path):
+    out = tmp_path / "cache.npz"
+    stats = build_dataset([str(mini_corpus)], out, max_vertices=1000, val_fraction=0.5, workers=1)
+    ds = load_dataset(out)
+    n_files = len(list(mini_corpus.rglob("*.ply")))
+    assert stats["meshes"] == len(ds) == n_files
+    assert stats["groups"] == 4 + 6
+    groups = ds.a["group"]
+    split = ds.a["split"]
+    # Poses are never split from their base: one split per group.
+    for g in np.unique(groups):
+        assert len(np.unique(split[groups == g])) == 1
+    assert sum(len(ds.indices(s)) for s in ("train", "val")) == len(ds) == len(ds.indices("all"))
+    for i in range(len(ds)):
+        assert bool(split[i]) == in_validation(str(groups[i]), 0.5)
+    # Posed groups hold the base and its poses together.
+    sizes = {g: int((groups == g).sum()) for g in np.unique(groups)}
+    assert sorted(sizes.values())[-4:] == [5, 5, 5, 5]
+
+
+def test_split_is_deterministic(mini_corpus, tmp_path):
+    a = build_dataset([str(mini_corpus)], tmp_path / "a.npz", val_fraction=0.3, workers=1)
+    b = build_dataset([str(mini_corpus)], tmp_path / "b.npz", val_fraction=0.3, workers=1)
+    assert a == b
+    da, db = load_dataset(tmp_path / "a.npz"), load_dataset(tmp_path / "b.npz")
+    assert np.array_equal(da.a["split"], db.a["split"]) and np.array_equal(da.a["q"], db.a["q"])
+    assert in_validation("x/y.ply", 0.3) == in_validation("x/y.ply", 0.3)
+    assert not in_validation("anything", 0.0)
+
+
+def test_records_match_quantised_meshes(mini_corpus, tmp_path):
+    out = tmp_path / "c.npz"
+    build_dataset([str(mini_corpus)], out, workers=1)
+    ds = load_dataset(out)
+    for i in range(len(ds)):
+        r = ds[i]
+        shape = load_shape(mini_corpus / r.name)
+        v = Normalization.fit(shape.vertices).apply(shape.vertices)
+        q, f, cont = quantize_mesh(v, shape.faces)
+        assert np.array_equal(r.q, q) and np.array_equal(r.faces, f)
+        assert np.abs(r.residual).max() <= 0.5 + 1e-3
+        assert np.allclose(r.continuous, cont, atol=1e-4)  # residuals stored as float16 cells
+
+
+def test_build_from_files_and_tmp_folder(tmp_path):
+    src = tmp_path / "meshes"
+    src.mkdir()
+    box = trimesh.creation.box()
+    (src / "box.obj").write_text(box.export(file_type="obj"))
+    (src / "box_copy.obj").write_text(box.export(file_type="obj"))  # exact duplicate
+    (src / "sphere.ply").write_bytes(trimesh.creation.icosphere(subdivisions=3).export(file_type="ply"))  # 642 v
+    (src / "cloud.xyz").write_text("0 0 0\n1 0 0\n0 1 0\n0 0 1\n")  # not a mesh format: not picked up
+    (src / "broken.stl").write_bytes(b"solid x\nfacet garbage\n")
+    stats = build_dataset([str(src)], tmp_path / "d.npz", max_vertices=100, workers=1)
+    assert stats["meshes"] == 1
+    dropped = stats["dropped"]
+    assert dropped["duplicate"] == 1 and dropped["too_many_vertices"] == 1
+    assert sum(dropped.values()) == 3  # + the broken STL (trimesh reads it as empty)
+    ds = load_dataset(tmp_path / "d.npz")
+    assert ds[0].name == "box.obj" and len(ds[0].q) == 8
+    files = [str(CORPUS / p) for p in POSED[:2]]
+    stats = build_dataset(files, tmp_path / "e.npz", workers=1)
+    assert stats["meshes"] == 2 and stats["groups"] == 2
+    assert set(dataset_stats(load_dataset(tmp_path / "e.npz"))) >= {"vertices", "faces", "fastmesh_tokens", "train"}
+
+
+def test_build_errors(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        build_dataset([str(tmp_path / "nope")], tmp_path / "x.npz")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError):
+        build_dataset([str(tmp_path / "empty")], tmp_path / "x.npz")

@@ -77,9 +77,9 @@ def as_edges(adj, n_vertices: int | None = None) -> tuple[np.ndarray, int]:
         e, n = np.stack([coo.row[nz], coo.col[nz]], axis=1), coo.shape[0]
     else:
         a = np.asarray(adj)
-        if a.ndim == 2 and a.shape[0] == a.shape[1] and a.shape[0] != 0 and (a.shape[1] != 2 or a.shape == (2, 2)):
+        if a.ndim == 2 and a.shape[0] == a.shape[1] and a.shape[0] > 0:
             e, n = np.argwhere(a != 0), a.shape[0]
-        elif a.ndim == 2 and a.shape[1] == 2 or a.size == 0:
+        elif (a.ndim == 2 and a.shape[1] == 2) or a.size == 0:
             e = a.reshape(-1, 2).astype(np.int64)
             n = int(e.max()) + 1 if len(e) else 0
         else:

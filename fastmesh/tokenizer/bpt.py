@@ -4,8 +4,9 @@ Written from the paper and a reading of the authors' serialiser; the code is our
 
 Patches.  Faces are visited in canonical order (``vanilla.canonical_mesh``).  The first
 face not yet emitted picks the *centre*: its vertex with the most not-yet-emitted incident
-faces.  The centre's remaining faces, each seen as the edge opposite the centre, are
-walked into one chain ``v0 v1 ... vk`` (a fan: faces ``(c, v_j, v_j+1)``); faces that do
+faces (the authors track remaining edges instead; both favour vertices with big fans).
+The centre's remaining faces, each seen as the edge opposite the centre, are walked into
+one chain ``v0 v1 ... vk`` (a fan: faces ``(c, v_j, v_j+1)``); faces that do
 not fit the chain stay for later patches.  A patch emits the centre once, marked, then the
 chain.
 
@@ -117,7 +118,8 @@ def patchify(faces: np.ndarray, n_vertices: int, oriented: bool = True) -> tuple
 
 
 def _walk_directed(edges: list[tuple[int, int, int]]) -> tuple[list[int], list[int]]:
-    """Longest-first-found chain along directed edges u -> v, starting where no edge enters."""
+    """Chain along directed edges u -> v from the smallest vertex no edge enters (any vertex of a
+    closed fan); at a branch (non-manifold fan) the smallest target is taken, the rest waits."""
     out: dict[int, list[tuple[int, int]]] = {}
     heads = set()
     for u, v, fi in edges:

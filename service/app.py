@@ -28,9 +28,11 @@ from .errors import ApiError
 from .metrics import Metrics
 from .middleware import BodyLimit, RequestMetrics
 from .params import build_params, generation_defaults, input_info, safe_filename
+from .preview import preview_router
 from .schemas import Health, Job, Ready, error_responses
 from .settings import Settings
 from .store import FINAL, Store, mesh_from_bytes, shape_to_bytes
+from .web.routes import web_router
 
 log = logging.getLogger("fastmesh.service")
 
@@ -140,7 +142,7 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
                                                 "per minute for this key", {"Retry-After": str(wait)})
         params = build_params({"seed": seed, "temperature": temperature, "top_k": top_k, "top_p": top_p,
                                "max_vertices": max_vertices, "enhancer": enhancer, "filtering": filtering},
-                              formats, settings.default_formats)
+                              formats, settings.default_formats, store.vertex_limit())
         data = file.file.read(settings.max_upload_bytes + 1)
         if len(data) > settings.max_upload_bytes:
             raise ApiError(413, "too_large", f"upload larger than the {settings.max_upload_bytes} byte limit")
@@ -248,6 +250,9 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
              responses={200: {"content": {"text/plain": {"example": "fastmesh_queue_depth 0.0\n"}}}})
     def prometheus() -> Response:
         return Response(metrics.render(), media_type="text/plain; version=0.0.4; charset=utf-8")
+
+    app.include_router(preview_router(store, owner, job_of))  # /v1/jobs/{id}/preview.png, .../input.ply
+    app.include_router(web_router(settings, defaults))  # the page at / (service/web)
 
     # Each add_middleware wraps the previous ones: CORS ends outermost, so 413s and 429s carry its headers too.
     app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes)

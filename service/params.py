@@ -21,8 +21,10 @@ def generation_defaults() -> dict:
     return dataclasses.asdict(GenerateParams())
 
 
-def build_params(values: dict, formats: str | None, default_formats: list[str]) -> dict:
+def build_params(values: dict, formats: str | None, default_formats: list[str], limit: int | None = None) -> dict:
     """Validate the generation parameters with the pipeline's own rules; add the export formats.
+
+    ``limit`` is the largest ``max_vertices`` the workers' model accepts, when known.
 
     Raises
     ------
@@ -37,7 +39,7 @@ def build_params(values: dict, formats: str | None, default_formats: list[str]) 
             raise ApiError(422, "invalid_parameter", f"{k}: must be a finite number")
     try:
         gp = GenerateParams(**given)
-        gp.validate()
+        gp.validate() if limit is None else gp.validate(limit=limit)
     except (TypeError, ValueError) as e:
         raise ApiError(422, "invalid_parameter", str(e)) from None
     out = dataclasses.asdict(gp)

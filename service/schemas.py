@@ -39,7 +39,7 @@ class ErrorBody(BaseModel):
 class Progress(BaseModel):
     stage: str | None = Field(description="queued, starting, encode, vertices, enhancer, faces, filtering, export, "
                                           "done, failed or cancelled.")
-    fraction: float = Field(description="Fraction of the current stage done, 0..1.")
+    fraction: float = Field(description="Overall fraction of the job done, 0..1 (non-decreasing while it runs).")
 
 
 class InputInfo(BaseModel):

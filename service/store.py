@@ -387,6 +387,18 @@ class Store:
             pipe.zremrangebyscore(f"{self.p}:workers", "-inf", time.time() - ttl)
             pipe.execute()
 
+    def vertex_limit(self) -> int | None:
+        """The smallest ``max_vertices`` the live workers' models accept (None if no worker said)."""
+        names = self.workers_alive()
+        if not names:
+            return None
+        with self.r.pipeline() as pipe:
+            for n in names:
+                pipe.hget(f"{self.p}:worker:{n}", "max_vertices")
+            limits = [json.loads(v) for v in pipe.execute() if v is not None]
+        limits = [v for v in limits if isinstance(v, int)]
+        return min(limits) if limits else None
+
     def worker_gone(self, name: str) -> None:
         self.r.zrem(f"{self.p}:workers", name)
 

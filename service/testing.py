@@ -9,82 +9,15 @@ free port.
 
 from __future__ import annotations
 
-import os
-import shutil
-import socket
-import subprocess
-import sys
-import tempfile
 import threading
-import time
-from collections.abc import Callable
-from pathlib import Path
 
 import redis
 
+from .processes import RedisServer, WorkerProcess, free_port, settings_env, wait_for, worker_command
 from .settings import Settings
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_for(pred: Callable[[], object], timeout: float = 20.0, interval: float = 0.05, what: str = "condition"):
-    """Poll ``pred`` until it returns something truthy; return that.  TimeoutError names ``what``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = pred()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"timed out after {timeout:g} s waiting for {what}")
-        time.sleep(interval)
-
-
-class RedisServer:
-    """A throw-away ``redis-server`` (no persistence unless ``appendonly``), stopped by :meth:`stop`."""
-
-    def __init__(self, port: int | None = None, appendonly: bool = False, directory: str | None = None):
-        exe = shutil.which("redis-server")
-        if exe is None:
-            raise RuntimeError("redis-server is not installed; install it with: apt-get install redis-server")
-        self.port = port or free_port()
-        self.dir = directory or tempfile.mkdtemp(prefix="fastmesh-redis-")
-        self.appendonly = appendonly
-        self.exe = exe
-        self.proc: subprocess.Popen | None = None
-        self.start()
-
-    @property
-    def url(self) -> str:
-        return f"redis://127.0.0.1:{self.port}/0"
-
-    def start(self) -> None:
-        args = [self.exe, "--port", str(self.port), "--bind", "127.0.0.1", "--dir", self.dir, "--save", "",
-                "--appendonly", "yes" if self.appendonly else "no"]
-        self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        client = redis.Redis(port=self.port)
-
-        def up():
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"redis-server exited with code {self.proc.returncode}")
-            try:
-                return client.ping()
-            except redis.ConnectionError:
-                return False
-
-        wait_for(up, 10, what=f"redis-server on port {self.port}")
-
-    def stop(self) -> None:
-        if self.proc and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+__all__ = ["RedisServer", "ServedApp", "WorkerProcess", "free_port", "redis_for_tests", "settings_env", "wait_for",
+           "worker_command"]
 
 
 def redis_for_tests(db: int) -> tuple[str, RedisServer | None]:
@@ -120,65 +53,3 @@ class ServedApp:
         self.thread.join(10)
 
 
-def worker_command() -> list[str]:
-    """The installed ``fastmesh-worker`` script next to this interpreter (a real console-script process)."""
-    exe = Path(sys.executable).with_name("fastmesh-worker")
-    return [str(exe)] if exe.exists() else [sys.executable, "-m", "worker.main"]
-
-
-def settings_env(settings: Settings, **extra: str) -> dict[str, str]:
-    """The environment that makes a subprocess read the same settings."""
-    env = dict(os.environ)
-    for name, value in settings.model_dump().items():
-        key = f"FASTMESH_{name.upper()}"
-        if value is None:
-            env.pop(key, None)
-        elif isinstance(value, list):
-            env[key] = ",".join(value)
-        else:
-            env[key] = str(value)
-    env.setdefault("OMP_NUM_THREADS", "1")
-    env.update(extra)
-    return env
-
-
-class WorkerProcess:
-    """A ``fastmesh-worker`` subprocess; :meth:`wait_ready` returns once it heart-beats in Redis."""
-
-    def __init__(self, settings: Settings, name: str, log_path: str | os.PathLike | None = None,
-                 args: tuple[str, ...] = (), **env: str):
-        self.settings, self.name = settings, name
-        self.log_path = Path(log_path) if log_path else Path(tempfile.mkstemp(prefix=f"{name}-", suffix=".log")[1])
-        self._log = open(self.log_path, "wb")
-        self.proc = subprocess.Popen([*worker_command(), "--name", name, *args], env=settings_env(settings, **env),
-                                     stdout=self._log, stderr=subprocess.STDOUT)
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-    def wait_ready(self, timeout: float = 60.0) -> WorkerProcess:
-        client = redis.Redis.from_url(self.settings.redis_url)
-        key = f"{self.settings.redis_prefix}:workers"
-
-        def ready():
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"worker {self.name} exited ({self.proc.returncode}):\n{self.log()[-3000:]}")
-            return client.zscore(key, self.name) is not None
-
-        wait_for(ready, timeout, what=f"worker {self.name}")
-        return self
-
-    def stop(self, timeout: float = 10.0) -> int | None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._log.close()
-        return self.proc.returncode

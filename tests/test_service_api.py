@@ -21,7 +21,8 @@ from service.testing import ServedApp, WorkerProcess, redis_for_tests, wait_for
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 DB = int(os.environ.get("FASTMESH_TEST_REDIS_DB", "13"))
-FAST = dict(heartbeat_interval=0.2, heartbeat_ttl=1.5, reaper_interval=0.2, progress_interval=0.05)
+FAST = dict(heartbeat_interval=0.2, heartbeat_ttl=1.5, reaper_interval=0.2, progress_interval=0.05,
+            rate_limit_per_minute=0, submit_rate_limit_per_minute=0)
 
 
 def sphere_xyz(n: int = 400, seed: int = 0) -> bytes:
@@ -93,7 +94,9 @@ def submit(url: str, data: bytes = None, name: str = "sphere.xyz", headers=None,
 
 def wait_final(url: str, job_id: str, headers=None, timeout: float = 60.0) -> dict:
     def done():
-        j = httpx.get(f"{url}/v1/jobs/{job_id}", headers=headers).json()
+        r = httpx.get(f"{url}/v1/jobs/{job_id}", headers=headers)
+        assert r.status_code == 200, r.text
+        j = r.json()
         return j if j["status"] in ("succeeded", "failed", "cancelled") else None
 
     return wait_for(done, timeout, 0.05, what=f"job {job_id} to finish")
@@ -114,7 +117,7 @@ def assert_error(r: httpx.Response, status: int, code: str | None = None) -> dic
 
 def test_upload_poll_download_glb(served):
     app, _ = served
-    r = submit(app.url, max_vertices=60, seed=3, formats="glb,obj")
+    r = submit(app.url, max_vertices=12, seed=3, formats="glb,obj")
     assert r.status_code == 202, r.text
     job = r.json()
     assert r.headers["location"] == f"/v1/jobs/{job['id']}"
@@ -122,7 +125,7 @@ def test_upload_poll_download_glb(served):
                         "result", "timings", "error"}
     assert job["input"] == {"filename": "sphere.xyz", "kind": "points", "points": 400, "vertices": None,
                             "faces": None}
-    assert job["params"]["seed"] == 3 and job["params"]["max_vertices"] == 60
+    assert job["params"]["seed"] == 3 and job["params"]["max_vertices"] == 12
     assert job["params"]["formats"] == ["glb", "obj"]
     final = wait_final(app.url, job["id"])
     assert final["status"] == "succeeded", final
@@ -150,7 +153,7 @@ def test_upload_poll_download_glb(served):
 
 def test_long_poll_result(served):
     app, _ = served
-    job = submit(app.url, max_vertices=30, formats="obj").json()
+    job = submit(app.url, max_vertices=10, formats="obj").json()
     r = httpx.get(f"{app.url}/v1/jobs/{job['id']}/result", params={"format": "obj", "wait": 60}, timeout=70)
     assert r.status_code == 200 and r.content.startswith(b"#") or b"\nv " in r.content
 
@@ -213,6 +216,12 @@ def test_bad_parameters_are_422_naming_the_field(served, fields, word):
     app, _ = served
     err = assert_error(submit(app.url, **fields), 422, "invalid_parameter")
     assert word in err["message"]
+
+
+def test_max_vertices_above_the_workers_model_limit(served):
+    app, _ = served  # the tiny test model decodes at most 64 vertices; its worker says so in Redis
+    err = assert_error(submit(app.url, max_vertices=65), 422, "invalid_parameter")
+    assert "max_vertices" in err["message"] and "64" in err["message"]
 
 
 def test_missing_file_and_not_multipart(served):

@@ -77,7 +77,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fastmesh-worker: cannot reach Redis at {settings.redis_url}: {e}", file=sys.stderr)
         return 1
     STATE.configure(settings, store)
-    STATE.ensure()  # load the model now: a worker is only "alive" once it can take a job
+    try:
+        STATE.ensure()  # load the model now: a worker is only "alive" once it can take a job
+    except (FileNotFoundError, ValueError, RuntimeError) as e:
+        print(f"fastmesh-worker: cannot load the model: {e}\n(set FASTMESH_WEIGHTS to a weights folder)",
+              file=sys.stderr)
+        return 2
     stop = threading.Event()
     beat = threading.Thread(target=_heartbeat, args=(store, stop), name="fastmesh-heartbeat", daemon=True)
     beat.start()

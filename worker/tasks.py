@@ -51,7 +51,9 @@ class _State:
 
     def info(self) -> dict:
         s = self.settings
+        limit = getattr(self.pipeline, "max_vertices", None)
         return {"pid": os.getpid(), "host": socket.gethostname(), "loads": self.loads, "jobs": self.jobs,
+                "max_vertices": limit,
                 "weights": s.weights or "shipped", "device": s.device or "auto", "current": self.current}
 
 
@@ -61,6 +63,7 @@ STATE = _State()
 def load_pipeline(settings: Settings):
     """Build the pipeline from the configured weights (shipped ones when unset)."""
     import torch
+
     from fastmesh.pipeline import Pipeline
 
     if settings.torch_threads:
@@ -157,7 +160,7 @@ def _run(store: Store, job_id: str, attempt: int) -> None:
     try:
         shape = shape_from_bytes(blob)
         result = STATE.pipeline.generate(shape, params, progress=ctl.progress, should_cancel=ctl.should_cancel)
-        ctl.progress("export", 0.0)
+        ctl.progress("export", 1.0)  # the pipeline reports overall fractions; it ended at 1
         t0 = time.perf_counter()
         files = {fmt: result.export(fmt) for fmt in formats}
         files["npz"] = mesh_to_bytes(result.vertices, result.faces)
@@ -173,10 +176,16 @@ def _run(store: Store, job_id: str, attempt: int) -> None:
     except ShapeError as e:
         store.finish(job_id, attempt, "failed", timings=timings, error={"code": e.code, "message": e.message})
         return
-    except (ValueError, MemoryError, RuntimeError) as e:
-        log.exception("job %s failed", job_id)
-        store.finish(job_id, attempt, "failed", timings=timings,
-                     error={"code": "generation_failed", "message": f"{type(e).__name__}: {e}"[:500]})
+    except ValueError as e:  # parameters the model refuses (e.g. more vertices than it was trained for)
+        store.finish(job_id, attempt, "failed", timings=timings, error={"code": "invalid_parameter",
+                                                                        "message": str(e)[:500]})
+        return
+    except (MemoryError, RuntimeError) as e:  # incl. GenerationError ("no_vertices", "no_faces")
+        if not hasattr(e, "code"):
+            log.exception("job %s failed", job_id)
+        store.finish(job_id, attempt, "failed", timings=timings, error={
+            "code": getattr(e, "code", "generation_failed"),
+            "message": getattr(e, "message", f"{type(e).__name__}: {e}")[:500]})
         return
     for fmt, data in files.items():
         store.put_result(job_id, fmt, data)

@@ -1,8 +1,6 @@
-"""TEMPORARY stand-in for fastmesh.pipeline until the real module lands (tests only)."""
-import importlib.util
+"""TEMPORARY stand-in for fastmesh.pipeline while the real one is incomplete (tests only, via PYTHONPATH)."""
 import sys
 
-if importlib.util.find_spec("fastmesh.pipeline") is None:
-    import fake_pipeline
+import fake_pipeline
 
-    sys.modules["fastmesh.pipeline"] = fake_pipeline
+sys.modules["fastmesh.pipeline"] = fake_pipeline

@@ -1,0 +1,71 @@
+"""``fastmesh submit FILE --url URL [-o OUT]``: send a shape to a FastMesh service, wait, download."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def register(sub) -> None:
+    p = sub.add_parser("submit", help="send a shape to a FastMesh service and download the mesh")
+    p.add_argument("file", help="mesh or point cloud (obj, glb, gltf, ply, stl, off, xyz, txt, npy, npz)")
+    p.add_argument("--url", required=True, help="service address, e.g. http://127.0.0.1:8000")
+    p.add_argument("-o", "--out", default=None, help="where to write the result (default: FILE's name + .glb); "
+                                                     "the extension picks glb, obj or ply")
+    p.add_argument("--api-key", default=None, help="bearer key (default: $FASTMESH_API_KEY)")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--temperature", type=float, default=None)
+    p.add_argument("--top-k", type=int, default=None)
+    p.add_argument("--top-p", type=float, default=None)
+    p.add_argument("--max-vertices", type=int, default=None)
+    p.add_argument("--no-enhancer", action="store_true", help="skip the fidelity enhancer")
+    p.add_argument("--no-filtering", action="store_true", help="skip prediction filtering")
+    p.add_argument("--timeout", type=float, default=None, help="give up after this many seconds")
+    p.add_argument("--json", action="store_true", help="print the finished job as JSON on stdout")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=_submit)
+
+
+def _submit(args) -> int:
+    from fastmesh.client import Client, ServiceError
+
+    src = Path(args.file)
+    if not src.is_file():
+        raise FileNotFoundError(f"no such file: {src}")
+    out = Path(args.out) if args.out else src.with_suffix(".glb")
+    fmt = out.suffix.lstrip(".").lower()
+    if fmt not in ("glb", "obj", "ply"):
+        raise ValueError(f"-o must end in .glb, .obj or .ply, not '{out.suffix}'")
+    t0 = time.monotonic()
+
+    def show(job: dict) -> None:
+        if args.quiet:
+            return
+        pr = job["progress"]
+        bar = "#" * int(20 * (pr["fraction"] or 0))
+        print(f"\r{job['status']:<9} {pr['stage'] or '':<10} [{bar:<20}] {100 * (pr['fraction'] or 0):5.1f}%  "
+              f"{time.monotonic() - t0:6.1f}s", end="", file=sys.stderr, flush=True)
+
+    try:
+        with Client(args.url, api_key=args.api_key) as client:
+            job = client.submit(src, seed=args.seed, temperature=args.temperature, top_k=args.top_k,
+                                top_p=args.top_p, max_vertices=args.max_vertices,
+                                enhancer=False if args.no_enhancer else None,
+                                filtering=False if args.no_filtering else None, formats=fmt)
+            job = client.wait(job["id"], progress=show, timeout=args.timeout)
+            client.download(job["id"], out)
+    except (ServiceError, TimeoutError) as e:
+        if not args.quiet:
+            print(file=sys.stderr)
+        print(f"fastmesh submit: error: {e}", file=sys.stderr)
+        return 1
+    if not args.quiet:
+        print(file=sys.stderr)
+        r = job["result"]
+        print(f"wrote {out} ({r['vertices']} vertices, {r['faces']} faces) in {time.monotonic() - t0:.1f} s",
+              file=sys.stderr)
+    if args.json:
+        print(json.dumps(job, indent=2))
+    return 0

@@ -1,0 +1,148 @@
+"""``make run``: Redis (given or started), one worker and the API on 127.0.0.1:8000, until Ctrl-C.
+
+    python -m service.run            # FASTMESH_PORT, FASTMESH_REDIS_URL, FASTMESH_WEIGHTS, ... apply
+
+Prints a curl example that works as printed.  Ctrl-C (or SIGTERM) stops the API, then the worker
+(a job it was running goes back to the queue), then the Redis it started.
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import redis
+
+from .processes import RedisServer, WorkerProcess, settings_env, wait_for
+from .settings import Settings
+
+
+def _say(msg: str) -> None:
+    print(f"[fastmesh run] {msg}", flush=True)
+
+
+def _port_busy(host: str, port: int) -> bool:
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+            return False
+        except OSError:
+            return True
+
+
+def example_input(path: Path, n: int = 2000) -> Path:
+    """A point cloud of a rounded box (x y z nx ny nz per line), the shape the curl example uploads."""
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(n, 3))
+    p /= np.abs(p).max(1, keepdims=True)  # onto the cube's surface...
+    p = np.sign(p) * np.abs(p) ** 0.7 * [1.0, 0.6, 0.4]  # ...rounded and stretched
+    np.savetxt(path, p, fmt="%.5f")
+    return path
+
+
+def _curl(url: str, example: Path, key: str | None) -> str:
+    auth = f"-H {shlex.quote('Authorization: Bearer ' + key)} " if key else ""
+    out = example.with_suffix(".glb").name
+    return (f"JOB=$(curl -sS {auth}-F file=@{shlex.quote(str(example))} {url}/v1/jobs"
+            " | python3 -c 'import json,sys; print(json.load(sys.stdin)[\"id\"])')\n"
+            f"curl -sS {auth}-o {out} \"{url}/v1/jobs/$JOB/result?format=glb&wait=300\" && ls -l {out}")
+
+
+def main() -> int:
+    try:
+        settings = Settings()
+    except Exception as e:
+        _say(f"bad FASTMESH_* configuration: {e}")
+        return 2
+    workdir = Path(tempfile.mkdtemp(prefix="fastmesh-run-"))
+    server: RedisServer | None = None
+    worker: WorkerProcess | None = None
+    api: subprocess.Popen | None = None
+
+    def stop(*_):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        if "FASTMESH_REDIS_URL" in os.environ:
+            try:
+                redis.Redis.from_url(settings.redis_url, socket_connect_timeout=3).ping()
+            except redis.RedisError as e:
+                _say(f"cannot reach Redis at FASTMESH_REDIS_URL={settings.redis_url}: {e}")
+                return 1
+            _say(f"using Redis at {settings.redis_url}")
+        else:
+            if shutil.which("redis-server") is None:
+                _say("redis-server is not installed. Install it with:\n\n    apt-get install redis-server\n\n"
+                     "or point at a running one: FASTMESH_REDIS_URL=redis://HOST:6379/0 make run")
+                return 1
+            server = RedisServer(directory=str(workdir))
+            settings = settings.model_copy(update={"redis_url": server.url})
+            _say(f"started redis-server on port {server.port} (data in {workdir}, not kept)")
+        if _port_busy(settings.host, settings.port):
+            _say(f"port {settings.port} on {settings.host} is in use; choose another with FASTMESH_PORT=8001 make run")
+            return 1
+        worker = WorkerProcess(settings, f"fastmesh-run-{os.getpid()}", log_path="-")
+        api = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory",
+                                "--host", settings.host, "--port", str(settings.port), "--no-access-log"],
+                               env=settings_env(settings), start_new_session=True)
+        url = f"http://{settings.host}:{settings.port}"
+        _say("loading the model and starting the API ...")
+
+        def ready():
+            for name, p in (("worker", worker.proc), ("API", api)):
+                if p.poll() is not None:
+                    raise RuntimeError(f"the {name} exited with code {p.returncode} (its messages are above)")
+            try:
+                return httpx.get(f"{url}/readyz", timeout=2).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        wait_for(ready, 300, 0.25, what="the worker and the API to be ready")
+        example = example_input(workdir / "example.xyz")
+        key = settings.api_keys[0] if settings.api_keys else None
+        print(f"\nFastMesh is serving on {url}  (API docs: {url}/docs, metrics: {url}/metrics)\n"
+              f"Try it (uploads a sample point cloud, waits, downloads the mesh):\n\n"
+              f"{_curl(url, example, key)}\n\n"
+              f"or: fastmesh submit {example} --url {url} -o example.glb"
+              f"{' --api-key ' + shlex.quote(key) if key else ''}\n\nCtrl-C stops everything.\n", flush=True)
+        while True:
+            for name, p in (("worker", worker.proc), ("API", api)):
+                if p.poll() is not None:
+                    _say(f"the {name} exited with code {p.returncode}; stopping")
+                    return 1
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        _say("stopping ...")
+        return 0
+    except (RuntimeError, TimeoutError) as e:
+        _say(str(e))
+        return 1
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not leave orphans behind
+        if api is not None and api.poll() is None:
+            api.terminate()
+            try:
+                api.wait(10)
+            except subprocess.TimeoutExpired:
+                api.kill()
+        if worker is not None:
+            worker.stop(15)
+        if server is not None:
+            server.stop()
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

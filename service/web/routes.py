@@ -1,0 +1,96 @@
+"""The browser page: ``/`` (index.html), its static files, three.js from node_modules, and the page's config.
+
+No bundler and no build step: the page is plain ES modules; an import map in index.html points
+``three`` and ``three/addons/`` at :data:`THREE_PREFIX`, which serves the ``build/`` and
+``examples/jsm/`` folders of the three.js npm package pinned in ``service/web/package.json``
+(installed into ``service/web/node_modules`` by ``make run`` / ``make test``; never committed).
+
+Everything here is public (no API key): it is the same for every visitor.  The page sends the
+key it is given to the ``/v1`` endpoints as ``Authorization: Bearer``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fastapi import APIRouter
+from fastapi.responses import FileResponse, JSONResponse, Response
+
+from fastmesh.io import EXPORT_FORMATS, SUPPORTED_FORMATS
+
+from ..errors import ApiError
+from ..settings import Settings
+
+WEB_DIR = Path(__file__).resolve().parent
+STATIC_DIR = WEB_DIR / "static"
+THREE_DIR = WEB_DIR / "node_modules" / "three"
+STATIC_PREFIX = "/web/static"
+THREE_PREFIX = "/web/three"
+# Only these subtrees of the three package are reachable (no package.json, src/, docs...).
+THREE_SUBTREES = ("build/", "examples/jsm/")
+SERVED_TYPES = {".js": "text/javascript", ".css": "text/css", ".html": "text/html", ".svg": "image/svg+xml",
+                ".json": "application/json", ".wasm": "application/wasm"}
+# The page's own files change with deployments: revalidate.  three.js is pinned by version in its path's
+# package, but the URL carries no version, so it is cached for a day only.
+STATIC_CACHE = "no-cache"
+THREE_CACHE = "public, max-age=86400"
+
+
+def _file(root: Path, rel: str, cache: str) -> FileResponse:
+    """``root/rel`` if it is a file inside ``root`` with a served type, else a JSON 404 (no path tricks)."""
+    try:
+        path = (root / rel).resolve()
+        inside = path.is_relative_to(root.resolve()) and path.is_file()
+    except (OSError, ValueError):
+        inside = False
+    media = SERVED_TYPES.get(path.suffix.lower()) if inside else None
+    if media is None:
+        raise ApiError(404, "not_found", f"no file '{rel[:200]}'")
+    return FileResponse(path, media_type=media, headers={"Cache-Control": cache})
+
+
+def page_config(settings: Settings, defaults: dict) -> dict:
+    """What the page needs to know to build its form: parameter defaults, limits, formats, auth."""
+    return {
+        "auth": bool(settings.api_keys),
+        "defaults": defaults,
+        "default_formats": list(settings.default_formats),
+        "formats": list(EXPORT_FORMATS),
+        "input_formats": list(SUPPORTED_FORMATS),
+        "max_upload_bytes": settings.max_upload_bytes,
+        "max_points": settings.max_points,
+    }
+
+
+def web_router(settings: Settings, defaults: dict) -> APIRouter:
+    """Routes of the page.  ``defaults`` are the generation defaults the API applies to omitted fields."""
+    router = APIRouter(include_in_schema=False)
+    config = page_config(settings, defaults)
+
+    @router.get("/")
+    def index() -> FileResponse:
+        return _file(STATIC_DIR, "index.html", STATIC_CACHE)
+
+    @router.get("/favicon.ico")
+    def favicon() -> Response:
+        return Response(status_code=204)  # no icon; keeps browsers' automatic request out of the 404 logs
+
+    @router.get("/web/config.json")
+    def web_config() -> JSONResponse:
+        return JSONResponse({**config, "three_installed": (THREE_DIR / "build" / "three.module.js").is_file()},
+                            headers={"Cache-Control": "no-cache"})
+
+    @router.get(STATIC_PREFIX + "/{rel:path}")
+    def static(rel: str) -> FileResponse:
+        return _file(STATIC_DIR, rel, STATIC_CACHE)
+
+    @router.get(THREE_PREFIX + "/{rel:path}")
+    def three(rel: str) -> FileResponse:
+        if not rel.startswith(THREE_SUBTREES):
+            raise ApiError(404, "not_found", f"no file '{rel[:200]}'")
+        if not THREE_DIR.is_dir():
+            raise ApiError(503, "three_missing", "three.js is not installed: run `make run` (or "
+                                                 "`npm ci --prefix service/web`)")
+        return _file(THREE_DIR, rel, THREE_CACHE)
+
+    return router

@@ -10,16 +10,27 @@ import time
 def register(sub) -> None:
     p = sub.add_parser("data", help="build and inspect training-set caches")
     dsub = p.add_subparsers(dest="data_command", required=True)
-    b = dsub.add_parser("build", help="quantise, merge, de-duplicate and split mesh folders into one cache file")
+    b = dsub.add_parser("build",
+                        help="quantise, merge, de-duplicate and split mesh folders into one cache file")
     b.add_argument("sources", nargs="+", metavar="SRC", help="mesh files or folders (searched recursively)")
     b.add_argument("-o", "--out", required=True, metavar="FILE", help="cache file to write (.npz)")
-    b.add_argument("--max-vertices", type=int, default=1000, help="drop meshes with more vertices after the 7-bit merge")
+    b.add_argument("--max-vertices", type=int, default=1000,
+                   help="drop meshes with more vertices after the 7-bit merge")
     b.add_argument("--val-fraction", type=float, default=0.05, help="share of groups held out for validation")
     b.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     b.set_defaults(func=_build)
     s = dsub.add_parser("stats", help="print statistics of a cache file (JSON)")
     s.add_argument("file")
     s.set_defaults(func=_stats)
+    e = dsub.add_parser("eval-set",
+                        help="write a split as inputs/ (point clouds) + reference/ (meshes) for `fastmesh eval`")
+    e.add_argument("file", help="cache file")
+    e.add_argument("--source", required=True, metavar="DIR", help="folder the cache was built from")
+    e.add_argument("-o", "--out", required=True, metavar="DIR")
+    e.add_argument("--split", choices=["val", "train", "all"], default="val")
+    e.add_argument("--points", type=int, default=8192, help="samples per input point cloud")
+    e.add_argument("--max-vertices", type=int, default=0, help="only meshes up to this many (7-bit) vertices")
+    e.set_defaults(func=_eval_set)
 
 
 def _build(args) -> int:
@@ -42,4 +53,14 @@ def _stats(args) -> int:
     from fastmesh.data import dataset_stats, load_dataset
 
     print(json.dumps(dataset_stats(load_dataset(args.file)), indent=2))
+    return 0
+
+
+def _eval_set(args) -> int:
+    from fastmesh.data import load_dataset
+    from fastmesh.eval import export_eval_set
+
+    n = export_eval_set(load_dataset(args.file), args.source, args.out, split=args.split, n_points=args.points,
+                        max_vertices=args.max_vertices or None)
+    print(f"wrote {n} input/reference pairs to {args.out}")
     return 0

@@ -29,9 +29,9 @@ def registry(kind: str) -> tuple[type, type]:
 
         return Enhancer, EnhancerConfig
     if kind == "face":
-        from .face import FaceConfig, FaceModel
+        from .face import FaceModel, FaceModelConfig
 
-        return FaceModel, FaceConfig
+        return FaceModel, FaceModelConfig
     raise ValueError(f"unknown network kind {kind!r}")
 
 
@@ -49,11 +49,19 @@ def config_from_dict(cls, d: dict):
     return cls(**kwargs)
 
 
-def save_model(model: nn.Module, kind: str, directory: str | os.PathLike, extra: dict | None = None) -> None:
-    """Write ``model.safetensors`` and ``config.json`` atomically (temp file + rename)."""
+def save_model(model: nn.Module, kind: str, directory: str | os.PathLike, extra: dict | None = None,
+               dtype: torch.dtype | None = None) -> None:
+    """Write ``model.safetensors`` and ``config.json`` atomically (temp file + rename).
+
+    ``dtype`` (e.g. ``torch.float16``) stores floating-point tensors at that precision;
+    loading casts them back to the model's own dtype.  The shipped weights use float16
+    to halve their size in git.
+    """
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().to("cpu").contiguous() for k, v in _unwrap(model).state_dict().items()}
+    if dtype is not None:
+        state = {k: v.to(dtype) if v.is_floating_point() else v for k, v in state.items()}
     tmp = d / "model.safetensors.tmp"
     save_file(state, str(tmp))
     os.replace(tmp, d / "model.safetensors")

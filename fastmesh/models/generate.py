@@ -9,32 +9,13 @@ once the budget is spent.  Temperature 0 is greedy decoding.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import torch
 
+from ..params import SamplingConfig
 from ..tokenizer import vertex as vt
 from .kv_cache import KVCache
 from .vertex import VertexDecoder, grammar_mask, grammar_state
-
-
-@dataclass
-class SamplingConfig:
-    temperature: float = 0.5
-    top_k: int = 50
-    top_p: float = 0.95
-    max_vertices: int = 1000
-    seed: int = 0
-
-    def validate(self) -> None:
-        if not 0 <= self.temperature <= 5:
-            raise ValueError("temperature must be in [0, 5]")
-        if self.top_k < 0:
-            raise ValueError("top_k must be >= 0 (0 disables it)")
-        if not 0 < self.top_p <= 1:
-            raise ValueError("top_p must be in (0, 1]")
-        if self.max_vertices < 3:
-            raise ValueError("max_vertices must be at least 3")
 
 
 class Cancelled(Exception):

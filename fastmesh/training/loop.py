@@ -170,7 +170,8 @@ def train(task, data: str | MeshDataset, out: str, cfg: TrainConfig, resume: boo
             if step % cfg.log_every == 0 and _is_main():
                 now = time.time()
                 record = {"step": step, "epoch": epoch, "loss": round(loss.item(), 5), "lr": lr_at(step),
-                          "grad_norm": round(float(gnorm), 4), "items_per_s": round(items * world / (now - last_log), 1),
+                          "grad_norm": round(float(gnorm), 4),
+                          "items_per_s": round(items * world / (now - last_log), 1),
                           "elapsed_s": round(now - t0, 1)}
                 last_log, items = now, 0
                 logf.write(json.dumps(record) + "\n")
@@ -222,4 +223,7 @@ def evaluate(task, model, ds: MeshDataset, val_idx: np.ndarray, costs: np.ndarra
             loss, n = task.loss(model, batch)
         total += float(loss) * n
         count += n
-    return {"loss": round(total / max(count, 1), 5)}
+    out = {"loss": round(total / max(count, 1), 5)}
+    if hasattr(task, "evaluate"):  # optional task metrics (e.g. edge precision/recall/F1 of the face model)
+        out.update(task.evaluate(model, ds, val_idx, cfg, device))
+    return out

@@ -1,0 +1,58 @@
+"""``fastmesh eval --inputs DIR --reference DIR [--json] [--gt-vertices] [--baseline]``.
+
+Scores the pipeline (and with ``--baseline`` a convex hull and screened Poisson +
+quadric decimation) on every input that has a reference mesh of the same name, as
+../shared/EVAL.md defines.  Make such folders from a dataset's validation split with
+``fastmesh data eval-set``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from .generate import add_sampling_args, load_pipeline, params_from_args
+
+
+def register(sub) -> None:
+    p = sub.add_parser("eval", help="measure CD/HD (or face-stage edge F1) against reference meshes")
+    p.add_argument("--inputs", required=True, metavar="DIR", help="point clouds (or meshes) to generate from")
+    p.add_argument("--reference", required=True, metavar="DIR", help="reference meshes, same names")
+    p.add_argument("--gt-vertices", action="store_true",
+                   help="score the face stage alone on each reference's 7-bit vertices")
+    p.add_argument("--baseline", action="store_true",
+                   help="also score convex hull and screened Poisson + decimation (needs pymeshlab)")
+    p.add_argument("--limit", type=int, default=0, help="only the first N pairs")
+    p.add_argument("--json", action="store_true", help="print the whole report as JSON")
+    add_sampling_args(p)
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    from fastmesh.eval import evaluate_end_to_end, evaluate_gt_vertices, pair_inputs
+
+    pairs = pair_inputs(args.inputs, args.reference)
+    if args.limit:
+        pairs = pairs[: args.limit]
+    pipe = load_pipeline(args)
+    params = params_from_args(args)
+    params.validate(limit=pipe.max_vertices)
+    log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
+    if args.gt_vertices:
+        report = evaluate_gt_vertices(pipe, pairs, filtering=params.filtering, seed=params.seed,
+                                      max_vertices=args.max_vertices, log=log)
+    else:
+        systems = ["fastmesh"]
+        if args.baseline:
+            try:
+                import pymeshlab  # noqa: F401
+            except ImportError:
+                raise ValueError("--baseline needs pymeshlab: pip install -e '.[bench]'") from None
+            systems += ["convex_hull", "poisson"]
+        report = evaluate_end_to_end(pipe, pairs, params, systems=systems, log=log)
+    report["weights"] = pipe.source
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print(json.dumps(report["summary"], indent=2))
+    return 0

@@ -1,0 +1,196 @@
+"""Evaluation exactly as ../shared/EVAL.md: generate from point clouds, compare to references.
+
+Three systems can be scored on the same inputs in one run:
+
+- ``fastmesh``: the pipeline, end to end;
+- ``convex_hull``: the floor any method must beat;
+- ``poisson``: screened Poisson reconstruction + quadric decimation to the reference's
+  face count (pymeshlab, an optional benchmark extra) — what a user would pick instead.
+
+``gt_vertices`` mode scores the face stage alone: the reference's own 7-bit vertices go
+into the face model and the predicted edges are compared with the true ones.
+
+A mesh that fails to generate is a failure, counted in ``failure_rate``, never dropped.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from .faces import mesh_from_adjacency
+from .filtering import edges_from_logits, filter_predictions
+from .io import SUPPORTED_FORMATS, Normalization, Shape, ShapeError, load_shape, sample_surface
+from .metrics import edge_metrics, edges_from_faces, surface_distance
+from .tokenizer import dequantize, quantize_mesh
+
+MESH_EXTS = ("ply", "obj", "glb", "gltf", "stl", "off")
+
+
+def pair_inputs(inputs: str | Path, reference: str | Path) -> list[tuple[Path, Path]]:
+    """Match every shape in ``inputs`` with the reference mesh of the same stem in ``reference``."""
+    refs: dict[str, Path] = {}
+    for f in sorted(Path(reference).rglob("*")):
+        if f.is_file() and f.suffix.lower().lstrip(".") in MESH_EXTS:
+            refs.setdefault(f.relative_to(reference).with_suffix("").as_posix(), f)
+    pairs = []
+    for f in sorted(Path(inputs).rglob("*")):
+        if f.is_file() and f.suffix.lower().lstrip(".") in SUPPORTED_FORMATS:
+            key = f.relative_to(inputs).with_suffix("").as_posix()
+            if key in refs:
+                pairs.append((f, refs[key]))
+    if not pairs:
+        raise ValueError(f"no input in {inputs} has a reference of the same name in {reference}")
+    return pairs
+
+
+def convex_hull(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    hull = trimesh.PointCloud(shape.vertices).convex_hull
+    return np.asarray(hull.vertices), np.asarray(hull.faces)
+
+
+def poisson(shape: Shape, target_faces: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Screened Poisson (depth 8) on 8192 oriented samples, then quadric decimation to ``target_faces``."""
+    import pymeshlab
+
+    pts, nrm = sample_surface(shape, 8192, seed=seed)
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts.astype(np.float64), v_normals_matrix=nrm.astype(np.float64)))
+    ms.generate_surface_reconstruction_screened_poisson(depth=8, preclean=True)
+    ms.meshing_decimation_quadric_edge_collapse(targetfacenum=max(4, int(target_faces)), preservenormal=True)
+    m = ms.current_mesh()
+    return np.asarray(m.vertex_matrix()), np.asarray(m.face_matrix())
+
+
+def _score(result: tuple[np.ndarray, np.ndarray], ref: Shape) -> dict:
+    d = surface_distance(result, (ref.vertices, ref.faces))
+    return {"cd": d.cd, "hd": d.hd, "vertices": int(len(result[0])), "faces": int(len(result[1]))}
+
+
+def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("fastmesh",),
+                        log: Callable[[str], None] | None = None) -> dict:
+    """Score each system on every (input, reference) pair; returns per-mesh rows and summaries."""
+    from .pipeline import GenerationError
+
+    rows = []
+    for i, (inp, ref_path) in enumerate(pairs, 1):
+        ref = load_shape(ref_path)
+        shape = load_shape(inp)
+        row = {"name": inp.stem, "reference": {"vertices": int(len(ref.vertices)), "faces": int(len(ref.faces))}}
+        for system in systems:
+            t = time.perf_counter()
+            try:
+                if system == "fastmesh":
+                    res = pipe.generate(shape, params)
+                    out = _score((res.vertices, res.faces), ref)
+                    out.update(tokens=res.tokens, timings={k: round(v, 4) for k, v in res.timings.items()})
+                elif system == "convex_hull":
+                    out = _score(convex_hull(shape), ref)
+                elif system == "poisson":
+                    out = _score(poisson(shape, len(ref.faces), seed=params.seed), ref)
+                else:
+                    raise ValueError(f"unknown system {system!r}")
+                out["seconds"] = round(time.perf_counter() - t, 4)
+            except (GenerationError, ShapeError, RuntimeError) as e:
+                out = {"failed": True, "error": f"{type(e).__name__}: {e}"[:200],
+                       "seconds": round(time.perf_counter() - t, 4)}
+            row[system] = out
+        rows.append(row)
+        if log:
+            log(f"[{i}/{len(pairs)}] {inp.name}: " + ", ".join(
+                f"{s} " + ("failed" if row[s].get("failed") else f"CD {row[s]['cd']:.2f} HD {row[s]['hd']:.2f}")
+                for s in systems))
+    return {"meshes": rows, "summary": {s: summarise(rows, s) for s in systems}}
+
+
+def summarise(rows: list[dict], system: str) -> dict:
+    ok = [r for r in rows if not r[system].get("failed")]
+    out = {"meshes": len(rows), "failures": len(rows) - len(ok),
+           "failure_rate": (len(rows) - len(ok)) / max(1, len(rows))}
+    if ok:
+        for k in ("cd", "hd", "vertices", "faces", "seconds"):
+            out[f"mean_{k}"] = float(np.mean([r[system][k] for r in ok]))
+        ratio = [r[system]["faces"] / max(1, r["reference"]["faces"]) for r in ok]
+        out["mean_face_ratio"] = float(np.mean(ratio))
+        out["over_1_5x_faces"] = int(sum(x > 1.5 for x in ratio))
+        if "timings" in ok[0][system]:
+            out["mean_timings"] = {k: float(np.mean([r[system]["timings"][k] for r in ok]))
+                                   for k in ok[0][system]["timings"]}
+            out["mean_tokens"] = float(np.mean([r[system]["tokens"] for r in ok]))
+    return out
+
+
+def evaluate_gt_vertices(pipe, pairs: list[tuple[Path, Path]], filtering: bool = True, seed: int = 0,
+                         max_vertices: int | None = None, log: Callable[[str], None] | None = None) -> dict:
+    """Face stage alone on each reference's own 7-bit vertices: edge precision/recall/F1, CD, HD."""
+    rows = []
+    for i, (inp, ref_path) in enumerate(pairs, 1):
+        ref = load_shape(ref_path)
+        shape = load_shape(inp)
+        norm = Normalization.fit(ref.vertices)
+        q, true_faces, cont = quantize_mesh(norm.apply(ref.vertices), ref.faces)
+        if max_vertices and len(q) > max_vertices:
+            continue
+        # The condition comes from the input shape, in the reference's normalised frame.
+        n_fp = pipe.face.cfg.encoder.n_points
+        pts, nrm = sample_surface(shape, n_fp, seed=seed, vertices=norm.apply(shape.vertices))
+        t = time.perf_counter()
+        predict = pipe.face.predictor(q, pts, nrm)
+        if filtering:
+            edges = filter_predictions(predict, len(q), pipe.filter_config).edges
+        else:
+            edges = edges_from_logits(predict(np.arange(len(q)), None), 0.5)
+        seconds = time.perf_counter() - t
+        m = edge_metrics(edges, edges_from_faces(true_faces))
+        v, f = mesh_from_adjacency(dequantize(q), edges)
+        row = {"name": inp.stem, "vertices": int(len(q)), "true_faces": int(len(true_faces)),
+               "faces": int(len(f)), "precision": m["precision"], "recall": m["recall"], "f1": m["f1"],
+               "seconds": round(seconds, 4)}
+        if len(f):
+            d = surface_distance((norm.invert(v), f), (ref.vertices, ref.faces))
+            row.update(cd=d.cd, hd=d.hd)
+        else:
+            row.update(failed=True)
+        rows.append(row)
+        if log:
+            log(f"[{i}/{len(pairs)}] {inp.name}: V {len(q)} P {m['precision']:.3f} R {m['recall']:.3f} "
+                f"F1 {m['f1']:.3f}")
+    ok = [r for r in rows if not r.get("failed")]
+    summary = {"meshes": len(rows), "failures": len(rows) - len(ok)}
+    for k in ("precision", "recall", "f1", "seconds"):
+        summary[f"mean_{k}"] = float(np.mean([r[k] for r in rows])) if rows else float("nan")
+    for k in ("cd", "hd"):
+        summary[f"mean_{k}"] = float(np.mean([r[k] for r in ok])) if ok else float("nan")
+    return {"meshes": rows, "summary": summary}
+
+
+def export_eval_set(ds, source_root: str | Path, out: str | Path, split: str = "val", n_points: int = 8192,
+                    seed: int = 0, max_vertices: int | None = None) -> int:
+    """Write ``inputs/<name>.npz`` (points + normals, the reference's frame) and ``reference/<name>.ply``.
+
+    The input point cloud is sampled from the original reference mesh, as a user's scan
+    of it would be; returns the number of pairs written.
+    """
+    import shutil
+
+    out = Path(out)
+    (out / "inputs").mkdir(parents=True, exist_ok=True)
+    (out / "reference").mkdir(parents=True, exist_ok=True)
+    count = 0
+    for i in ds.indices(split):
+        name = str(ds.a["name"][i])
+        if max_vertices and ds.num_vertices()[i] > max_vertices:
+            continue
+        src = Path(source_root) / name
+        ref = load_shape(src)
+        pts, nrm = sample_surface(ref, n_points, seed=seed)
+        stem = name.replace("/", "__").rsplit(".", 1)[0]
+        np.savez(out / "inputs" / f"{stem}.npz", points=pts, normals=nrm)
+        shutil.copyfile(src, out / "reference" / f"{stem}{src.suffix}")
+        count += 1
+    return count

@@ -1,0 +1,51 @@
+"""User-facing generation parameters (no torch import: the CLI and service read them cheaply)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class SamplingConfig:
+    temperature: float = 0.5
+    top_k: int = 50
+    top_p: float = 0.95
+    max_vertices: int = 1000
+    seed: int = 0
+
+    def validate(self) -> None:
+        if not 0 <= self.temperature <= 5:
+            raise ValueError("temperature must be in [0, 5]")
+        if self.top_k < 0:
+            raise ValueError("top_k must be >= 0 (0 disables it)")
+        if not 0 < self.top_p <= 1:
+            raise ValueError("top_p must be in (0, 1]")
+        if self.max_vertices < 3:
+            raise ValueError("max_vertices must be at least 3")
+
+
+@dataclass
+class GenerateParams:
+    """User-facing generation settings (the service's form fields have the same names)."""
+
+    seed: int = 0
+    temperature: float = 0.5
+    top_k: int = 50
+    top_p: float = 0.95
+    max_vertices: int | None = None  # None: the vertex model's own limit
+    enhancer: bool = True
+    filtering: bool = True
+
+    def validate(self, limit: int = 4000) -> None:
+        """Raise ValueError naming the first bad field."""
+        if not isinstance(self.seed, int) or not 0 <= self.seed < 2**63:
+            raise ValueError("seed must be an integer in [0, 2^63)")
+        if self.max_vertices is not None and not 3 <= self.max_vertices <= limit:
+            raise ValueError(f"max_vertices must be in [3, {limit}]")
+        self.sampling(limit).validate()
+
+    def sampling(self, limit: int):
+        """The decoder's ``SamplingConfig`` with ``max_vertices`` resolved against ``limit``."""
+        max_v = limit if self.max_vertices is None else min(int(self.max_vertices), limit)
+        return SamplingConfig(temperature=float(self.temperature), top_k=int(self.top_k), top_p=float(self.top_p),
+                              max_vertices=max_v, seed=int(self.seed))

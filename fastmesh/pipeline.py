@@ -1,0 +1,264 @@
+"""The two-stage FastMesh pipeline: load the networks once, then ``generate`` many times.
+
+    shape ──normalise──► surface samples ──► vertex decoder (tokens → 7-bit cells)
+          ──► fidelity enhancer (continuous positions) ──► face model (+ prediction filtering)
+          ──► triangles of mutually connected triplets ──► clean-up ──► back to the input's frame
+
+This is the Python API the CLI, the worker and the evaluation call::
+
+    pipe = Pipeline.from_pretrained()              # shipped weights, CPU or CUDA
+    result = pipe.generate(load_shape("chair.ply"), GenerateParams(seed=1))
+    open("chair.glb", "wb").write(result.export("glb"))
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .faces import FaceConfig, mesh_from_adjacency
+from .filtering import FilterConfig, edges_from_logits, filter_predictions
+from .io import Normalization, Shape, export_mesh, sample_surface
+from .models.checkpoint import load_model, save_model
+from .models.encoder import EncoderConfig
+from .models.generate import Cancelled, generate
+from .params import GenerateParams
+from .tokenizer import dequantize
+from .tokenizer import vertex as vt
+
+__all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "Pipeline", "default_weights_dir"]
+
+NETWORKS = ("vertex", "enhancer", "face")
+STAGES = ("encode", "vertices", "enhancer", "faces", "filtering")
+# Share of the overall progress bar each stage covers (decoding dominates).
+_STAGE_SPAN = {"encode": (0.0, 0.03), "vertices": (0.03, 0.80), "enhancer": (0.80, 0.83), "faces": (0.83, 0.90),
+               "filtering": (0.90, 1.0)}
+
+
+def default_weights_dir() -> Path:
+    """The weights shipped inside the package (``fastmesh/weights``), or ``$FASTMESH_WEIGHTS``."""
+    env = os.environ.get("FASTMESH_WEIGHTS")
+    return Path(env) if env else Path(__file__).parent / "weights"
+
+
+class GenerationError(RuntimeError):
+    """The networks ran but produced no usable mesh (``code`` says why)."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code, self.message = code, message
+
+
+@dataclass
+class GenerateResult:
+    """A generated mesh in the input's original frame.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float64, input units
+    faces : (F, 3) int64
+    tokens : int, vertex tokens generated (BOS/EOS included)
+    timings : dict, seconds per stage: encode, vertices, enhancer, faces, filtering
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    tokens: int
+    timings: dict[str, float] = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+    def export(self, fmt: str) -> bytes:
+        return export_mesh(self.vertices, self.faces, fmt)
+
+
+def auto_device(device: str | None = None) -> torch.device:
+    if device:
+        return torch.device(device)
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+class Pipeline:
+    """The three networks plus the fixed geometry around them."""
+
+    def __init__(self, vertex, enhancer, face, device: torch.device | str = "cpu",
+                 filter_config: FilterConfig | None = None, face_config: FaceConfig | None = None,
+                 source: str = ""):
+        self.device = torch.device(device)
+        self.vertex = vertex.to(self.device).eval()
+        self.enhancer = enhancer.to(self.device).eval()
+        self.face = face.to(self.device).eval()
+        self.filter_config = filter_config or FilterConfig()
+        # Keep every vertex the decoder produced until the mesh is built, then drop the unused.
+        self.face_config = face_config or FaceConfig(remove_unreferenced=True)
+        self.source = source
+        self.max_vertices = int(vertex.cfg.max_vertices)
+
+    # ------------------------------------------------------------------ construction
+
+    @classmethod
+    def from_pretrained(cls, weights: str | os.PathLike | None = None, device: str | None = None) -> Pipeline:
+        """Load ``vertex/``, ``enhancer/`` and ``face/`` from ``weights`` (default: the shipped ones)."""
+        root = Path(weights) if weights else default_weights_dir()
+        missing = [n for n in NETWORKS if not (root / n / "model.safetensors").exists()]
+        if missing:
+            raise FileNotFoundError(f"weights folder {root} lacks {', '.join(missing)} "
+                                    "(each needs model.safetensors + config.json)")
+        dev = auto_device(device)
+        nets = {n: load_model(root / n, device=dev)[0] for n in NETWORKS}
+        settings = root / "pipeline.json"
+        extra = json.loads(settings.read_text()) if settings.exists() else {}
+        fcfg = FilterConfig(**extra.get("filtering", {}))
+        return cls(nets["vertex"], nets["enhancer"], nets["face"], device=dev, filter_config=fcfg, source=str(root))
+
+    @classmethod
+    def random(cls, size: str = "tiny", seed: int = 0, device: str | None = None) -> Pipeline:
+        """Randomly initialised networks, for tests and benchmarks of the machinery.
+
+        ``tiny`` networks are a few thousand parameters.  A random face model would
+        predict no edges; its output bias is set so every pair connects, which gives a
+        (meaningless) mesh on every input, so the service can be tested end to end.
+        Keep ``max_vertices`` small with it: N vertices make N^3/6 triangles.
+        """
+        from .models.enhancer import Enhancer, EnhancerConfig
+        from .models.face import FaceModel, FaceModelConfig
+        from .models.vertex import VertexConfig, VertexDecoder
+
+        if size != "tiny":
+            raise ValueError("only size='tiny' is defined")
+        torch.manual_seed(seed)
+        enc = EncoderConfig(n_points=256, n_latents=8, dim=32, depth=1, heads=2, n_freqs=4)
+        vertex = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, max_vertices=64))
+        enhancer = Enhancer(EnhancerConfig(dim=32, depth=1, heads=2, encoder=enc))
+        face = FaceModel(FaceModelConfig(dim=32, depth=1, heads=2, edge_heads=4, edge_mlp_hidden=4, encoder=enc))
+        with torch.no_grad():
+            face.edge_mlp[-1].bias.fill_(8.0)
+        return cls(vertex, enhancer, face, device=auto_device(device), source=f"random:{size}:{seed}")
+
+    def save(self, directory: str | os.PathLike) -> None:
+        """Write the three networks (and the filtering settings) so ``from_pretrained`` can load them."""
+        root = Path(directory)
+        for name, net in zip(NETWORKS, (self.vertex, self.enhancer, self.face), strict=True):
+            save_model(net, name, root / name)
+        (root / "pipeline.json").write_text(json.dumps({"filtering": asdict(self.filter_config)}, indent=2))
+
+    def info(self) -> dict:
+        return {"source": self.source, "device": str(self.device), "max_vertices": self.max_vertices,
+                "parameters": {n: sum(p.numel() for p in net.parameters())
+                               for n, net in zip(NETWORKS, (self.vertex, self.enhancer, self.face), strict=True)}}
+
+    # ------------------------------------------------------------------ generation
+
+    def _n_points(self) -> int:
+        return max(net.cfg.encoder.n_points for net in (self.vertex, self.enhancer, self.face))
+
+    def generate(self, shape: Shape, params: GenerateParams | None = None,
+                 progress: Callable[[str, float], None] | None = None,
+                 should_cancel: Callable[[], bool] | None = None) -> GenerateResult:
+        """Turn a shape into an artist-style mesh in the shape's own frame.
+
+        Parameters
+        ----------
+        shape : Shape
+            Mesh or point cloud, as from ``io.load_shape``.
+        params : GenerateParams
+        progress : callable, optional
+            ``progress(stage, fraction)``: the stage running and the overall fraction done (0..1,
+            non-decreasing), called often while the decoder runs.
+        should_cancel : callable, optional
+            Polled during decoding and between stages; returning True raises :class:`Cancelled`.
+
+        Raises
+        ------
+        ValueError for bad parameters, :class:`GenerationError` when no mesh comes out,
+        :class:`Cancelled`.
+        """
+        params = params or GenerateParams()
+        params.validate(limit=self.max_vertices)
+        timings: dict[str, float] = {}
+        report = progress or (lambda stage, fraction: None)
+
+        def check_cancel():
+            if should_cancel is not None and should_cancel():
+                raise Cancelled("generation cancelled")
+
+        # Encode: normalise and sample the surface once; each network reads its share.
+        t = time.perf_counter()
+        report("encode", 0.0)
+        norm = Normalization.fit(shape.vertices)
+        pts, nrm = sample_surface(shape, self._n_points(), seed=params.seed, vertices=norm.apply(shape.vertices))
+        pts_t = torch.from_numpy(pts).to(self.device)[None]
+        nrm_t = torch.from_numpy(nrm).to(self.device)[None]
+        n_vp = self.vertex.cfg.encoder.n_points
+        with torch.inference_mode():
+            prefix = self.vertex.condition(pts_t[:, :n_vp], nrm_t[:, :n_vp])
+        timings["encode"] = time.perf_counter() - t
+        check_cancel()
+
+        # Stage I: vertex tokens.
+        t = time.perf_counter()
+        lo, hi = _STAGE_SPAN["vertices"]
+        sampling = params.sampling(self.max_vertices)
+        max_v = sampling.max_vertices
+
+        def on_step(step: int, n_vert: int) -> None:
+            report("vertices", lo + (hi - lo) * min(1.0, n_vert / max_v))
+
+        report("vertices", lo)
+        tokens = generate(self.vertex, prefix, sampling, progress=on_step, should_cancel=should_cancel)[0]
+        tokens = tokens.cpu().numpy()
+        q = vt.decode(tokens, strict=True)
+        timings["vertices"] = time.perf_counter() - t
+        if len(q) < 3:
+            raise GenerationError("no_vertices", f"the vertex decoder produced {len(q)} vertices; try another seed")
+        check_cancel()
+
+        # Fidelity enhancer: continuous positions inside each cell.
+        t = time.perf_counter()
+        report("enhancer", _STAGE_SPAN["enhancer"][0])
+        if params.enhancer:
+            n_ep = self.enhancer.cfg.encoder.n_points
+            positions = self.enhancer.refine(q, pts[:n_ep], nrm[:n_ep])
+        else:
+            positions = dequantize(q)
+        timings["enhancer"] = time.perf_counter() - t
+        check_cancel()
+
+        # Stage II: edges in one bidirectional pass, then (optionally) filtered re-predictions.
+        report("faces", _STAGE_SPAN["faces"][0])
+        n_fp = self.face.cfg.encoder.n_points
+        t = time.perf_counter()
+        predict = self.face.predictor(q, pts[:n_fp], nrm[:n_fp])
+        calls: list[float] = []
+
+        def timed(order, mask):
+            t0 = time.perf_counter()
+            check_cancel()
+            out = predict(order, mask)
+            calls.append(time.perf_counter() - t0)
+            if len(calls) > 1:
+                f0, f1 = _STAGE_SPAN["filtering"]
+                report("filtering", f0 + (f1 - f0) * (len(calls) - 1) / max(1, self.filter_config.n_passes - 1))
+            return out
+
+        if params.filtering:
+            edges = filter_predictions(timed, len(q), self.filter_config).edges
+        else:
+            edges = edges_from_logits(timed(np.arange(len(q)), None), 0.5)
+        total_face = time.perf_counter() - t
+        timings["faces"] = calls[0] if calls else total_face
+        t = time.perf_counter()
+        verts, faces = mesh_from_adjacency(positions, edges, self.face_config)
+        timings["faces"] += time.perf_counter() - t  # triangle extraction belongs to the face stage
+        timings["filtering"] = total_face - (calls[0] if calls else total_face)
+        if len(faces) == 0:
+            raise GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")
+        report("filtering", 1.0)
+        return GenerateResult(vertices=norm.invert(verts), faces=faces, tokens=int(len(tokens)), timings=timings,
+                              info={"generated_vertices": int(len(q)), "edges": int(len(edges))})

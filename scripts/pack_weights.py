@@ -1,0 +1,49 @@
+"""Copy trained checkpoints into the package as the default weights (float16).
+
+    python scripts/pack_weights.py --vertex runs/vertex/best --enhancer runs/enhancer/best \
+        --face runs/face/best -o fastmesh/weights
+
+Each source is a folder with model.safetensors + config.json (as ``fastmesh train`` writes).
+Training metadata (step, validation loss) is kept in each config.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from fastmesh.filtering import FilterConfig  # noqa: E402
+from fastmesh.models.checkpoint import load_model, save_model  # noqa: E402
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    for n in ("vertex", "enhancer", "face"):
+        ap.add_argument(f"--{n}", required=True, metavar="DIR")
+    ap.add_argument("-o", "--out", default="fastmesh/weights")
+    args = ap.parse_args()
+    out = Path(args.out)
+    for n in ("vertex", "enhancer", "face"):
+        model, meta = load_model(getattr(args, n))
+        if meta["kind"] != n:
+            raise SystemExit(f"{getattr(args, n)} holds a {meta['kind']} network, not {n}")
+        extra = {k: v for k, v in meta.items() if k not in ("kind", "config")}
+        save_model(model, n, out / n, extra=extra, dtype=torch.float16)
+        size = (out / n / "model.safetensors").stat().st_size
+        print(f"{n}: {sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters, {size / 1e6:.1f} MB")
+    pj = out / "pipeline.json"
+    if not pj.exists():
+        from dataclasses import asdict
+
+        pj.write_text(json.dumps({"filtering": asdict(FilterConfig())}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

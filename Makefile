@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test lint install bench-tokens
+.PHONY: run test lint install bench-tokens web chromium
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -15,10 +15,20 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-run: $(STAMP)
+# The page's three.js (npm, pinned by service/web/package-lock.json) and, for the browser tests, Debian's chromium.
+WEB_STAMP := service/web/node_modules/.package-lock.json
+$(WEB_STAMP): service/web/package-lock.json
+	sh scripts/install-web.sh
+
+web: $(WEB_STAMP)
+
+chromium:
+	sh scripts/install-chromium.sh
+
+run: $(STAMP) web
 	$(BIN)/python -m service.run
 
-test: $(STAMP)
+test: $(STAMP) web chromium
 	$(BIN)/ruff check fastmesh service worker tests benchmarks
 	$(BIN)/python -m pytest -q tests
 

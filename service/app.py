@@ -106,6 +106,9 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
             headers["X-Queue-Position"] = str(pos)
         return JSONResponse(store.public(job), status_code=status, headers=headers)
 
+    # Routers added to this app (previews, the web page) reuse the same access rules.
+    app.state.owner, app.state.job_of = owner, job_of
+
     # ------------------------------------------------------------------ jobs
     def d(name: str) -> str:
         return f"default {defaults.get(name)!r}"

@@ -59,6 +59,16 @@ def _curl(url: str, example: Path, key: str | None) -> str:
             f"curl -sS {auth}-o {out} \"{url}/v1/jobs/$JOB/result?format=glb&wait=300\" && ls -l {out}")
 
 
+def _fastmesh_cli() -> str:
+    exe = Path(sys.executable).with_name("fastmesh")
+    if exe.exists():
+        try:
+            return str(exe.relative_to(Path.cwd()))
+        except ValueError:
+            return str(exe)
+    return "fastmesh"
+
+
 def main() -> int:
     try:
         settings = Settings()
@@ -115,7 +125,7 @@ def main() -> int:
         print(f"\nFastMesh is serving on {url}  (API docs: {url}/docs, metrics: {url}/metrics)\n"
               f"Try it (uploads a sample point cloud, waits, downloads the mesh):\n\n"
               f"{_curl(url, example, key)}\n\n"
-              f"or: fastmesh submit {example} --url {url} -o example.glb"
+              f"or: {_fastmesh_cli()} submit {example} --url {url} -o example.glb"
               f"{' --api-key ' + shlex.quote(key) if key else ''}\n\nCtrl-C stops everything.\n", flush=True)
         while True:
             for name, p in (("worker", worker.proc), ("API", api)):

@@ -86,11 +86,13 @@ def web_router(settings: Settings, defaults: dict) -> APIRouter:
 
     @router.get(THREE_PREFIX + "/{rel:path}")
     def three(rel: str) -> FileResponse:
-        if not rel.startswith(THREE_SUBTREES):
+        subtree = next((s for s in THREE_SUBTREES if rel.startswith(s)), None)
+        if subtree is None:
             raise ApiError(404, "not_found", f"no file '{rel[:200]}'")
         if not THREE_DIR.is_dir():
             raise ApiError(503, "three_missing", "three.js is not installed: run `make run` (or "
                                                  "`npm ci --prefix service/web`)")
-        return _file(THREE_DIR, rel, THREE_CACHE)
+        # Containment is checked against the subtree itself: 'build/../package.json' must not escape it.
+        return _file(THREE_DIR / subtree, rel[len(subtree):], THREE_CACHE)
 
     return router

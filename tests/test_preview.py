@@ -1,0 +1,241 @@
+"""``GET /v1/jobs/{id}/preview.png`` and ``.../input.ply`` over real HTTP against real Redis.
+
+No worker here: a job's input is what POST /v1/jobs stored; a "finished" job is made by writing
+what a worker writes (start, result npz, finish) through :class:`service.store.Store`, so each
+case is exact and fast.  The worker path end to end is in ``test_web_browser.py``.
+
+Redis: database ``FASTMESH_TEST_WEB_REDIS_DB`` (default 12) of 127.0.0.1:6379, flushed before and after.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+
+import httpx
+import numpy as np
+import pytest
+import redis
+import trimesh
+from test_render import decode_png
+
+from service.preview import cache_key
+from service.settings import Settings
+from service.store import Store, mesh_to_bytes
+from service.testing import ServedApp, redis_for_tests
+
+DB = int(os.environ.get("FASTMESH_TEST_WEB_REDIS_DB", "12"))
+BACKGROUND = np.round(np.array([0.965, 0.968, 0.975]) * 255)  # fastmesh.render.RenderConfig.background
+
+
+def sphere_xyz(n: int = 400) -> bytes:
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(n, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    buf = io.StringIO()
+    np.savetxt(buf, p + [5.0, 0.0, -2.0], fmt="%.6f")
+    return buf.getvalue().encode()
+
+
+def covered(img: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels that are not background."""
+    return np.abs(img[..., :3].astype(float) - BACKGROUND).max(-1) > 6
+
+
+@pytest.fixture(scope="module")
+def redis_url():
+    url, server = redis_for_tests(DB)
+    client = redis.Redis.from_url(url)
+    client.flushdb()
+    yield url
+    client.flushdb()
+    if server:
+        server.stop()
+
+
+def settings_for(redis_url: str, name: str, **kw) -> Settings:
+    return Settings(redis_url=redis_url, redis_prefix=f"tp-{name}", queue_name=f"tp-{name}",
+                    rate_limit_per_minute=0, submit_rate_limit_per_minute=0, **kw)
+
+
+@pytest.fixture(scope="module")
+def open_app(redis_url):
+    app = ServedApp(settings_for(redis_url, "open"))
+    yield app, Store(app.settings), httpx.Client(base_url=app.url, timeout=30)
+    app.stop()
+
+
+def submit(client: httpx.Client, data: bytes = None, name: str = "sphere.xyz", headers=None) -> str:
+    r = client.post("/v1/jobs", files={"file": (name, data or sphere_xyz())}, headers=headers or {})
+    assert r.status_code == 202, r.text
+    return r.json()["id"]
+
+
+def finish(store: Store, job_id: str, vertices, faces) -> None:
+    """Write what a worker writes when a job succeeds."""
+    assert store.start(job_id, 1, "test-double-of-a-worker")
+    store.put_result(job_id, "npz", mesh_to_bytes(vertices, faces))
+    assert store.finish(job_id, 1, "succeeded", result={"vertices": len(vertices), "faces": len(faces),
+                                                        "tokens": len(vertices), "formats": []})
+
+
+def png(r: httpx.Response) -> np.ndarray:
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == "image/png"
+    return decode_png(r.content)
+
+
+def test_input_point_cloud_is_previewed_before_the_result_exists(open_app):
+    _, _, c = open_app
+    job_id = submit(c)
+    r = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 96})
+    img = png(r)
+    assert img.shape == (96, 96, 3)
+    assert r.headers["x-preview-of"] == "input"
+    assert r.headers["cache-control"] == "no-cache"  # the same URL shows the result later
+    frac = covered(img).mean()
+    assert 0.2 < frac < 0.9, frac  # a framed sphere of splats, not an empty or a flooded image
+
+
+def test_result_preview_replaces_the_input_and_is_shaded(open_app):
+    _, store, c = open_app
+    job_id = submit(c)
+    before = png(c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 80}))
+    box = trimesh.creation.box(extents=(2.0, 1.0, 1.5))
+    finish(store, job_id, box.vertices + 7.0, box.faces)
+    r = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 80})
+    img = png(r)
+    assert r.headers["x-preview-of"] == "result"
+    assert "max-age" in r.headers["cache-control"]
+    assert not np.array_equal(img, before)
+    assert covered(img)[40, 40]  # the box sits in the middle of the frame
+    # Three faces of a box are visible from the 3/4 view, each flat-shaded a different grey.
+    shades = {tuple(p) for p in img[covered(img)].reshape(-1, 3)[:, :3] // 8}
+    assert len(shades) >= 3
+
+
+def test_wireframe_draws_dark_edges_and_is_cached_separately(open_app):
+    _, store, c = open_app
+    job_id = submit(c)
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    finish(store, job_id, sphere.vertices, sphere.faces)
+    plain = png(c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 96}))
+    wired = png(c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 96, "wireframe": 1}))
+    dark = lambda im: int((im[..., :3].max(-1) < 90).sum())  # noqa: E731
+    assert dark(wired) > dark(plain) + 100
+    for wire in (False, True):
+        assert store.r.exists(cache_key(store, job_id, "result", 96, wire))
+
+
+def test_preview_is_rendered_once_then_served_from_the_cache(open_app):
+    _, store, c = open_app
+    job_id = submit(c)
+    box = trimesh.creation.box()
+    finish(store, job_id, box.vertices, box.faces)
+    first = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 64})
+    key = cache_key(store, job_id, "result", 64, False)
+    assert store.r.get(key) == first.content
+    assert 0 < store.r.ttl(key) <= store.settings.retention_seconds  # expires with the job
+    # Without the mesh, only the cache can answer: same bytes.
+    store.r.delete(store.k_result(job_id, "npz"), store.k_input(job_id))
+    again = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 64})
+    assert again.status_code == 200 and again.content == first.content
+    # Another size is a different rendering; with nothing left to render it is a clear 404.
+    gone = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 65})
+    assert gone.status_code == 404 and gone.json()["error"]["code"] == "not_found"
+
+
+@pytest.mark.parametrize("query", [{"size": 63}, {"size": 1025}, {"size": "big"}, {"size": 2.5},
+                                   {"wireframe": "maybe"}])
+def test_bad_preview_parameters_are_422_json(open_app, query):
+    _, _, c = open_app
+    job_id = submit(c)
+    r = c.get(f"/v1/jobs/{job_id}/preview.png", params=query)
+    assert r.status_code == 422
+    assert r.json()["error"]["code"] == "invalid_parameter"
+    assert next(iter(query)) in r.json()["error"]["message"]
+
+
+@pytest.mark.parametrize("size", [64, 1024])
+def test_size_bounds_are_inclusive(open_app, size):
+    _, _, c = open_app
+    job_id = submit(c, sphere_xyz(50))
+    r = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": size})
+    assert r.status_code == 200
+    assert r.content[16:24] == size.to_bytes(4, "big") * 2  # IHDR width, height
+
+
+def test_unknown_malformed_and_deleted_jobs_are_404(open_app):
+    _, _, c = open_app
+    for job_id in ("0" * 32, "not-a-job"):
+        r = c.get(f"/v1/jobs/{job_id}/preview.png")
+        assert r.status_code == 404 and r.json()["error"]["code"] == "not_found"
+    job_id = submit(c)
+    assert c.delete(f"/v1/jobs/{job_id}").status_code in (200, 204)
+    if c.get(f"/v1/jobs/{job_id}").status_code == 200:  # a queued job is cancelled first, then deleted
+        assert c.delete(f"/v1/jobs/{job_id}").status_code == 204
+    assert c.get(f"/v1/jobs/{job_id}/preview.png").status_code == 404
+    assert c.get(f"/v1/jobs/{job_id}/input.ply").status_code == 404
+
+
+def test_failed_job_previews_its_input(open_app):
+    _, store, c = open_app
+    job_id = submit(c)
+    assert store.start(job_id, 1, "w")
+    assert store.finish(job_id, 1, "failed", error={"code": "generation_failed", "message": "x"})
+    r = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 64})
+    assert r.status_code == 200 and r.headers["x-preview-of"] == "input"
+
+
+def test_result_without_faces_is_drawn_as_points(open_app):
+    _, store, c = open_app
+    job_id = submit(c)
+    finish(store, job_id, np.random.default_rng(1).normal(size=(30, 3)), np.zeros((0, 3), np.int64))
+    img = png(c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 64}))
+    assert covered(img).any()
+
+
+def test_input_ply_of_a_point_cloud(open_app):
+    _, _, c = open_app
+    job_id = submit(c, sphere_xyz(400))
+    r = c.get(f"/v1/jobs/{job_id}/input.ply")
+    assert r.status_code == 200 and r.headers["content-type"] == "application/ply"
+    cloud = trimesh.load(io.BytesIO(r.content), file_type="ply")
+    assert len(cloud.vertices) == 400
+    # The input's own frame (results come back in it too), not a normalised one.
+    assert np.allclose(cloud.vertices.mean(0), [5.0, 0.0, -2.0], atol=0.2)
+    few = trimesh.load(io.BytesIO(c.get(f"/v1/jobs/{job_id}/input.ply", params={"points": 50}).content),
+                       file_type="ply")
+    assert len(few.vertices) == 50
+    assert c.get(f"/v1/jobs/{job_id}/input.ply", params={"points": 0}).status_code == 422
+
+
+def test_input_ply_of_a_mesh_samples_its_surface(open_app):
+    _, _, c = open_app
+    box = trimesh.creation.box(extents=(4.0, 2.0, 1.0))
+    job_id = submit(c, box.export(file_type="obj").encode(), name="box.obj")
+    r = c.get(f"/v1/jobs/{job_id}/input.ply", params={"points": 300})
+    pts = np.asarray(trimesh.load(io.BytesIO(r.content), file_type="ply").vertices)
+    assert pts.shape == (300, 3)
+    # Every sample lies on the box's surface: at least one coordinate at its extent.
+    on_face = np.isclose(np.abs(pts) / [2.0, 1.0, 0.5], 1.0, atol=1e-4).any(1)
+    assert on_face.all()
+    img = png(c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 64, "wireframe": 1}))
+    assert covered(img)[32, 32]
+
+
+def test_keys_isolate_previews(redis_url):
+    app = ServedApp(settings_for(redis_url, "keys", api_keys=["alpha-key", "beta-key"]))
+    try:
+        alpha = httpx.Client(base_url=app.url, headers={"Authorization": "Bearer alpha-key"})
+        beta = httpx.Client(base_url=app.url, headers={"Authorization": "Bearer beta-key"})
+        anon = httpx.Client(base_url=app.url)
+        job_id = submit(alpha)
+        for path in ("preview.png", "input.ply"):
+            assert alpha.get(f"/v1/jobs/{job_id}/{path}").status_code == 200
+            r = beta.get(f"/v1/jobs/{job_id}/{path}")
+            assert r.status_code == 404 and r.json()["error"]["code"] == "not_found"
+            r = anon.get(f"/v1/jobs/{job_id}/{path}")
+            assert r.status_code == 401 and r.json()["error"]["code"] == "unauthorized"
+    finally:
+        app.stop()

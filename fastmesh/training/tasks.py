@@ -11,7 +11,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..filtering import adjacency_bandwidth, band_mask, edges_from_logits, neighbour_radius, rcm_order
+from ..metrics import edge_metrics, edges_from_faces
 from ..models.checkpoint import config_from_dict, registry
+from ..tokenizer import dequantize
 from ..tokenizer import vertex as vt
 from .augment import prepare_sample
 
@@ -55,4 +58,177 @@ def _n_points(cfg) -> int:
     return int(enc.get("n_points", 2048))
 
 
-TASKS = {"vertex": VertexTask}
+def _unwrap(model):
+    return model.module if hasattr(model, "module") else model
+
+
+def _pad_cells(qs: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+    """List of (V_i, 3) cells -> padded (B, N, 3) long and valid (B, N) bool."""
+    n = max(len(q) for q in qs)
+    out = np.zeros((len(qs), n, 3), dtype=np.int64)
+    valid = np.zeros((len(qs), n), dtype=bool)
+    for r, q in enumerate(qs):
+        out[r, : len(q)] = q
+        valid[r, : len(q)] = True
+    return torch.from_numpy(out), torch.from_numpy(valid)
+
+
+class _SetTask:
+    """Shared by the enhancer and face tasks: one augmented sample per mesh, padded vertex sets."""
+
+    kind = ""
+
+    def build_model(self, overrides: dict):
+        cls, cfg_cls = registry(self.kind)
+        return cls(config_from_dict(cfg_cls, overrides))
+
+    def costs(self, ds) -> np.ndarray:
+        return ds.num_vertices().astype(np.int64)
+
+    def _samples(self, ds, indices, rng, cfg, train: bool):
+        n_points = _n_points(cfg)
+        recs = [ds[int(i)] for i in indices]
+        return [prepare_sample(r.continuous, r.faces, n_points, cfg.augment if train else None, rng) for r in recs]
+
+
+class EnhancerTask(_SetTask):
+    """Residual of each (re-quantised) vertex inside its cell, in cells, L1 loss."""
+
+    kind = "enhancer"
+
+    def make_batch(self, ds, indices, rng: np.random.Generator, cfg, train: bool) -> dict[str, torch.Tensor]:
+        samples = self._samples(ds, indices, rng, cfg, train)
+        q, valid = _pad_cells([s[0] for s in samples])
+        target = np.zeros(q.shape, dtype=np.float32)
+        for r, s in enumerate(samples):
+            target[r, : len(s[0])] = np.clip((s[2] - dequantize(s[0])) * 128.0, -0.5, 0.5)
+        return {"q": q, "valid": valid, "target": torch.from_numpy(target), **_points_tensors(samples)}
+
+    def loss(self, model, batch):
+        pred = model(batch["q"], batch["points"], batch["normals"], batch["valid"])
+        return _unwrap(model).l1(pred, batch["target"], batch["valid"]), int(batch["valid"].sum())
+
+    def evaluate(self, model, ds, val_idx, cfg, device) -> dict:
+        """L1 of predicting zero residual (the cell centre) on the validation batches, for comparison."""
+        idx = np.sort(val_idx)[: cfg.val_batches * 4]
+        b = self.make_batch(ds, idx, np.random.default_rng(0), cfg, train=False)
+        w = b["valid"][..., None].float()
+        return {"zero_l1": round(float((b["target"].abs() * w).sum() / (3 * w.sum())), 5)}
+
+
+# Mask kinds of the face task and their probabilities (METHOD.md, the authors' experimental code).
+FACE_MASKS = {"candidate": 0.3, "bandwidth": 0.2, "full": 0.1, "negative": 0.4}
+NEGATIVE_RATIO = 8.0  # negatives sampled per positive pair in "negative" samples
+RADIUS_SLACK = (1.0, 1.5, 4)  # mask radii scaled by U(a, b) plus randint(0, c): inferred masks are looser
+FACE_EVAL_MESHES = 24  # validation meshes (<= FACE_EVAL_MAX_VERTICES) scored for edge P/R/F1
+FACE_EVAL_MAX_VERTICES = 500
+
+
+def face_training_mask(edges: np.ndarray, n: int, kind: str, rng: np.random.Generator):
+    """Vertex order, attention mask and scored pairs of one training sample.
+
+    Parameters
+    ----------
+    edges : (E, 2) true edges (i < j) in canonical order.
+    kind : "full" (all pairs), "negative" (full attention; loss on the positives plus
+        ``NEGATIVE_RATIO`` random negatives per positive), "bandwidth" or "candidate" (the
+        masks of prediction filtering built from the true edges in reverse Cuthill-McKee
+        order, radii loosened by ``RADIUS_SLACK`` as predicted edges would).
+
+    Returns
+    -------
+    order : (n,) permutation (position k holds vertex order[k]); attn : (n, n) bool or None;
+    score : (n, n) bool, the pairs (upper triangle) that enter the loss.
+    """
+    order = np.arange(n)
+    upper = np.triu(np.ones((n, n), dtype=bool), 1)
+    if kind == "full":
+        return order, None, upper
+    if kind == "negative":
+        n_pairs = max(n * (n - 1) // 2, 1)
+        rate = min(1.0, NEGATIVE_RATIO * len(edges) / n_pairs)
+        score = rng.random((n, n)) < rate
+        score[edges[:, 0], edges[:, 1]] = True
+        return order, None, score & upper
+    order = rcm_order(edges, n)
+    pos = np.empty(n, dtype=np.int64)
+    pos[order] = np.arange(n)
+    e = np.sort(pos[edges], axis=1) if len(edges) else edges
+    lo, hi, extra = RADIUS_SLACK
+    if kind == "bandwidth":
+        b = adjacency_bandwidth(e)
+        mask = band_mask(n, max(2, int(np.ceil(b * rng.uniform(lo, hi))) + int(rng.integers(0, extra + 1))))
+    elif kind == "candidate":
+        r = neighbour_radius(e, n, 2)
+        r = np.ceil(r * rng.uniform(lo, hi, n)).astype(np.int64) + rng.integers(0, extra + 1, n)
+        mask = band_mask(n, r)
+    else:
+        raise ValueError(f"unknown mask kind {kind!r}")
+    return order, mask, mask & mask.T & upper
+
+
+class FaceTask(_SetTask):
+    """Adjacency of the (re-quantised) mesh, asymmetric loss over pairs, random filtering masks."""
+
+    kind = "face"
+
+    def costs(self, ds) -> np.ndarray:
+        """Pairs per mesh: the edge head and the loss are quadratic in the vertex count."""
+        return ds.num_vertices().astype(np.int64) ** 2
+
+    def make_batch(self, ds, indices, rng: np.random.Generator, cfg, train: bool) -> dict[str, torch.Tensor]:
+        samples = self._samples(ds, indices, rng, cfg, train)
+        kinds, probs = list(FACE_MASKS), np.array(list(FACE_MASKS.values()))
+        qs, parts = [], []
+        for s in samples:
+            q, n = s[0], len(s[0])
+            edges = edges_from_faces(s[1])
+            kind = kinds[rng.choice(len(kinds), p=probs / probs.sum())] if train else "full"
+            order, attn, score = face_training_mask(edges, n, kind, rng)
+            pos = np.empty(n, dtype=np.int64)
+            pos[order] = np.arange(n)
+            target = np.zeros((n, n), dtype=bool)
+            if len(edges):
+                e = np.sort(pos[edges], axis=1)
+                target[e[:, 0], e[:, 1]] = True
+            qs.append(q[order])
+            parts.append((attn, target, score))
+        qt, valid = _pad_cells(qs)
+        b, n = valid.shape
+        mask = np.ones((b, n, n), dtype=bool)
+        target = np.zeros((b, n, n), dtype=bool)
+        score = np.zeros((b, n, n), dtype=bool)
+        for r, (a, t, sc) in enumerate(parts):
+            k = len(t)
+            if a is not None:
+                mask[r, :k, :k] = a
+            target[r, :k, :k], score[r, :k, :k] = t, sc
+        return {"q": qt, "valid": valid, "mask": torch.from_numpy(mask), "target": torch.from_numpy(target),
+                "score": torch.from_numpy(score), **_points_tensors(samples)}
+
+    def loss(self, model, batch):
+        from ..models.face import asymmetric_loss
+
+        logits = model(batch["q"], batch["points"], batch["normals"], valid=batch["valid"], mask=batch["mask"])
+        n_pos = int((batch["target"] & batch["score"]).sum())
+        return asymmetric_loss(logits, batch["target"], batch["score"]) / max(n_pos, 1), n_pos
+
+    def evaluate(self, model, ds, val_idx, cfg, device) -> dict:
+        """Edge precision / recall / F1 (means over meshes) at probability 0.5, one unmasked pass."""
+        net = _unwrap(model)
+        nv = ds.num_vertices()
+        idx = np.sort(val_idx)
+        idx = idx[nv[idx] <= FACE_EVAL_MAX_VERTICES][:FACE_EVAL_MESHES]
+        if len(idx) == 0:
+            return {}
+        rng = np.random.default_rng(0)
+        scores = []
+        for i in idx:
+            q, f, _, pts, nrm = self._samples(ds, [i], rng, cfg, train=False)[0]
+            logits = net(torch.from_numpy(q).to(device)[None], torch.from_numpy(pts).to(device)[None],
+                         torch.from_numpy(nrm).to(device)[None])[0].float().cpu().numpy()
+            scores.append(edge_metrics(edges_from_logits(logits, 0.5), edges_from_faces(f)))
+        return {k: round(float(np.mean([s[k] for s in scores])), 4) for k in ("precision", "recall", "f1")}
+
+
+TASKS = {"vertex": VertexTask, "enhancer": EnhancerTask, "face": FaceTask}

@@ -1,0 +1,184 @@
+"""Stage II: the face model (vertices + condition -> adjacency logits in one pass).
+
+A bidirectional transformer embeds the vertices (``backbone.VertexSetBackbone``); the
+multi-head spacetime edge head of METHOD.md scores every pair:
+
+    u = proj(h_i) split per head h into halves (u1, u2), each L2-normalised (3 dims)
+    d_h(i, j) = ||u1_i - u1_j||^2 - ||u2_i - u2_j||^2 = 2 (u2_i . u2_j - u1_i . u1_j)
+    logit(i, j) = MLP_{H -> hidden -> 1}(d_1 .. d_H)
+
+With unit halves d is a difference of dot products, so each head is one batched matmul;
+the result is symmetric by construction.  The N x N x H tensor is built ``pair_chunk``
+rows at a time, which bounds memory at N = 4000 (``benchmarks/face_memory.py``).
+
+Trained with the asymmetric loss (Ridnik et al.: gamma+ = 0, gamma- = 3, clip 0.05) over
+pairs i < j, under random attention masks like those of prediction filtering (so the
+masked passes at inference are in distribution; ``training.tasks.FaceTask``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..filtering import FilterConfig, edges_from_logits, filter_predictions
+from .backbone import VertexSetBackbone
+from .encoder import EncoderConfig
+from .layers import init_weights
+
+
+@dataclass
+class FaceModelConfig:
+    dim: int = 256
+    depth: int = 6
+    heads: int = 8
+    edge_heads: int = 32
+    edge_head_dim: int = 6  # two L2-normalised halves of 3
+    edge_mlp_hidden: int = 16
+    pair_chunk: int = 256  # rows of the pair tensor computed at once
+    n_freqs: int = 6  # Fourier features of the cell centre
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+
+
+def asymmetric_loss(logits: torch.Tensor, target: torch.Tensor, weight: torch.Tensor | None = None,
+                    gamma_pos: float = 0.0, gamma_neg: float = 3.0, clip: float = 0.05) -> torch.Tensor:
+    """Summed asymmetric loss (Ridnik et al. 2021) of binary ``logits`` against ``target``.
+
+    Positives: -(1 - p)^gamma_pos log p.  Negatives: with the shifted probability
+    p_m = max(p - clip, 0), -p_m^gamma_neg log(1 - p_m).  Easy negatives (p < clip) cost
+    nothing and the rest are down-weighted, which suits the very unbalanced pair labels.
+
+    Parameters
+    ----------
+    logits : (…) float
+    target : (…) bool
+    weight : (…) bool or float, optional; pairs with weight 0 are ignored.
+
+    Returns
+    -------
+    scalar: the sum over weighted elements (callers normalise, e.g. by the positive count).
+    """
+    x = logits.float()
+    p = torch.sigmoid(x)
+    pos = F.logsigmoid(x)
+    if gamma_pos:
+        pos = pos * (1 - p).pow(gamma_pos)
+    p_m = (p - clip).clamp(min=0) if clip > 0 else p
+    # 1 - p_m >= clip > 0, so the log is finite; without clip use log(1 - p) = logsigmoid(-x).
+    neg = torch.log1p(-p_m) if clip > 0 else F.logsigmoid(-x)
+    neg = neg * p_m.pow(gamma_neg)
+    loss = -torch.where(target.bool(), pos, neg)
+    if weight is not None:
+        loss = loss * weight.to(loss.dtype)
+    return loss.sum()
+
+
+class FaceModel(nn.Module):
+    def __init__(self, cfg: FaceModelConfig):
+        super().__init__()
+        if cfg.edge_head_dim % 2:
+            raise ValueError("edge_head_dim must be even (two halves)")
+        self.cfg = cfg
+        self.backbone = VertexSetBackbone(cfg.dim, cfg.depth, cfg.heads, cfg.encoder, cfg.n_freqs)
+        self.edge_proj = nn.Linear(cfg.dim, cfg.edge_heads * cfg.edge_head_dim)
+        self.edge_fc = nn.Linear(cfg.edge_heads, cfg.edge_mlp_hidden)
+        self.edge_out = nn.Linear(cfg.edge_mlp_hidden, 1)
+        init_weights(self)
+        # Unit halves make d lie in [-4, 4] per head: give the MLP unit-scale weights, and start
+        # from "no edge" (p ~ 0.05, where the clipped negative loss vanishes): edges are rare.
+        nn.init.normal_(self.edge_fc.weight, std=cfg.edge_heads ** -0.5)
+        nn.init.normal_(self.edge_out.weight, std=cfg.edge_mlp_hidden ** -0.5)
+        nn.init.constant_(self.edge_out.bias, -3.0)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.parameters()).device
+
+    # ------------------------------------------------------------------ pieces
+
+    def edge_factors(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, N, dim) features -> left/right factors (B, H, N, hd) with d = 2 * left @ right^T."""
+        b, n, _ = h.shape
+        c = self.cfg.edge_head_dim // 2
+        u = self.edge_proj(h).float().view(b, n, self.cfg.edge_heads, 2, c)
+        u = F.normalize(u, dim=-1).permute(0, 2, 1, 3, 4)  # (B, H, N, 2, c)
+        u1, u2 = u[..., 0, :], u[..., 1, :]
+        return torch.cat([u2, -u1], dim=-1), torch.cat([u2, u1], dim=-1)
+
+    def edge_logits(self, h: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
+        """(B, N, dim) vertex features -> (B, N, N) float32 edge logits, ``chunk`` rows at a time."""
+        left, right = self.edge_factors(h)
+        b, heads, n, _ = left.shape
+        chunk = chunk or self.cfg.pair_chunk
+        w1, b1 = self.edge_fc.weight.float(), self.edge_fc.bias.float()
+        w2, b2 = self.edge_out.weight.float()[0], self.edge_out.bias.float()
+        rows = []
+        rt = right.transpose(-1, -2)
+        for s in range(0, n, chunk):
+            d = 2.0 * (left[:, :, s:s + chunk] @ rt)  # (B, H, r, N): the H spacetime distances
+            r = d.shape[2]
+            hid = F.gelu(torch.einsum("kh,bhx->bkx", w1, d.reshape(b, heads, r * n)) + b1[:, None])
+            rows.append((torch.einsum("k,bkx->bx", w2, hid) + b2).view(b, r, n))
+        return torch.cat(rows, dim=1)
+
+    # ------------------------------------------------------------------ training
+
+    def forward(self, q: torch.Tensor, points: torch.Tensor | None = None, normals: torch.Tensor | None = None,
+                valid: torch.Tensor | None = None, mask: torch.Tensor | None = None,
+                prefix: torch.Tensor | None = None) -> torch.Tensor:
+        """Edge logits (B, N, N) of vertices ``q`` (B, N, 3) long.
+
+        The condition is ``prefix`` (B, M, dim) or computed from ``points``/``normals`` (B, P, 3).
+        ``valid`` (B, N) bool marks real vertices (padding is never attended); ``mask``
+        (B, N, N) bool restricts which vertices each vertex attends to (True = may attend;
+        the prefix is always visible).
+        """
+        if prefix is None:
+            prefix = self.backbone.condition(points, normals)
+        return self.edge_logits(self.backbone(q, prefix, valid, mask))
+
+    # ------------------------------------------------------------------ inference
+
+    def predictor(self, q: np.ndarray, points: np.ndarray, normals: np.ndarray):
+        """A ``filtering.Predictor`` for one shape: ``predict(order, mask) -> (N, N) logits``.
+
+        The condition is encoded once; each call permutes the vertices by ``order``, uses
+        ``mask`` (N, N) bool in that order as the attention mask among vertices, and
+        returns float32 logits in that order.
+        """
+        dev = self.device
+        qt = torch.as_tensor(np.asarray(q), dtype=torch.long, device=dev)[None]
+        with torch.no_grad():
+            prefix = self.backbone.condition(_f32(points, dev)[None], _f32(normals, dev)[None])
+
+        def predict(order: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+            with torch.no_grad():
+                idx = torch.as_tensor(np.asarray(order), dtype=torch.long, device=dev)
+                m = None if mask is None else torch.as_tensor(np.asarray(mask, dtype=bool), device=dev)[None]
+                h = self.backbone(qt[:, idx], prefix, mask=m)
+                return self.edge_logits(h)[0].cpu().numpy()
+
+        return predict
+
+    def predict_edges(self, q: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                      filtering: FilterConfig | None = None) -> np.ndarray:
+        """(E, 2) int64 predicted edges (i < j) among vertices ``q`` (N, 3).
+
+        Without ``filtering``: one unmasked pass, edges where the symmetrised probability
+        exceeds 0.5.  With it: ``filtering.filter_predictions`` (re-predictions under masks).
+        """
+        n = len(q)
+        if n < 2:
+            return np.zeros((0, 2), dtype=np.int64)
+        predict = self.predictor(q, points, normals)
+        if filtering is None:
+            return edges_from_logits(predict(np.arange(n), None), 0.5)
+        return filter_predictions(predict, n, filtering).edges
+
+
+def _f32(a, device) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(a, dtype=np.float32), device=device)

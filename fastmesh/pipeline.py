@@ -138,7 +138,7 @@ class Pipeline:
         enhancer = Enhancer(EnhancerConfig(dim=32, depth=1, heads=2, encoder=enc))
         face = FaceModel(FaceModelConfig(dim=32, depth=1, heads=2, edge_heads=4, edge_mlp_hidden=4, encoder=enc))
         with torch.no_grad():
-            face.edge_mlp[-1].bias.fill_(8.0)
+            face.edge_out.bias.fill_(8.0)
         return cls(vertex, enhancer, face, device=auto_device(device), source=f"random:{size}:{seed}")
 
     def save(self, directory: str | os.PathLike) -> None:

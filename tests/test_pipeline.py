@@ -1,0 +1,158 @@
+"""The pipeline API and ``fastmesh generate``, on tiny random networks (seconds), plus one
+smoke test of the shipped weights end to end."""
+
+from __future__ import annotations
+
+import io
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from fastmesh.io import Shape, load_shape, sample_surface
+from fastmesh.params import GenerateParams
+from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weights_dir
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def pipe() -> Pipeline:
+    return Pipeline.random(seed=0)
+
+
+@pytest.fixture(scope="module")
+def weights_dir(tmp_path_factory, pipe) -> str:
+    d = tmp_path_factory.mktemp("weights")
+    pipe.save(d)
+    return str(d)
+
+
+def _sphere(center=(10.0, -4.0, 2.0), scale=3.0) -> Shape:
+    m = trimesh.creation.icosphere(2)
+    return Shape(vertices=np.asarray(m.vertices) * scale + np.asarray(center), faces=np.asarray(m.faces))
+
+
+def test_generate_returns_mesh_in_input_frame(pipe):
+    shape = _sphere()
+    res = pipe.generate(shape, GenerateParams(seed=1, max_vertices=24))
+    assert res.faces.shape[1] == 3 and len(res.faces) > 0
+    assert res.faces.max() < len(res.vertices)
+    lo, hi = shape.bounds
+    # Outputs are back in the input's frame: inside its bounding box (plus half a 7-bit cell).
+    tol = (hi - lo).max() / 128
+    assert (res.vertices >= lo - tol).all() and (res.vertices <= hi + tol).all()
+    assert set(res.timings) == {"encode", "vertices", "enhancer", "faces", "filtering"}
+    assert all(v >= 0 for v in res.timings.values())
+    assert res.tokens >= 3 + len(res.vertices)  # BOS, >= 1 block token, offsets, EOS
+
+
+def test_same_seed_same_mesh_and_save_load_roundtrip(pipe, weights_dir):
+    shape = _sphere()
+    a = pipe.generate(shape, GenerateParams(seed=3, max_vertices=20, temperature=1.0))
+    b = Pipeline.from_pretrained(weights_dir).generate(shape, GenerateParams(seed=3, max_vertices=20, temperature=1.0))
+    assert np.allclose(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)
+
+
+def test_max_vertices_is_respected(pipe):
+    res = pipe.generate(_sphere(), GenerateParams(seed=0, max_vertices=5, temperature=0))
+    assert res.info["generated_vertices"] <= 5
+
+
+def test_point_cloud_input(pipe):
+    sphere = _sphere()
+    pts, nrm = sample_surface(sphere, 500, seed=0)
+    res = pipe.generate(Shape(vertices=pts.astype(np.float64), normals=nrm.astype(np.float64)),
+                        GenerateParams(max_vertices=16))
+    assert len(res.faces) > 0
+
+
+def test_progress_is_monotone_and_completes(pipe):
+    seen = []
+    pipe.generate(_sphere(), GenerateParams(max_vertices=40, temperature=1.0),
+                  progress=lambda stage, f: seen.append((stage, f)))
+    fractions = [f for _, f in seen]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    stages = [s for s, _ in seen]
+    assert stages[0] == "encode" and "vertices" in stages
+
+
+def test_cancel_raises(pipe):
+    with pytest.raises(Cancelled):
+        pipe.generate(_sphere(), GenerateParams(max_vertices=40), should_cancel=lambda: True)
+
+
+@pytest.mark.parametrize("bad", [dict(temperature=-1), dict(top_p=0), dict(top_k=-2), dict(max_vertices=2),
+                                 dict(max_vertices=10**6), dict(seed=-1)])
+def test_bad_params_raise_value_error(pipe, bad):
+    with pytest.raises(ValueError):
+        pipe.generate(_sphere(), GenerateParams(**bad))
+
+
+def test_no_faces_is_a_generation_error(pipe):
+    # A face model that connects nothing must fail loudly, not return an empty mesh.
+    silent = Pipeline.random(seed=0)
+    with torch.no_grad():
+        silent.face.edge_out.bias.fill_(-20.0)
+    with pytest.raises(GenerationError) as e:
+        silent.generate(_sphere(), GenerateParams(max_vertices=16))
+    assert e.value.code == "no_faces"
+
+
+def _cli(*args, check=True):
+    return subprocess.run([sys.executable, "-m", "fastmesh.cli", *args], capture_output=True, text=True,
+                          check=check, timeout=300)
+
+
+def test_cli_generate_file_json(tmp_path, weights_dir):
+    src = tmp_path / "ball.obj"
+    trimesh.Trimesh(*[getattr(_sphere(), k) for k in ("vertices", "faces")]).export(src)
+    out = tmp_path / "out.glb"
+    r = _cli("generate", str(src), "-o", str(out), "--weights", weights_dir, "--max-vertices", "20", "--json")
+    rec = json.loads(r.stdout.strip().splitlines()[-1])
+    assert set(rec) == {"input", "output", "vertices", "faces", "tokens", "timings"}
+    assert set(rec["timings"]) == {"load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total"}
+    mesh = trimesh.load(out, force="mesh")
+    assert len(mesh.faces) == rec["faces"] > 0
+
+
+def test_cli_generate_directory(tmp_path, weights_dir):
+    src = tmp_path / "in"
+    src.mkdir()
+    sphere = _sphere()
+    pts, nrm = sample_surface(sphere, 300, seed=0)
+    np.save(src / "a.npy", np.concatenate([pts, nrm], axis=1))
+    trimesh.Trimesh(sphere.vertices, sphere.faces).export(src / "b.ply")
+    (src / "broken.obj").write_text("v 1 2\nf 1 2 3\n")
+    out = tmp_path / "out"
+    r = _cli("generate", str(src), "-o", str(out), "--weights", weights_dir, "--max-vertices", "12",
+             "--format", "obj", check=False)
+    assert r.returncode == 1  # one input failed ...
+    assert "broken.obj" in r.stderr
+    assert (out / "a.obj").exists() and (out / "b.obj").exists()  # ... the others were done
+    assert r.stderr.count("[") >= 3  # one progress line per file
+
+
+def test_cli_generate_missing_input_is_clear(tmp_path):
+    r = _cli("generate", str(tmp_path / "nope.ply"), "-o", str(tmp_path / "x.glb"), check=False)
+    assert r.returncode == 2 and "no such file" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_shipped_weights_smoke(tmp_path):
+    """The default weights load and turn a validation-style point cloud into a GLB."""
+    root = default_weights_dir()
+    assert (root / "vertex" / "model.safetensors").exists(), f"shipped weights missing in {root}"
+    pipe = Pipeline.from_pretrained()
+    m = trimesh.creation.box(extents=(1.0, 0.6, 0.4))
+    shape = Shape(vertices=np.asarray(m.vertices) + 5, faces=np.asarray(m.faces))
+    pts, nrm = sample_surface(shape, 4096, seed=0)
+    cloud = Shape(vertices=pts.astype(np.float64), normals=nrm.astype(np.float64))
+    res = pipe.generate(cloud, GenerateParams(seed=0, max_vertices=200))
+    glb = res.export("glb")
+    back = load_shape(glb, "result.glb")
+    assert len(back.faces) > 0
+    assert trimesh.load(io.BytesIO(glb), file_type="glb") is not None

@@ -115,6 +115,7 @@ def train(task, data: str | MeshDataset, out: str, cfg: TrainConfig, resume: boo
         model, _ = load_model(outdir, device="cpu")
         state = torch.load(state_path, map_location="cpu", weights_only=False)
     else:
+        torch.manual_seed(cfg.seed)  # same initial weights on every run (and every rank) with the same seed
         model, state = task.build_model(cfg.model), None
     model.to(device).train()
     decay = [p for n, p in model.named_parameters() if p.ndim >= 2 and "emb" not in n]

@@ -80,10 +80,11 @@ def _jobs(args) -> list[tuple[Path, Path, str]]:
 
 def _run(args) -> int:
     from fastmesh.io import ShapeError, load_shape
-    from fastmesh.pipeline import GenerationError
 
     params = params_from_args(args)
-    jobs = _jobs(args)
+    jobs = _jobs(args)  # input errors before the (slow) torch import
+    from fastmesh.pipeline import GenerationError
+
     pipe = load_pipeline(args)
     params.validate(limit=pipe.max_vertices)
     failures = 0

@@ -16,7 +16,7 @@ GENERATION_FIELDS = ("seed", "temperature", "top_k", "top_p", "max_vertices", "e
 
 def generation_defaults() -> dict:
     """The pipeline's own defaults (shown in the OpenAPI description and used for omitted fields)."""
-    from fastmesh.pipeline import GenerateParams
+    from fastmesh.params import GenerateParams
 
     return dataclasses.asdict(GenerateParams())
 
@@ -31,7 +31,7 @@ def build_params(values: dict, formats: str | None, default_formats: list[str], 
     ApiError
         422 ``invalid_parameter`` naming the field.
     """
-    from fastmesh.pipeline import GenerateParams
+    from fastmesh.params import GenerateParams
 
     given = {k: v for k, v in values.items() if v is not None}
     for k, v in given.items():

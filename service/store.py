@@ -8,6 +8,7 @@ Layout (``P`` is ``Settings.redis_prefix``)::
     P:result:<id>:<fmt>     exported mesh (glb/obj/ply) and ``npz`` (vertices, faces) for other formats
     P:hb:<id>               heartbeat of the attempt running the job (value = attempt), short TTL
     P:running               set of job ids in status "running" (what the reaper scans)
+    P:queued                zset job id -> time enqueued (the reaper finds queue entries lost with a worker)
     P:idem:<owner>:<sha>    "<job id> <request fingerprint>" for Idempotency-Key
     P:rate:<kind>:<owner>:<minute>   fixed-window request counters
     P:workers               zset worker name -> last heartbeat (unix seconds)
@@ -45,9 +46,9 @@ STAGE_BUCKETS = (0.01, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 12
 TASK = "worker.tasks.run_job"  # by name: the API never imports the worker (or torch)
 RQ_GRACE = 30  # RQ's hard timeout backs up our cooperative one by this many seconds
 
-# KEYS: job, hb, running set, keys to EXPIRE...
-# ARGV: allowed statuses (comma list), attempt ('' = any), ttl ('' = keep), job id, final ('1' = leave running),
-#       field, value, ...
+# KEYS: job, hb, running set, queued zset, keys to EXPIRE...
+# ARGV: allowed statuses (comma list), attempt ('' = any), ttl ('' = keep), job id,
+#       final ('1' = leaves running/queued), field, value, ...
 _TRANSITION = """
 local st = redis.call('HGET', KEYS[1], 'status')
 if not st then return 0 end
@@ -56,14 +57,16 @@ for s in string.gmatch(ARGV[1], '[^,]+') do if s == st then ok = true end end
 if not ok then return 0 end
 if ARGV[2] ~= '' and redis.call('HGET', KEYS[1], 'attempt') ~= ARGV[2] then return 0 end
 if #ARGV > 5 then redis.call('HSET', KEYS[1], unpack(ARGV, 6)) end
-if ARGV[5] == '1' then redis.call('SREM', KEYS[3], ARGV[4]); redis.call('DEL', KEYS[2]) end
+if ARGV[5] == '1' then
+  redis.call('SREM', KEYS[3], ARGV[4]); redis.call('ZREM', KEYS[4], ARGV[4]); redis.call('DEL', KEYS[2])
+end
 if ARGV[3] ~= '' then
-  for i = 1, #KEYS do if i ~= 2 and i ~= 3 then redis.call('EXPIRE', KEYS[i], ARGV[3]) end end
+  for i = 1, #KEYS do if i == 1 or i > 4 then redis.call('EXPIRE', KEYS[i], ARGV[3]) end end
 end
 return 1
 """
 
-# KEYS: job, hb, running set.  ARGV: attempt, now, worker, hb ttl ms, job id
+# KEYS: job, hb, running set, queued zset.  ARGV: attempt, now, worker, hb ttl ms, job id
 _START = """
 if redis.call('HGET', KEYS[1], 'status') ~= 'queued' then return 0 end
 if redis.call('HGET', KEYS[1], 'attempt') ~= ARGV[1] then return 0 end
@@ -71,6 +74,7 @@ redis.call('HSET', KEYS[1], 'status', 'running', 'started_at', ARGV[2], 'worker'
            'stage', '"starting"', 'fraction', '0')
 redis.call('SET', KEYS[2], ARGV[1], 'PX', ARGV[4])
 redis.call('SADD', KEYS[3], ARGV[5])
+redis.call('ZREM', KEYS[4], ARGV[5])
 return 1
 """
 
@@ -149,6 +153,10 @@ class Store:
     def k_running(self) -> str:
         return f"{self.p}:running"
 
+    @property
+    def k_queued(self) -> str:
+        return f"{self.p}:queued"
+
     def result_keys(self, job_id: str) -> list[str]:
         return [self.k_result(job_id, f) for f in (*EXPORT_FORMATS, "npz")]
 
@@ -210,7 +218,7 @@ class Store:
                 "1" if final else "0"]
         for k, v in (fields or {}).items():
             argv += [k, v if k in ("owner", "status", "worker", "rq_id") else json.dumps(v)]
-        keys = [self.k_job(job_id), self.k_hb(job_id), self.k_running, *(expire or [])]
+        keys = [self.k_job(job_id), self.k_hb(job_id), self.k_running, self.k_queued, *(expire or [])]
         return bool(self._transition(keys=keys, args=argv))
 
     def create(self, owner: str, params: dict, input_info: dict, shape_bytes: bytes, load_seconds: float) -> str:
@@ -233,7 +241,10 @@ class Store:
 
     def enqueue(self, job_id: str, attempt: int) -> None:
         rq_id = f"{job_id}-{attempt}"
-        self.r.hset(self.k_job(job_id), "rq_id", rq_id)
+        with self.r.pipeline() as pipe:
+            pipe.hset(self.k_job(job_id), "rq_id", rq_id)
+            pipe.zadd(self.k_queued, {job_id: time.time()})
+            pipe.execute()
         self.queue.enqueue_call(TASK, args=(job_id, attempt), job_id=rq_id,
                                 timeout=int(math.ceil(self.settings.job_timeout)) + RQ_GRACE,
                                 result_ttl=0, failure_ttl=self.settings.retention_seconds,
@@ -242,7 +253,7 @@ class Store:
     def start(self, job_id: str, attempt: int, worker: str) -> bool:
         """queued -> running for this attempt (and its first heartbeat), atomically."""
         hb_ms = int(self.settings.heartbeat_ttl * 1000)
-        return bool(self._start(keys=[self.k_job(job_id), self.k_hb(job_id), self.k_running],
+        return bool(self._start(keys=[self.k_job(job_id), self.k_hb(job_id), self.k_running, self.k_queued],
                                 args=[str(attempt), json.dumps(time.time()), worker, hb_ms, job_id]))
 
     def heartbeat(self, job_id: str, attempt: int) -> bool:
@@ -319,6 +330,7 @@ class Store:
     def delete(self, job_id: str) -> None:
         self.r.delete(self.k_job(job_id), self.k_input(job_id), self.k_hb(job_id), *self.result_keys(job_id))
         self.r.srem(self.k_running, job_id)
+        self.r.zrem(self.k_queued, job_id)
 
     # ------------------------------------------------------------------ blobs
     def put_result(self, job_id: str, fmt: str, data: bytes, ttl: int | None = None) -> None:
@@ -442,6 +454,29 @@ class Store:
                                   f"on each of {attempt} attempt(s); giving up"}
                 if self.finish(job_id, attempt, "failed", error=err):
                     actions.append((job_id, "lost"))
+        actions += self._reap_queued()
+        return actions
+
+    def _reap_queued(self) -> list[tuple[str, str]]:
+        """Requeue queued jobs whose RQ entry vanished without the job starting.
+
+        A worker killed between taking a job off the queue and starting it (a few milliseconds) would
+        otherwise leave it "queued" forever.  Jobs enqueued less than ``heartbeat_ttl`` ago are left alone.
+        """
+        actions = []
+        cutoff = time.time() - self.settings.heartbeat_ttl
+        for raw in self.r.zrangebyscore(self.k_queued, "-inf", cutoff):
+            job_id = raw.decode()
+            job = self.get(job_id)
+            if job is None or job["status"] != "queued":
+                self.r.zrem(self.k_queued, job_id)
+                continue
+            if job.get("rq_id") and self.r.lpos(self.queue.key, job["rq_id"]) is not None:
+                continue  # still waiting its turn
+            attempt = int(job["attempt"])
+            if self.transition(job_id, "queued", {"attempt": attempt + 1}, attempt=attempt):
+                self.enqueue(job_id, attempt + 1)
+                actions.append((job_id, "requeued_lost_entry"))
         return actions
 
 

@@ -208,8 +208,8 @@ def test_bad_uploads_are_clear_4xx(served, name, data, status, code):
 
 @pytest.mark.parametrize("fields,word", [
     ({"seed": "abc"}, "seed"), ({"seed": -1}, "seed"), ({"temperature": "nan"}, "temperature"),
-    ({"temperature": "inf"}, "temperature"), ({"temperature": 0}, "temperature"), ({"top_p": 1.5}, "top_p"),
-    ({"top_k": 0}, "top_k"), ({"max_vertices": 0}, "max_vertices"), ({"max_vertices": "x"}, "max_vertices"),
+    ({"temperature": "inf"}, "temperature"), ({"temperature": -1}, "temperature"), ({"top_p": 1.5}, "top_p"),
+    ({"top_k": -1}, "top_k"), ({"max_vertices": 0}, "max_vertices"), ({"max_vertices": "x"}, "max_vertices"),
     ({"enhancer": "maybe"}, "enhancer"), ({"formats": "fbx"}, "formats"), ({"formats": "glb,../x"}, "formats"),
 ])
 def test_bad_parameters_are_422_naming_the_field(served, fields, word):
@@ -289,6 +289,18 @@ def test_queued_job_result_409_cancel_delete_and_queue_full(idle):
     client = redis.Redis.from_url(idle.settings.redis_url)
     assert not client.exists(f"t-idle:job:{ids[0]}", f"t-idle:input:{ids[0]}")
     assert 0 < client.ttl(f"t-idle:input:{ids[1]}") <= idle.settings.retention_seconds
+
+
+def test_queue_entry_lost_with_a_worker_is_requeued(idle):
+    """A worker killed between taking the job off the RQ queue and starting it: the reaper puts it back."""
+    client = redis.Redis.from_url(idle.settings.redis_url)
+    job_id = submit(idle.url, sphere_xyz(seed=9)).json()["id"]
+    queue_key = f"rq:queue:{idle.settings.queue_name}"
+    assert client.lrem(queue_key, 0, f"{job_id}-1") == 1  # what a dequeue does, minus the start
+    wait_for(lambda: client.lpos(queue_key, f"{job_id}-2") is not None, 10, what="the reaper to requeue it")
+    assert httpx.get(f"{idle.url}/v1/jobs/{job_id}").json()["status"] == "queued"
+    assert httpx.delete(f"{idle.url}/v1/jobs/{job_id}").json()["status"] == "cancelled"
+    assert client.llen(queue_key) == 1  # the one job left by the previous test
 
 
 def test_rate_limit_429_with_retry_after(redis_url):

@@ -117,7 +117,9 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
               summary="Submit a shape; returns the queued job",
               responses={**error_responses(401, 409, 413, 415, 422, 429, 503),
                          202: {"description": "Accepted; `Location` names the job",
-                               "headers": {"Location": {"schema": {"type": "string"}}}}})
+                               "headers": {"Location": {"schema": {"type": "string"}}}},
+                         200: {"model": Job, "description": "A retry with the same Idempotency-Key: the job "
+                                                            "that request created"}})
     def submit(request: Request,
                file: UploadFile = File(..., description="Mesh or point cloud; the extension names the format."),
                seed: int | None = Form(None, ge=0, le=2**32 - 1, description=f"Sampling seed ({d('seed')}).",
@@ -125,11 +127,14 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
                temperature: float | None = Form(None, allow_inf_nan=False,
                                                 description=f"Sampling temperature ({d('temperature')}).",
                                                 examples=[defaults.get("temperature")]),
-               top_k: int | None = Form(None, description=f"Top-k sampling ({d('top_k')}).",
+               top_k: int | None = Form(None, ge=0, le=1_000_000,
+                                        description=f"Top-k sampling, 0 = off ({d('top_k')}).",
                                         examples=[defaults.get("top_k")]),
                top_p: float | None = Form(None, allow_inf_nan=False, description=f"Nucleus sampling ({d('top_p')}).",
                                           examples=[defaults.get("top_p")]),
-               max_vertices: int | None = Form(None, description=f"Vertex budget ({d('max_vertices')}).",
+               max_vertices: int | None = Form(None, ge=3, le=1_000_000,
+                                               description=f"Vertex budget; unset = the model's limit "
+                                                           f"({d('max_vertices')}).",
                                                examples=[defaults.get("max_vertices")]),
                enhancer: bool | None = Form(None, description=f"Run the vertex enhancer ({d('enhancer')})."),
                filtering: bool | None = Form(None, description=f"Filter bad faces ({d('filtering')})."),

@@ -149,6 +149,16 @@ def test_upload_poll_download_glb(served):
     assert ply.status_code == 200
     mply = trimesh.load(io.BytesIO(ply.content), file_type="ply", process=False)
     assert np.allclose(np.sort(mply.vertices, 0), np.sort(mesh.vertices, 0), atol=1e-5)
+    # Everything lives in Redis with the retention TTL; DELETE removes the job, its input and results.
+    client = redis.Redis.from_url(app.settings.redis_url)
+    keys = [f"t-open:{k}" for k in (f"job:{job['id']}", f"input:{job['id']}", f"result:{job['id']}:glb",
+                                     f"result:{job['id']}:obj", f"result:{job['id']}:ply",
+                                     f"result:{job['id']}:npz")]
+    ttls = [client.ttl(k) for k in keys]
+    assert all(0 < t <= app.settings.retention_seconds for t in ttls), ttls
+    assert httpx.delete(f"{app.url}/v1/jobs/{job['id']}").status_code == 204
+    assert client.exists(*keys) == 0
+    assert_error(httpx.get(f"{app.url}/v1/jobs/{job['id']}/result"), 404)
 
 
 def test_long_poll_result(served):

@@ -211,8 +211,10 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
                          who: str = Depends(owner)) -> Response:
         job = await anyio.to_thread.run_sync(job_of, job_id, who)
         deadline = time.monotonic() + wait
+        step = 0.02  # short jobs answer fast; long waits settle at 5 Redis reads a second
         while job["status"] not in FINAL and time.monotonic() < deadline:
-            await anyio.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
+            await anyio.sleep(min(step, max(0.0, deadline - time.monotonic())))
+            step = min(0.2, step * 1.5)
             job = await anyio.to_thread.run_sync(job_of, job_id, who)
         if job["status"] in ("queued", "running"):
             raise ApiError(409, "not_ready", f"job is {job['status']}; poll GET /v1/jobs/{job_id} or add ?wait=",

@@ -129,7 +129,7 @@ class Store:
     def __init__(self, settings: Settings, client: redis.Redis | None = None):
         self.settings = settings
         # Bytes in, bytes out: RQ needs raw bytes and our blobs are binary; hashes are decoded by hand.
-        self.r = client or redis.Redis.from_url(settings.redis_url)
+        self.r = client or redis.Redis.from_url(settings.redis_url, socket_connect_timeout=5, socket_keepalive=True)
         self.p = settings.redis_prefix
         self.queue = Queue(settings.queue_name, connection=self.r)
         self._transition = self.r.register_script(_TRANSITION)

@@ -327,6 +327,21 @@ def test_rate_limit_429_with_retry_after(redis_url):
         app.stop()
 
 
+def test_redis_down_is_503_not_500():
+    from service.testing import free_port
+
+    app = ServedApp(Settings(redis_url=f"redis://127.0.0.1:{free_port()}/0", **FAST))
+    try:
+        assert_error(httpx.get(f"{app.url}/v1/jobs/{'0' * 32}"), 503, "unavailable")
+        assert_error(submit(app.url), 503, "unavailable")
+        assert_error(httpx.get(f"{app.url}/readyz"), 503, "not_ready")
+        assert httpx.get(f"{app.url}/healthz").status_code == 200
+        m = httpx.get(f"{app.url}/metrics")
+        assert m.status_code == 200 and "fastmesh_redis_up 0.0" in m.text
+    finally:
+        app.stop()
+
+
 # ---------------------------------------------------------------------------------------- keys
 
 

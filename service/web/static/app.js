@@ -18,6 +18,7 @@ const state = {
   jobId: null,      // the job shown
   pollTimer: null,
   viewer: null,     // Viewer once three.js is loaded
+  viewerPromise: null,
   viewerError: null,
   shown: {},        // what the viewer already holds for the job shown: {points, mesh}
 };
@@ -134,13 +135,13 @@ function fillDefaults() {
   for (const name of PARAMS) {
     const input = form.elements[name];
     input.value = d[name] ?? '';
-    input.placeholder = d[name] != null ? `default ${d[name]}` : 'default';
+    input.placeholder = d[name] != null ? `default ${d[name]}` : 'auto (server decides)';
   }
   for (const name of FLAGS) form.elements[name].checked = Boolean(d[name] ?? true);
   for (const box of document.querySelectorAll('#format-boxes input')) {
     box.checked = state.config.default_formats.includes(box.value);
   }
-  const shown = [...PARAMS, ...FLAGS].map((k) => `${k}=${d[k]}`).join(', ');
+  const shown = [...PARAMS, ...FLAGS].map((k) => `${k}=${d[k] ?? 'auto'}`).join(', ');
   $('#defaults-hint').textContent = `Server defaults: ${shown}, formats=${state.config.default_formats.join(',')}.`;
 }
 
@@ -329,8 +330,13 @@ function fmtSeconds(s) {
 
 // ------------------------------------------------------------------ the 3D view
 
-async function ensureViewer() {
-  if (state.viewer || state.viewerError) return state.viewer;
+// One viewer per page: concurrent callers (every poll of a running job) share the same start-up promise.
+function ensureViewer() {
+  if (!state.viewerPromise) state.viewerPromise = startViewer();
+  return state.viewerPromise;
+}
+
+async function startViewer() {
   if (!state.config.three_installed) {
     state.viewerError = 'The 3D view needs three.js, which is not installed on this server: run `make run` '
       + '(or `npm ci --prefix service/web`). Downloads work without it.';
@@ -472,6 +478,7 @@ async function main() {
   wireActions();
   renderRecent();
   openFromHash();
+  window.fastmesh = state; // for the console (and tests): the page's state, incl. the viewer
   document.body.dataset.ready = '1'; // the page is wired (tests wait for this)
 }
 

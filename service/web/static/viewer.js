@@ -10,12 +10,29 @@ const FACE_COLOR = 0xb8c7e0;
 const WIRE_COLOR = 0x1a1f29;
 const POINT_COLOR = 0xe36b29;
 
+// True when WebGL runs on a CPU rasteriser.  Asked of a throw-away context, before the real one is made.
+function isSoftwareGL() {
+  try {
+    const gl = document.createElement('canvas').getContext('webgl2');
+    if (!gl) return true;
+    const info = gl.getExtension('WEBGL_debug_renderer_info');
+    const name = info ? gl.getParameter(info.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER);
+    gl.getExtension('WEBGL_lose_context')?.loseContext();
+    return /swiftshader|llvmpipe|softpipe|software/i.test(String(name));
+  } catch {
+    return false;
+  }
+}
+
 export class Viewer {
   constructor(container) {
     this.container = container;
     // preserveDrawingBuffer: the canvas can be read back (screenshots, tests) after a frame is shown.
-    this.renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
-    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+    // On a software rasteriser (no GPU: SwiftShader, llvmpipe) multisampling and high-DPI buffers cost
+    // seconds per frame on a dense mesh, so they are dropped there.
+    this.software = isSoftwareGL();
+    this.renderer = new THREE.WebGLRenderer({ antialias: !this.software, preserveDrawingBuffer: true });
+    this.renderer.setPixelRatio(this.software ? 1 : Math.min(window.devicePixelRatio || 1, 2));
     this.renderer.setClearColor(BACKGROUND, 1);
     container.appendChild(this.renderer.domElement);
 
@@ -28,7 +45,9 @@ export class Viewer {
     this.camera.add(key);
 
     this.controls = new OrbitControls(this.camera, this.renderer.domElement);
-    this.controls.addEventListener('change', () => this.render()); // render on demand, not in a loop
+    // Render on demand, not in a loop; a drag fires many 'change' events per frame: draw once per frame.
+    this.controls.addEventListener('change', () => this.renderSoon());
+    this.frameRequested = false;
 
     this.mesh = null;    // THREE.Group of the result
     this.wire = null;    // THREE.Group of LineSegments over the result
@@ -50,6 +69,12 @@ export class Viewer {
   }
 
   render() { this.renderer.render(this.scene, this.camera); }
+
+  renderSoon() {
+    if (this.frameRequested) return;
+    this.frameRequested = true;
+    requestAnimationFrame(() => { this.frameRequested = false; this.render(); });
+  }
 
   clear() {
     for (const obj of [this.mesh, this.wire, this.points]) {

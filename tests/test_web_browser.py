@@ -215,6 +215,11 @@ def test_from_a_point_cloud_to_a_downloaded_glb(stack, page, tmp_path, shots):
     with page.expect_download() as dl:
         page.click("#dl-obj")
     assert dl.value.suggested_filename == "crate.obj"
+    assert len(trimesh.load(dl.value.path(), file_type="obj", force="mesh").faces) == job["result"]["faces"]
+    with page.expect_download() as dl:
+        page.click("#dl-png")  # the server-side preview, as drawn with the wireframe off (as toggled)
+    assert dl.value.suggested_filename == "crate-preview.png"
+    assert Path(dl.value.path()).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     # The job is remembered by this browser, and a reload shows it again.
     assert page.locator("#recent li").count() == 1
@@ -285,5 +290,9 @@ def test_keys_queue_position_queue_full_and_drop(redis_url, page, tmp_path, shot
         page.wait_for_selector("body[data-ready='1']")
         assert page.input_value("#api-key") == "sesame"
         page.wait_for_selector("#status.queued")
+        page.click("#cancel")
+        page.wait_for_selector("#status.cancelled")
+        assert page.is_hidden("#cancel")
+        assert "cancelled" in page.text_content("#recent li")
     finally:
         app.stop()

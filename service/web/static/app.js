@@ -59,7 +59,8 @@ async function api(path, options = {}) {
   if (code === 'rate_limited') title = 'Rate limited';
   const retry = res.headers.get('Retry-After');
   const hint = retry ? ` Try again in ${retry} s.` : '';
-  throw new ApiError(res.status, code, `${title}: ${message}.${hint}`.replace(/\.\./g, '.'));
+  const end = /[.!?]$/.test(message) ? '' : '.';
+  throw new ApiError(res.status, code, `${title}: ${message}${end}${hint}`);
 }
 
 function showError(message) {
@@ -152,8 +153,8 @@ function buildForm() {
     label.innerHTML = `<input type="checkbox" name="formats" value="${f}"> ${f.toUpperCase()}`;
     boxes.append(label);
   }
-  const mib = (state.config.max_upload_bytes / 1048576).toFixed(0);
-  $('#formats-hint').textContent = `${state.config.input_formats.join(', ')} · up to ${mib} MiB`;
+  $('#formats-hint').textContent = `${state.config.input_formats.join(', ')} · `
+    + `up to ${formatBytes(state.config.max_upload_bytes)}`;
   fillDefaults();
   $('#reset-params').addEventListener('click', fillDefaults);
 
@@ -180,8 +181,9 @@ function chooseFile(file) {
 
 function formatBytes(n) {
   if (n < 1024) return `${n} B`;
-  if (n < 1048576) return `${(n / 1024).toFixed(1)} KiB`;
-  return `${(n / 1048576).toFixed(1)} MiB`;
+  const fixed = (x) => (Number.isInteger(x) ? String(x) : x.toFixed(1));
+  if (n < 1048576) return `${fixed(n / 1024)} KiB`;
+  return `${fixed(n / 1048576)} MiB`;
 }
 
 async function submit() {
@@ -300,6 +302,7 @@ function showJob(job, position) {
   $('#cancel').hidden = FINAL.includes(status);
 
   const inp = job.input || {};
+  state.stem = (inp.filename || '').replace(/\.[^.]*$/, '');
   $('#c-input').textContent = inp.kind === 'points' ? `${inp.points} points` : `${inp.vertices} vertices, ${inp.faces} faces`;
   if (job.result) {
     $('#c-vertices').textContent = job.result.vertices;
@@ -420,7 +423,7 @@ function wireActions() {
   $('#dl-obj').addEventListener('click', () => download(`/v1/jobs/${state.jobId}/result?format=obj`, 'result.obj'));
   $('#dl-png').addEventListener('click', () => download(
     `/v1/jobs/${state.jobId}/preview.png?size=1024&wireframe=${$('#wireframe').checked ? 1 : 0}`,
-    `${state.jobId}.png`));
+    `${state.stem || state.jobId}-preview.png`));
   $('#cancel').addEventListener('click', async () => {
     try { await api(`/v1/jobs/${state.jobId}`, { method: 'DELETE' }); poll(); } catch (e) { showError(e.message); }
   });

@@ -121,12 +121,10 @@ export class Viewer {
   showPoints(buffer) {
     const geom = new PLYLoader().parse(buffer);
     if (this.points) this.scene.remove(this.points);
-    geom.computeBoundingSphere();
-    const r = geom.boundingSphere ? geom.boundingSphere.radius : 1;
     const n = geom.attributes.position.count;
-    // Point size in world units: sparse clouds get bigger dots, so the surface still reads.
-    const size = (2.2 * r) / Math.sqrt(Math.max(n, 1)) * 0.9;
-    this.points = new THREE.Points(geom, new THREE.PointsMaterial({ color: POINT_COLOR, size, sizeAttenuation: true }));
+    // Dots of a fixed size on screen (pixels): sparse clouds get bigger ones, dense ones must not hide the mesh.
+    const size = Math.min(5, Math.max(2, 250 / Math.sqrt(Math.max(n, 1)))) * this.renderer.getPixelRatio();
+    this.points = new THREE.Points(geom, new THREE.PointsMaterial({ color: POINT_COLOR, size, sizeAttenuation: false }));
     this.points.visible = this.pointsOn;
     this.scene.add(this.points);
     if (!this.mesh) this.frame();

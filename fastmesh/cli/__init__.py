@@ -8,7 +8,7 @@ import importlib
 import sys
 
 # One module per verb (group); add yours here.
-VERBS = ["data", "train", "generate", "eval", "tokens", "metrics", "submit"]
+VERBS = ["data", "train", "generate", "eval", "tokens", "metrics", "submit", "loadtest"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,142 @@
+"""The real service stack for the load, fault, bad-input and corpus tests.
+
+Redis database ``FASTMESH_TEST_STACK_DB`` (default 12) of 127.0.0.1:6379, or a private
+redis-server when none answers there; an API served in-process (:class:`service.testing.ServedApp`)
+or as a restartable uvicorn subprocess (:class:`ApiProcess`); ``fastmesh-worker`` subprocesses with
+the tiny random model.  Small, finite inputs made here.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import httpx
+import numpy as np
+import redis
+
+from service.settings import Settings
+from service.testing import free_port, settings_env, wait_for
+
+DB = int(os.environ.get("FASTMESH_TEST_STACK_DB", "12"))
+# Fast failure detection and no rate limits: the tests make hundreds of requests in seconds.
+FAST = dict(heartbeat_interval=0.2, heartbeat_ttl=1.5, reaper_interval=0.2, progress_interval=0.05,
+            rate_limit_per_minute=0, submit_rate_limit_per_minute=0)
+FINAL = ("succeeded", "failed", "cancelled")
+
+
+def tiny_weights(directory: str | os.PathLike) -> str:
+    """Save the tiny random pipeline (64 vertices at most) to ``directory``; returns it."""
+    from fastmesh.pipeline import Pipeline
+
+    Pipeline.random("tiny", seed=0).save(str(directory))
+    return str(directory)
+
+
+def make_settings(redis_url: str, name: str, **kw) -> Settings:
+    return Settings(redis_url=redis_url, redis_prefix=f"s-{name}", queue_name=f"s-{name}", **{**FAST, **kw})
+
+
+def sphere_points(n: int = 300, seed: int = 0, center=(3.0, -1.0, 2.0)) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(n, 3))
+    return p / np.linalg.norm(p, axis=1, keepdims=True) + np.asarray(center)
+
+
+def xyz_bytes(points: np.ndarray) -> bytes:
+    buf = io.StringIO()
+    np.savetxt(buf, points, fmt="%.6f")
+    return buf.getvalue().encode()
+
+
+def write_inputs(directory: Path, n: int = 3) -> Path:
+    """A few small valid shapes: point clouds (xyz, npy) and a mesh (obj)."""
+    import trimesh
+
+    directory.mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        (directory / f"ball{i}.xyz").write_bytes(xyz_bytes(sphere_points(seed=i)))
+    np.save(directory / "cloud.npy", sphere_points(seed=9))
+    trimesh.creation.icosphere(1).export(directory / "ico.obj")
+    return directory
+
+
+def job(url: str, job_id: str, headers=None) -> dict:
+    r = httpx.get(f"{url}/v1/jobs/{job_id}", headers=headers, timeout=30)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def wait_final(url: str, job_id: str, timeout: float = 60.0) -> dict:
+    return wait_for(lambda: (j := job(url, job_id))["status"] in FINAL and j, timeout, 0.05,
+                    what=f"job {job_id} to finish")
+
+
+def assert_error(r: httpx.Response, status: int | tuple[int, ...], code: str | None = None) -> dict:
+    """An error answer of the documented shape; ``status`` may list the acceptable ones."""
+    ok = status if isinstance(status, tuple) else (status,)
+    assert r.status_code in ok, (r.status_code, r.text[:500])
+    assert r.headers["content-type"].startswith("application/json"), r.headers
+    body = r.json()
+    assert set(body) == {"error"} and set(body["error"]) == {"code", "message"}, body
+    assert body["error"]["message"], body
+    if code:
+        assert body["error"]["code"] == code, body
+    return body["error"]
+
+
+class ApiProcess:
+    """``uvicorn service.app:create_app --factory`` as a subprocess on a fixed port: it can be killed and
+    started again where clients expect it (the in-process :class:`ServedApp` cannot be restarted)."""
+
+    def __init__(self, settings: Settings, port: int | None = None, log_path: str | os.PathLike | None = None):
+        self.settings, self.port = settings, port or free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log_path = Path(log_path or tempfile.mkstemp(prefix="fastmesh-api-", suffix=".log")[1])
+        self.proc: subprocess.Popen | None = None
+        self.start()
+
+    def start(self, timeout: float = 60.0) -> ApiProcess:
+        log = open(self.log_path, "ab")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory", "--host", "127.0.0.1",
+             "--port", str(self.port), "--log-level", "warning"],
+            env=settings_env(self.settings), stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        log.close()
+
+        def up():
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"API exited ({self.proc.returncode}):\n{self.log()[-3000:]}")
+            try:
+                return httpx.get(f"{self.url}/healthz", timeout=1).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        wait_for(up, timeout, 0.1, what=f"the API on port {self.port}")
+        return self
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def kill(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+    def stop(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.kill()
+
+
+def flushed(url: str) -> redis.Redis:
+    client = redis.Redis.from_url(url)
+    client.flushdb()
+    return client

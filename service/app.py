@@ -31,7 +31,7 @@ from .params import build_params, generation_defaults, input_info, safe_filename
 from .preview import preview_router
 from .schemas import Health, Job, Ready, error_responses
 from .settings import Settings
-from .store import FINAL, Store, mesh_from_bytes, shape_to_bytes
+from .store import FINAL, QueueFull, Store, mesh_from_bytes, shape_to_bytes
 from .web.routes import web_router
 
 log = logging.getLogger("fastmesh.service")
@@ -181,7 +181,13 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
                     return job_response(existing, 200)
                 raise ApiError(409, "conflict", "a request with this Idempotency-Key is still being processed")
         try:
-            job_id = store.create(who, params, info, blob, load_seconds)
+            job_id = store.create(who, params, info, blob, load_seconds, max_queued=settings.max_queue_depth)
+        except QueueFull:  # the early check above raced with concurrent submissions: the queue filled meanwhile
+            if idempotency_key:
+                store.idempotency_release(who, idempotency_key)
+            depth = store.queue_depth()
+            raise ApiError(429, "queue_full", f"{depth} jobs are waiting (limit {settings.max_queue_depth}); "
+                                              "retry later", {"Retry-After": str(_retry_after(store, depth))}) from None
         except BaseException:
             if idempotency_key:
                 store.idempotency_release(who, idempotency_key)

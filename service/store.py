@@ -9,6 +9,7 @@ Layout (``P`` is ``Settings.redis_prefix``)::
     P:hb:<id>               heartbeat of the attempt running the job (value = attempt), short TTL
     P:running               set of job ids in status "running" (what the reaper scans)
     P:queued                zset job id -> time enqueued (the reaper finds queue entries lost with a worker)
+    P:suspects              hash job id -> when its queue entry was first seen missing
     P:idem:<owner>:<sha>    "<job id> <request fingerprint>" for Idempotency-Key
     P:rate:<kind>:<owner>:<minute>   fixed-window request counters
     P:workers               zset worker name -> last heartbeat (unix seconds)
@@ -78,6 +79,14 @@ redis.call('ZREM', KEYS[4], ARGV[5])
 return 1
 """
 
+# KEYS: queued zset.  ARGV: job id, now, limit.  Admission to the queue: check and add in one step, so
+# concurrent submissions cannot all see room and overshoot the limit together.
+_ADMIT = """
+if redis.call('ZCARD', KEYS[1]) >= tonumber(ARGV[3]) then return 0 end
+redis.call('ZADD', KEYS[1], ARGV[2], ARGV[1])
+return 1
+"""
+
 # KEYS: job, hb.  ARGV: attempt, hb ttl ms
 _HEARTBEAT = """
 if redis.call('HGET', KEYS[1], 'status') ~= 'running' then return 0 end
@@ -85,6 +94,10 @@ if redis.call('HGET', KEYS[1], 'attempt') ~= ARGV[1] then return 0 end
 redis.call('SET', KEYS[2], ARGV[1], 'PX', ARGV[2])
 return 1
 """
+
+
+class QueueFull(Exception):
+    """``create`` found ``max_queued`` jobs already waiting."""
 
 
 def iso(t: float | None) -> str | None:
@@ -135,6 +148,7 @@ class Store:
         self._transition = self.r.register_script(_TRANSITION)
         self._start = self.r.register_script(_START)
         self._heartbeat = self.r.register_script(_HEARTBEAT)
+        self._admit = self.r.register_script(_ADMIT)
 
     # ------------------------------------------------------------------ keys
     def k_job(self, job_id: str) -> str:
@@ -221,10 +235,16 @@ class Store:
         keys = [self.k_job(job_id), self.k_hb(job_id), self.k_running, self.k_queued, *(expire or [])]
         return bool(self._transition(keys=keys, args=argv))
 
-    def create(self, owner: str, params: dict, input_info: dict, shape_bytes: bytes, load_seconds: float) -> str:
-        """Store a new queued job and its input, and enqueue it.  Returns the job id."""
+    def create(self, owner: str, params: dict, input_info: dict, shape_bytes: bytes, load_seconds: float,
+               max_queued: int | None = None) -> str:
+        """Store a new queued job and its input, and enqueue it.  Returns the job id.
+
+        Raises :class:`QueueFull` when ``max_queued`` jobs are already queued (checked atomically).
+        """
         job_id = uuid.uuid4().hex
         now = time.time()
+        if max_queued is not None and not self._admit(keys=[self.k_queued], args=[job_id, now, max_queued]):
+            raise QueueFull(job_id)
         ttl = self.settings.retention_seconds
         fields = {"owner": owner, "status": "queued", "attempt": 1, "stage": "queued", "fraction": 0.0,
                   "created_at": now, "started_at": None, "finished_at": None, "params": params,
@@ -461,22 +481,36 @@ class Store:
         """Requeue queued jobs whose RQ entry vanished without the job starting.
 
         A worker killed between taking a job off the queue and starting it (a few milliseconds) would
-        otherwise leave it "queued" forever.  Jobs enqueued less than ``heartbeat_ttl`` ago are left alone.
+        otherwise leave it "queued" forever.  A live worker passes through that gap too, so an entry
+        is only declared lost when it has been missing on two looks ``heartbeat_ttl`` apart.
         """
         actions = []
-        cutoff = time.time() - self.settings.heartbeat_ttl
-        for raw in self.r.zrangebyscore(self.k_queued, "-inf", cutoff):
+        now = time.time()
+        k_suspects = f"{self.p}:suspects"
+        suspects = {k.decode(): float(v) for k, v in self.r.hgetall(k_suspects).items()}
+        for raw in self.r.zrangebyscore(self.k_queued, "-inf", now - self.settings.heartbeat_ttl):
             job_id = raw.decode()
             job = self.get(job_id)
             if job is None or job["status"] != "queued":
                 self.r.zrem(self.k_queued, job_id)
                 continue
             if job.get("rq_id") and self.r.lpos(self.queue.key, job["rq_id"]) is not None:
+                suspects.pop(job_id, None)
                 continue  # still waiting its turn
+            first_seen = suspects.pop(job_id, None)
+            if first_seen is None or self.r.hget(k_suspects, job_id) is None:
+                self.r.hset(k_suspects, job_id, now)
+                continue
+            if now - first_seen < self.settings.heartbeat_ttl:
+                continue
+            self.r.hdel(k_suspects, job_id)
             attempt = int(job["attempt"])
             if self.transition(job_id, "queued", {"attempt": attempt + 1}, attempt=attempt):
                 self.enqueue(job_id, attempt + 1)
                 actions.append((job_id, "requeued_lost_entry"))
+        for job_id, first_seen in suspects.items():  # suspects that started (or went) in the meantime
+            if now - first_seen > 2 * self.settings.heartbeat_ttl:
+                self.r.hdel(k_suspects, job_id)
         return actions
 
 

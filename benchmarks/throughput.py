@@ -1,0 +1,195 @@
+"""Throughput per worker count, and polling latency while the workers are saturated.
+
+    python benchmarks/throughput.py                      # shipped weights, 1 then 2 workers, 60 s each
+    python benchmarks/throughput.py --tiny --duration 20 # the tiny random model: the service's own overhead
+
+Starts everything it measures and stops it at the end: a private ``redis-server`` on a free port, the
+API (``uvicorn service.app:create_app --factory``, one process) and ``fastmesh-worker`` processes.  For
+each worker count it runs ``fastmesh loadtest`` (:mod:`fastmesh.loadtest`) for ``--duration`` seconds with
+more simulated users than workers, so the queue never drains, while a separate poller process times
+``GET /v1/jobs/{id}`` every ``--poll-interval`` seconds.  Prints a table (``--json``: every report).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from fastmesh.loadtest import LoadConfig, percentiles, run
+from service.processes import RedisServer, WorkerProcess, free_port, settings_env, wait_for
+from service.settings import Settings
+
+
+def make_inputs(directory: Path, n_files: int = 4, n_points: int = 4000) -> Path:
+    """Point clouds of stretched, rounded boxes (x y z per line), different per file."""
+    for i in range(n_files):
+        rng = np.random.default_rng(i)
+        p = rng.normal(size=(n_points, 3))
+        p /= np.abs(p).max(1, keepdims=True)
+        p = np.sign(p) * np.abs(p) ** (0.5 + 0.1 * i) * [1.0, 0.5 + 0.1 * i, 0.4]
+        np.savetxt(directory / f"box{i}.xyz", p, fmt="%.5f")
+    return directory
+
+
+def poller(url: str, seconds: float, interval: float, sample: str, params: dict) -> dict:
+    """Upload ``sample`` once (it queues behind the load), then time GET /v1/jobs/{id} of that job for
+    ``seconds``.  Milliseconds, and the answers seen (status code and job status)."""
+    with httpx.Client(base_url=url, timeout=30) as http:
+        job = http.post("/v1/jobs", files={"file": (Path(sample).name, Path(sample).read_bytes())},
+                        data=params).json()
+        lat, statuses = [], {}
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            t = time.perf_counter()
+            r = http.get(f"/v1/jobs/{job['id']}")
+            lat.append((time.perf_counter() - t) * 1000.0)
+            key = f"{r.status_code} {r.json().get('status') if r.status_code == 200 else ''}".strip()
+            statuses[key] = statuses.get(key, 0) + 1
+            time.sleep(interval)
+    return {"ms": percentiles(lat), "answers": statuses}
+
+
+class Api:
+    """The API as a uvicorn subprocess (its own interpreter, as in production: no GIL shared with the load)."""
+
+    def __init__(self, settings: Settings, log: Path):
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log = open(log, "wb")
+        self.proc = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory",
+                                      "--host", "127.0.0.1", "--port", str(self.port), "--log-level", "warning"],
+                                     env=settings_env(settings), stdout=self.log, stderr=subprocess.STDOUT,
+                                     start_new_session=True)
+
+        def up():
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"the API exited; see {log}")
+            try:
+                return httpx.get(f"{self.url}/healthz", timeout=1).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        wait_for(up, 60, 0.1, what="the API")
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+        self.log.close()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--tiny", action="store_true", help="the tiny random model instead of the shipped weights")
+    ap.add_argument("--weights", default=None, help="weights folder (default: the shipped weights)")
+    ap.add_argument("--workers", default="1,2", help="worker counts to measure, in order (default 1,2)")
+    ap.add_argument("--duration", type=float, default=60.0, help="seconds of load per worker count (default 60)")
+    ap.add_argument("--grace", type=float, default=120.0, help="seconds accepted jobs may take after that")
+    ap.add_argument("--concurrency", type=int, default=None, help="simulated users (default 2 x workers + 2)")
+    ap.add_argument("--inputs", default=None, help="folder of shapes (default: generated point clouds)")
+    ap.add_argument("--max-vertices", type=int, default=None, help="per job (default: 12 with --tiny, else the "
+                                                                   "model's limit)")
+    ap.add_argument("--torch-threads", type=int, default=1, help="torch threads per worker (default 1)")
+    ap.add_argument("--worker-nice", type=int, default=0,
+                    help="niceness added to the workers (e.g. 10: the API keeps the CPU it needs to answer)")
+    ap.add_argument("--poll-interval", type=float, default=0.05, help="seconds between the poller's GETs")
+    ap.add_argument("--json", action="store_true", help="print every report as JSON")
+    args = ap.parse_args()
+    counts = [int(c) for c in args.workers.split(",")]
+    work = Path(tempfile.mkdtemp(prefix="fastmesh-throughput-"))
+    weights = args.weights
+    if args.tiny:
+        from fastmesh.pipeline import Pipeline
+
+        weights = str(work / "weights")
+        Pipeline.random("tiny", seed=0).save(weights)
+    else:
+        from fastmesh.pipeline import default_weights_dir
+
+        root = Path(weights) if weights else default_weights_dir()
+        if not (root / "vertex" / "model.safetensors").exists():
+            print(f"throughput: no weights in {root}; pass --weights DIR or --tiny", file=sys.stderr)
+            return 2
+    max_vertices = args.max_vertices or (12 if args.tiny else None)
+    inputs = Path(args.inputs) if args.inputs else make_inputs(work)
+    sample = sorted(p for p in inputs.iterdir() if p.is_file())[0]
+
+    redis_server = RedisServer()
+    s = Settings(redis_url=redis_server.url, weights=weights, torch_threads=args.torch_threads,
+                 rate_limit_per_minute=0, submit_rate_limit_per_minute=0, max_queue_depth=10_000)
+    print(f"[throughput] redis {redis_server.url}, logs and inputs in {work}", file=sys.stderr)
+    api = Api(s, work / "api.log")
+    workers: list[WorkerProcess] = []
+    rows, reports = [], {}
+    params = {"max_vertices": str(max_vertices)} if max_vertices else {}
+    try:
+        for k in counts:
+            while len(workers) < k:
+                workers.append(WorkerProcess(s, f"bench-w{len(workers) + 1}", work / f"w{len(workers) + 1}.log"))
+            while len(workers) > k:
+                workers.pop().stop()
+            for w in workers:
+                w.wait_ready(300)
+                if args.worker_nice:
+                    os.setpriority(os.PRIO_PROCESS, w.pid, os.getpriority(os.PRIO_PROCESS, w.pid) + args.worker_nice)
+            users = args.concurrency or 2 * k + 2
+            # Warm-up: the first job of a process pays torch's lazy initialisation.
+            run(LoadConfig(url=api.url, inputs=[inputs], concurrency=k, jobs=2 * k, grace=args.grace, params=params))
+            print(f"[throughput] {k} worker(s), {users} users, {args.duration:g} s ...", file=sys.stderr)
+            poll = subprocess.Popen([sys.executable, __file__, "--poll-only", api.url, str(args.duration),
+                                     str(args.poll_interval), str(sample), json.dumps(params)],
+                                    stdout=subprocess.PIPE, text=True)
+            rep = run(LoadConfig(url=api.url, inputs=[inputs], concurrency=users, duration=args.duration,
+                                 grace=args.grace, params=params))
+            out, _ = poll.communicate(timeout=args.duration + args.grace + 60)
+            rep["poll"] = json.loads(out)
+            reports[k] = rep
+            rows.append((k, users, rep))
+    finally:
+        for w in workers:
+            w.stop()
+        api.stop()
+        redis_server.stop()
+    if args.json:
+        print(json.dumps({str(k): r for k, r in reports.items()}, indent=2))
+    print(table(rows, "tiny random model" if args.tiny else (weights or "shipped weights"), max_vertices,
+                args.worker_nice))
+    return 1 if any(r["jobs"]["lost"] for r in reports.values()) else 0
+
+
+def table(rows: list[tuple[int, int, dict]], model: str, max_vertices: int | None, nice: int = 0) -> str:
+    head = (f"model: {model}; max_vertices: {max_vertices or 'model limit'}; cores: {os.cpu_count()}; "
+            f"worker nice +{nice}; load average {os.getloadavg()[0]:.1f}\n"
+            f"{'workers':>7} {'users':>5} {'jobs':>5} {'jobs/min':>9} {'e2e p50':>8} {'e2e p95':>8} {'e2e p99':>8} "
+            f"{'queue p50':>9} {'queue p95':>9} {'poll p50':>9} {'poll p99':>9} {'lost':>4} {'http err':>8}\n"
+            f"{'':>7} {'':>5} {'':>5} {'':>9} {'s':>8} {'s':>8} {'s':>8} {'s':>9} {'s':>9} {'ms':>9} {'ms':>9}")
+    lines = [head]
+    for k, users, r in rows:
+        e, q, p = r["end_to_end_s"], r["queue_wait_s"], r["poll"]["ms"]
+        lines.append(f"{k:>7} {users:>5} {r['jobs']['succeeded']:>5} {r['jobs_per_minute']:>9.1f} "
+                     f"{e['p50'] or 0:>8.2f} {e['p95'] or 0:>8.2f} {e['p99'] or 0:>8.2f} {q['p50'] or 0:>9.2f} "
+                     f"{q['p95'] or 0:>9.2f} {p['p50'] or 0:>9.2f} {p['p99'] or 0:>9.2f} {r['jobs']['lost']:>4} "
+                     f"{sum(r['http_errors'].values()):>8}")
+    if len(rows) > 1 and rows[0][2]["jobs_per_minute"]:
+        lines.append(f"scaling {rows[-1][0]} vs {rows[0][0]} worker(s): "
+                     f"{rows[-1][2]['jobs_per_minute'] / rows[0][2]['jobs_per_minute']:.2f}x")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 7 and sys.argv[1] == "--poll-only":  # the poller, as its own process
+        print(json.dumps(poller(sys.argv[2], float(sys.argv[3]), float(sys.argv[4]), sys.argv[5],
+                                json.loads(sys.argv[6]))))
+        sys.exit(0)
+    sys.exit(main())

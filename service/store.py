@@ -498,7 +498,7 @@ class Store:
                 suspects.pop(job_id, None)
                 continue  # still waiting its turn
             first_seen = suspects.pop(job_id, None)
-            if first_seen is None or self.r.hget(k_suspects, job_id) is None:
+            if first_seen is None:
                 self.r.hset(k_suspects, job_id, now)
                 continue
             if now - first_seen < self.settings.heartbeat_ttl:
@@ -508,9 +508,8 @@ class Store:
             if self.transition(job_id, "queued", {"attempt": attempt + 1}, attempt=attempt):
                 self.enqueue(job_id, attempt + 1)
                 actions.append((job_id, "requeued_lost_entry"))
-        for job_id, first_seen in suspects.items():  # suspects that started (or went) in the meantime
-            if now - first_seen > 2 * self.settings.heartbeat_ttl:
-                self.r.hdel(k_suspects, job_id)
+        if suspects:  # they started (or went) in the meantime: not lost after all
+            self.r.hdel(k_suspects, *suspects)
         return actions
 
 

@@ -21,7 +21,7 @@ from service.testing import ServedApp, WorkerProcess, redis_for_tests, wait_for
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 DB = int(os.environ.get("FASTMESH_TEST_REDIS_DB", "13"))
-FAST = dict(heartbeat_interval=0.2, heartbeat_ttl=1.5, reaper_interval=0.2, progress_interval=0.05,
+FAST = dict(heartbeat_interval=0.2, heartbeat_ttl=2.5, reaper_interval=0.2, progress_interval=0.05,
             rate_limit_per_minute=0, submit_rate_limit_per_minute=0)
 
 
@@ -307,7 +307,7 @@ def test_queue_entry_lost_with_a_worker_is_requeued(idle):
     job_id = submit(idle.url, sphere_xyz(seed=9)).json()["id"]
     queue_key = f"rq:queue:{idle.settings.queue_name}"
     assert client.lrem(queue_key, 0, f"{job_id}-1") == 1  # what a dequeue does, minus the start
-    wait_for(lambda: client.lpos(queue_key, f"{job_id}-2") is not None, 10, what="the reaper to requeue it")
+    wait_for(lambda: client.lpos(queue_key, f"{job_id}-2") is not None, 20, what="the reaper to requeue it")
     assert httpx.get(f"{idle.url}/v1/jobs/{job_id}").json()["status"] == "queued"
     assert httpx.delete(f"{idle.url}/v1/jobs/{job_id}").json()["status"] == "cancelled"
     assert client.llen(queue_key) == 1  # the one job left by the previous test

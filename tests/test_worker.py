@@ -214,6 +214,19 @@ def test_job_timeout(env):
     assert "0.5 s" in final["error"]["message"]
 
 
+def test_hung_job_with_a_live_worker_is_failed_by_the_reaper(env, caplog):
+    """A decoder stuck in one call (here: an 8 s sleep) never reaches its own timeout check; its heartbeat
+    thread keeps beating, so the job is not "lost" either: the reaper fails it as overdue."""
+    w = env.start("hung", FASTMESH_DEBUG_STEP_DELAY="8", FASTMESH_JOB_TIMEOUT="0.5")
+    job_id = submit(env.app.url, max_vertices=20).json()["id"]
+    final = wait_final(env.app.url, job_id, timeout=30)
+    assert final["status"] == "failed" and final["error"]["code"] == "timeout", final
+    w.proc.send_signal(signal.SIGKILL)  # rather than waiting out its sleep
+    w.proc.wait()
+    assert f"reaper: job {job_id} timeout" in caplog.text + w.log()
+    assert env.attempt(job_id) == 1
+
+
 def test_sigterm_hands_the_running_job_back(env):
     app = env.app
     w = env.start("leaving", FASTMESH_DEBUG_STEP_DELAY=DOOMED)

@@ -219,8 +219,7 @@ class Store:
         """0-based place in the queue of a queued job (None when not queued or unknown)."""
         if job["status"] != "queued" or not job.get("rq_id"):
             return None
-        ids = [i.decode() for i in self.r.lrange(self.queue.key, 0, -1)]
-        return ids.index(job["rq_id"]) if job["rq_id"] in ids else None
+        return self.r.lpos(self.queue.key, job["rq_id"])  # RQ pushes right, pops left
 
     # ------------------------------------------------------------------ transitions
     def transition(self, job_id: str, allowed: str | tuple[str, ...], fields: dict | None = None,

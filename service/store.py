@@ -437,79 +437,10 @@ class Store:
         return {k.decode(): json.loads(v) for k, v in self.r.hgetall(f"{self.p}:worker:{name}").items()}
 
     def reap(self) -> list[tuple[str, str]]:
-        """Requeue or fail running jobs whose worker stopped heart-beating; fail overdue ones.
+        """Requeue or fail the jobs of dead workers, fail overdue ones (see :mod:`service.reaper`)."""
+        from .reaper import reap
 
-        Safe to run from any number of processes at once: each decision is a compare-and-set.
-        Returns ``(job id, action)`` pairs, action in {"requeued", "lost", "timeout", "forgotten"}.
-        """
-        actions = []
-        s = self.settings
-        for raw in self.r.smembers(self.k_running):
-            job_id = raw.decode()
-            job = self.get(job_id)
-            if job is None or job["status"] != "running":
-                self.r.srem(self.k_running, job_id)
-                actions.append((job_id, "forgotten"))
-                continue
-            attempt = int(job["attempt"])
-            if self.r.exists(self.k_hb(job_id)):
-                # Alive but overdue (a hung decoder keeps its heartbeat thread going): fail it; the worker's
-                # next cancel check sees the status change and stops.
-                if time.time() - job["started_at"] > s.job_timeout + s.heartbeat_ttl:
-                    if self.finish(job_id, attempt, "failed", error=timeout_error(s.job_timeout)):
-                        actions.append((job_id, "timeout"))
-                continue
-            if attempt < s.max_attempts:
-                ok = self.transition(job_id, "running", {
-                    "status": "queued", "attempt": attempt + 1, "stage": "queued", "fraction": 0.0,
-                    "worker": ""}, attempt=attempt, final=True)
-                if ok:
-                    self.r.hincrby(f"{self.p}:stats:jobs", "retried", 1)
-                    self.enqueue(job_id, attempt + 1)
-                    actions.append((job_id, "requeued"))
-            else:
-                err = {"code": "worker_lost",
-                       "message": f"the worker running this job stopped responding (killed or crashed) "
-                                  f"on each of {attempt} attempt(s); giving up"}
-                if self.finish(job_id, attempt, "failed", error=err):
-                    actions.append((job_id, "lost"))
-        actions += self._reap_queued()
-        return actions
-
-    def _reap_queued(self) -> list[tuple[str, str]]:
-        """Requeue queued jobs whose RQ entry vanished without the job starting.
-
-        A worker killed between taking a job off the queue and starting it (a few milliseconds) would
-        otherwise leave it "queued" forever.  A live worker passes through that gap too, so an entry
-        is only declared lost when it has been missing on two looks ``heartbeat_ttl`` apart.
-        """
-        actions = []
-        now = time.time()
-        k_suspects = f"{self.p}:suspects"
-        suspects = {k.decode(): float(v) for k, v in self.r.hgetall(k_suspects).items()}
-        for raw in self.r.zrangebyscore(self.k_queued, "-inf", now - self.settings.heartbeat_ttl):
-            job_id = raw.decode()
-            job = self.get(job_id)
-            if job is None or job["status"] != "queued":
-                self.r.zrem(self.k_queued, job_id)
-                continue
-            if job.get("rq_id") and self.r.lpos(self.queue.key, job["rq_id"]) is not None:
-                suspects.pop(job_id, None)
-                continue  # still waiting its turn
-            first_seen = suspects.pop(job_id, None)
-            if first_seen is None:
-                self.r.hset(k_suspects, job_id, now)
-                continue
-            if now - first_seen < self.settings.heartbeat_ttl:
-                continue
-            self.r.hdel(k_suspects, job_id)
-            attempt = int(job["attempt"])
-            if self.transition(job_id, "queued", {"attempt": attempt + 1}, attempt=attempt):
-                self.enqueue(job_id, attempt + 1)
-                actions.append((job_id, "requeued_lost_entry"))
-        if suspects:  # they started (or went) in the meantime: not lost after all
-            self.r.hdel(k_suspects, *suspects)
-        return actions
+        return reap(self)
 
 
 def timeout_error(seconds: float) -> dict:

@@ -4,6 +4,12 @@ Quantisation and the 7-bit merge lose up to half a cell per axis; the enhancer l
 all vertices and the condition (``backbone.VertexSetBackbone``) and predicts each
 vertex's residual from its cell centre, in cell units, bounded to [-0.5, 0.5] by
 ``0.5 * tanh`` so a prediction never leaves its cell.  Trained with an L1 loss.
+
+The global latents cannot place a surface to a fraction of a cell (1/128 of the cube),
+so each vertex also sees its ``local_k`` nearest condition points, as offsets from its
+cell centre in cell units (plus their normals), pooled by a small PointNet: where the
+surface passes through and near the cell is what decides the residual.  The denser the
+condition points, the better; train and infer with similar densities.
 """
 
 from __future__ import annotations
@@ -15,7 +21,7 @@ import torch
 from torch import nn
 
 from ..tokenizer import dequantize
-from .backbone import VertexSetBackbone
+from .backbone import VertexSetBackbone, cell_centres
 from .encoder import EncoderConfig
 from .layers import init_weights
 
@@ -30,7 +36,38 @@ class EnhancerConfig:
     depth: int = 4
     heads: int = 6
     n_freqs: int = 6
+    local_k: int = 16  # nearest condition points per vertex (0 = no local features)
+    local_range: float = 16.0  # cells: offsets are scaled by this and clipped to [-1, 1]
+    local_dim: int = 96  # width of the local PointNet (run on N * k points: keep it narrow)
     encoder: EncoderConfig = field(default_factory=_small_encoder)
+
+
+class LocalPoints(nn.Module):
+    """PointNet over the k nearest condition points of each cell centre (offsets in cells)."""
+
+    def __init__(self, dim: int, k: int, local_range: float, width: int):
+        super().__init__()
+        self.k, self.range = k, local_range
+        self.mlp = nn.Sequential(nn.Linear(11, width), nn.GELU(), nn.Linear(width, width))
+        self.out = nn.Linear(width, dim, bias=False)
+
+    def forward(self, centres: torch.Tensor, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+        """centres (B, N, 3), points/normals (B, P, 3) -> (B, N, dim)."""
+        b, n, _ = centres.shape
+        k = min(self.k, points.shape[1])
+        dist, idx = torch.cdist(centres.float(), points.float()).topk(k, dim=-1, largest=False)
+        g = idx.reshape(b, n * k, 1).expand(-1, -1, 3)
+        nb = torch.gather(points, 1, g).view(b, n, k, 3)
+        nrm = torch.gather(normals, 1, g).view(b, n, k, 3)
+        scale = 128.0 / self.range
+        off = nb - centres[:, :, None]
+        # Tangent-plane offset of each neighbour: the displacement that puts the cell centre on
+        # that point's plane.  Explicit because an MLP approximates this bilinear form poorly.
+        plane = (off * nrm).sum(-1, keepdim=True)
+        feats = torch.cat([(off * scale).clamp(-1, 1), nrm, (dist * scale).clamp(max=1)[..., None],
+                           (plane * 128.0).clamp(-2, 2), (plane * nrm * 128.0).clamp(-2, 2)], dim=-1)  # cells
+        feats = self.mlp(feats)
+        return self.out(feats.max(dim=2).values)
 
 
 class Enhancer(nn.Module):
@@ -38,6 +75,7 @@ class Enhancer(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.backbone = VertexSetBackbone(cfg.dim, cfg.depth, cfg.heads, cfg.encoder, cfg.n_freqs)
+        self.local = LocalPoints(cfg.dim, cfg.local_k, cfg.local_range, cfg.local_dim) if cfg.local_k > 0 else None
         self.head = nn.Linear(cfg.dim, 3)
         init_weights(self)
 
@@ -49,7 +87,8 @@ class Enhancer(nn.Module):
                 valid: torch.Tensor | None = None) -> torch.Tensor:
         """q (B, N, 3) long, points/normals (B, P, 3), valid (B, N) bool -> (B, N, 3) residuals in cells."""
         prefix = self.backbone.condition(points, normals)
-        h = self.backbone(q, prefix, valid)
+        extra = None if self.local is None else self.local(cell_centres(q), points, normals)
+        h = self.backbone(q, prefix, valid, extra=extra)
         return 0.5 * torch.tanh(self.head(h).float())
 
     @staticmethod

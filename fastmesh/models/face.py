@@ -41,6 +41,7 @@ class FaceModelConfig:
     edge_mlp_hidden: int = 16
     pair_chunk: int = 256  # rows of the pair tensor computed at once
     n_freqs: int = 6  # Fourier features of the cell centre
+    distance_bias: bool = True  # geometric attention bias among vertices (see models.backbone)
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
 
 
@@ -83,7 +84,8 @@ class FaceModel(nn.Module):
         if cfg.edge_head_dim % 2:
             raise ValueError("edge_head_dim must be even (two halves)")
         self.cfg = cfg
-        self.backbone = VertexSetBackbone(cfg.dim, cfg.depth, cfg.heads, cfg.encoder, cfg.n_freqs)
+        self.backbone = VertexSetBackbone(cfg.dim, cfg.depth, cfg.heads, cfg.encoder, cfg.n_freqs,
+                                          cfg.distance_bias)
         self.edge_proj = nn.Linear(cfg.dim, cfg.edge_heads * cfg.edge_head_dim)
         self.edge_fc = nn.Linear(cfg.edge_heads, cfg.edge_mlp_hidden)
         self.edge_out = nn.Linear(cfg.edge_mlp_hidden, 1)

@@ -20,6 +20,7 @@ import anyio
 from fastapi import Depends, FastAPI, File, Form, Header, Path, Query, Request, Response, UploadFile
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from fastmesh.io import EXPORT_FORMATS, ShapeError, export_mesh, load_shape
 
@@ -56,6 +57,8 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     metrics = Metrics(store)
     defaults = generation_defaults()
     keys = {hashlib.sha256(k.encode()).hexdigest()[:16]: k for k in settings.api_keys}
+    # Documents the scheme in OpenAPI (the /docs "Authorize" button); checking is ours, for JSON errors.
+    bearer = HTTPBearer(auto_error=False, description="An API key from FASTMESH_API_KEYS (when set).")
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -72,12 +75,11 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     errors.install(app)
 
     # ------------------------------------------------------------------ access
-    def owner(request: Request, authorization: str | None = Header(None, include_in_schema=False)) -> str:
+    def owner(request: Request, cred: HTTPAuthorizationCredentials | None = Depends(bearer)) -> str:
         """Who is asking: the hash of their API key, or 'anonymous' when keys are off.  Rate-limits them."""
         if keys:
-            scheme, _, token = (authorization or "").partition(" ")
-            who = next((h for h, k in keys.items()
-                        if scheme.lower() == "bearer" and hmac.compare_digest(token.strip(), k)), None)
+            token = cred.credentials.strip() if cred else ""
+            who = next((h for h, k in keys.items() if hmac.compare_digest(token.encode(), k.encode())), None)
             if who is None:
                 raise ApiError(401, "unauthorized", "missing or unknown API key; send 'Authorization: Bearer <key>'",
                                {"WWW-Authenticate": "Bearer"})
@@ -96,7 +98,7 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     def job_of(job_id: str, who: str) -> dict:
         job = store.get(job_id) if ID_RE.fullmatch(job_id) else None
         if job is None or job["owner"] != who:  # another key's job is indistinguishable from no job
-            raise ApiError(404, "not_found", f"no job '{job_id}'")
+            raise ApiError(404, "not_found", f"no job '{job_id[:64]}'")
         return job
 
     def job_response(job: dict, status: int = 200) -> JSONResponse:

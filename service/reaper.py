@@ -15,17 +15,15 @@ def reap(store: Store) -> list[tuple[str, str]]:
     """Requeue or fail running jobs whose worker stopped heart-beating; fail overdue ones.
 
     Safe to run from any number of processes at once: each decision is a compare-and-set.
-    Returns ``(job id, action)`` pairs, action in {"requeued", "lost", "timeout", "forgotten",
-    "requeued_lost_entry"}.
+    Returns ``(job id, action)`` pairs, action in {"requeued", "lost", "timeout", "requeued_lost_entry"}.
     """
     actions = []
     s = store.settings
     for raw in store.r.smembers(store.k_running):
         job_id = raw.decode()
         job = store.get(job_id)
-        if job is None or job["status"] != "running":
+        if job is None or job["status"] != "running":  # finished since SMEMBERS (or expired): housekeeping
             store.r.srem(store.k_running, job_id)
-            actions.append((job_id, "forgotten"))
             continue
         attempt = int(job["attempt"])
         if store.r.exists(store.k_hb(job_id)):

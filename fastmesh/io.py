@@ -9,6 +9,7 @@ so results can be written back where the input was.
 from __future__ import annotations
 
 import io
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -133,10 +134,11 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
         raise ShapeError("empty", "file is empty")
     try:
         if ext in ("xyz", "txt"):
-            shape = _load_text_points(data)
+            shape = _load_text_points(data, max_points)
         elif ext in ("npy", "npz"):
-            shape = _load_numpy_points(data, ext)
+            shape = _load_numpy_points(data, ext, max_points)
         else:
+            _precheck_mesh(data, ext, max_points, max_faces)
             shape = _load_trimesh(data, ext)
     except ShapeError:
         raise
@@ -147,7 +149,18 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
     return validate_shape(shape, max_points=max_points, max_faces=max_faces)
 
 
-def _load_text_points(data: bytes) -> Shape:
+def _too_many(n: int, limit: int, what: str = "points/vertices") -> ShapeError:
+    return ShapeError("too_large", f"{n} {what} exceed the limit of {limit}")
+
+
+def _load_text_points(data: bytes, max_points: int = MAX_POINTS) -> Shape:
+    # Python lists of split lines cost ~200 bytes a point: count lines before splitting (a 64 MB upload
+    # of short lines would otherwise take gigabytes and a minute only to be refused).  Lines that are not
+    # comments ('#' first) or empty bound the points from above.
+    lines = data.count(b"\n") + 1 - data.count(b"\n#") - data.startswith(b"#") - data.count(b"\n\n") \
+        - data.count(b"\n\r\n")
+    if lines > max_points:
+        raise ShapeError("too_large", f"{lines} lines exceed the limit of {max_points} points")
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError:
@@ -163,7 +176,26 @@ def _load_text_points(data: bytes) -> Shape:
     return _points_from_array(arr)
 
 
-def _load_numpy_points(data: bytes, ext: str) -> Shape:
+def _npy_rows(f, max_points: int) -> None:
+    """Read an .npy header from ``f`` and refuse more than ``max_points`` rows before any data is read.
+
+    An .npz member is compressed: a 1 MB upload can declare gigabytes of zeros (a zip bomb).
+    """
+    version = np.lib.format.read_magic(f)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+    else:
+        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+    rows = shape[0] if shape else 1
+    if rows > max_points:
+        raise _too_many(rows, max_points)
+    if int(np.prod(shape, dtype=np.float64)) * dtype.itemsize > max_points * 6 * 8:  # wider than N x 6 float64
+        raise ShapeError("too_large", f"array of shape {shape} is larger than {max_points} points")
+
+
+def _load_numpy_points(data: bytes, ext: str, max_points: int = MAX_POINTS) -> Shape:
+    if ext == "npy":
+        _npy_rows(io.BytesIO(data), max_points)
     # allow_pickle=False: an .npy upload must never execute code.
     obj = np.load(io.BytesIO(data), allow_pickle=False)
     if ext == "npz":
@@ -171,6 +203,9 @@ def _load_numpy_points(data: bytes, ext: str) -> Shape:
         if not keys:
             raise ShapeError("empty", "npz archive holds no arrays")
         key = next((k for k in ("points", "pointcloud", "xyz", "arr_0") if k in keys), keys[0])
+        for k in (key, "normals") if "normals" in keys else (key,):
+            with obj.zip.open(f"{k}.npy") as member:
+                _npy_rows(member, max_points)
         arr = obj[key]
         if "normals" in keys and arr.ndim == 2 and arr.shape[1] == 3:
             arr = np.concatenate([arr, obj["normals"]], axis=1)
@@ -186,6 +221,35 @@ def _points_from_array(arr: np.ndarray) -> Shape:
         raise ShapeError("empty", "no points in file")
     normals = arr[:, 3:6] if arr.shape[1] == 6 else None
     return Shape(vertices=arr[:, :3].copy(), normals=normals)
+
+
+def _precheck_mesh(data: bytes, ext: str, max_points: int, max_faces: int) -> None:
+    """Refuse what the parser would choke on, before parsing.
+
+    An OBJ's vertex and face lines are counted (parsing 64 MB of them takes ~1 GB); a .gltf must embed
+    its buffers: an external ``uri`` names a file this upload does not have (and must never be looked
+    up on the server's disk).
+    """
+    if ext == "obj":
+        n_v = data.count(b"\nv ") + data.startswith(b"v ")
+        if n_v > max_points:
+            raise _too_many(n_v, max_points)
+        n_f = data.count(b"\nf ") + data.startswith(b"f ")
+        if n_f > max_faces:
+            raise _too_many(n_f, max_faces, "faces")
+    elif ext == "gltf":
+        try:
+            doc = json.loads(data)
+        except (ValueError, RecursionError):
+            raise ShapeError("unreadable", "a .gltf file must be JSON (use .glb for binary glTF)") from None
+        buffers = doc.get("buffers") if isinstance(doc, dict) else None
+        for b in buffers if isinstance(buffers, list) else []:
+            uri = b.get("uri") if isinstance(b, dict) else None
+            if isinstance(uri, str) and not uri.startswith("data:"):
+                raise ShapeError("unreadable", f"glTF buffer '{uri[:80]}' is an external file; upload a .glb, "
+                                               "or a .gltf with embedded (data:) buffers")
+        if isinstance(doc, dict) and not isinstance(buffers, (list, type(None))):
+            raise ShapeError("unreadable", "glTF 'buffers' must be a list")
 
 
 def _load_trimesh(data: bytes, ext: str) -> Shape:

@@ -181,7 +181,8 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
                 existing = _idempotent_job(store, who, idempotency_key, fingerprint, wait=5.0)
                 if existing is not None:
                     return job_response(existing, 200)
-                raise ApiError(409, "conflict", "a request with this Idempotency-Key is still being processed")
+                raise ApiError(409, "conflict", "a request with this Idempotency-Key is still being processed",
+                               {"Retry-After": "1"})
         try:
             job_id = store.create(who, params, info, blob, load_seconds, max_queued=settings.max_queue_depth)
         except QueueFull:  # the early check above raced with concurrent submissions: the queue filled meanwhile

@@ -46,6 +46,7 @@ TIMING_KEYS = ("queue", "load", "encode", "vertices", "enhancer", "faces", "filt
 STAGE_BUCKETS = (0.01, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0)
 TASK = "worker.tasks.run_job"  # by name: the API never imports the worker (or torch)
 RQ_GRACE = 30  # RQ's hard timeout backs up our cooperative one by this many seconds
+PENDING_TTL = 30  # seconds an Idempotency-Key stays claimed by a request still being processed
 
 # KEYS: job, hb, running set, queued zset, keys to EXPIRE...
 # ARGV: allowed statuses (comma list), attempt ('' = any), ttl ('' = keep), job id,
@@ -367,9 +368,13 @@ class Store:
 
     # ------------------------------------------------------------------ idempotency and rate limits
     def idempotency_claim(self, owner: str, key: str, job_id_fp: str) -> str | None:
-        """Claim ``key`` for ``job_id_fp`` ("<id> <fingerprint>").  Returns the existing claim, or None if ours."""
+        """Claim ``key`` for ``job_id_fp`` ("pending <fingerprint>").  Returns the existing claim, or None if ours.
+
+        The claim lives ``PENDING_TTL`` seconds until :meth:`idempotency_replace` names the job: an API
+        killed in between must not block the key for the whole retention time.
+        """
         k = f"{self.p}:idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}"
-        if self.r.set(k, job_id_fp, nx=True, ex=self.settings.retention_seconds):
+        if self.r.set(k, job_id_fp, nx=True, ex=PENDING_TTL):
             return None
         old = self.r.get(k)
         return old.decode() if old else None

@@ -382,6 +382,16 @@ def test_idempotency_key_scoped_per_api_key(keyed):
     assert d.status_code == 202 and d.json()["id"] != a.json()["id"]
 
 
+def test_concurrent_retries_with_one_idempotency_key_make_one_job(keyed):
+    from concurrent.futures import ThreadPoolExecutor
+
+    headers = {"Authorization": "Bearer key-two", "Idempotency-Key": "burst-7"}
+    with ThreadPoolExecutor(6) as pool:
+        answers = list(pool.map(lambda _: submit(keyed.url, headers=headers, seed=7), range(6)))
+    assert sorted(r.status_code for r in answers) == [200] * 5 + [202], [r.text for r in answers]
+    assert len({r.json()["id"] for r in answers}) == 1
+
+
 def test_cors(keyed):
     pre = httpx.options(f"{keyed.url}/v1/jobs", headers={
         "Origin": "https://example.com", "Access-Control-Request-Method": "POST",

@@ -157,8 +157,8 @@ def _load_text_points(data: bytes, max_points: int = MAX_POINTS) -> Shape:
     # Python lists of split lines cost ~200 bytes a point: count lines before splitting (a 64 MB upload
     # of short lines would otherwise take gigabytes and a minute only to be refused).  Lines that are not
     # comments ('#' first) or empty bound the points from above.
-    lines = data.count(b"\n") + 1 - data.count(b"\n#") - data.startswith(b"#") - data.count(b"\n\n") \
-        - data.count(b"\n\r\n")
+    lines = data.count(b"\n") + (not data.endswith(b"\n")) - data.count(b"\n#") - data.startswith(b"#") \
+        - data.count(b"\n\n") - data.count(b"\n\r\n")
     if lines > max_points:
         raise ShapeError("too_large", f"{lines} lines exceed the limit of {max_points} points")
     try:

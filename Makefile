@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test lint install bench-tokens web chromium
+.PHONY: run test lint install bench-tokens web chromium assimp
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -25,10 +25,14 @@ web: $(WEB_STAMP)
 chromium:
 	sh scripts/install-chromium.sh
 
+# Debian's assimp-testmodels: real model files for tests/test_assimp_corpus.py.
+assimp:
+	sh scripts/install-assimp-testmodels.sh
+
 run: $(STAMP) web
 	$(BIN)/python -m service.run
 
-test: $(STAMP) web chromium
+test: $(STAMP) web chromium assimp
 	$(BIN)/ruff check fastmesh service worker tests benchmarks
 	$(BIN)/python -m pytest -q tests
 

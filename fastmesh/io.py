@@ -242,21 +242,33 @@ def _precheck_mesh(data: bytes, ext: str, max_points: int, max_faces: int) -> No
             doc = json.loads(data)
         except (ValueError, RecursionError):
             raise ShapeError("unreadable", "a .gltf file must be JSON (use .glb for binary glTF)") from None
-        buffers = doc.get("buffers") if isinstance(doc, dict) else None
+        if not isinstance(doc, dict):
+            raise ShapeError("unreadable", "a .gltf file must hold a JSON object")
+        asset = doc.get("asset")
+        version = str(asset.get("version", "")) if isinstance(asset, dict) else ""
+        if not version.startswith("2"):
+            raise ShapeError("unreadable", f"only glTF 2.0 is supported; this file says version '{version[:20]}'")
+        buffers = doc.get("buffers")
         for b in buffers if isinstance(buffers, list) else []:
             uri = b.get("uri") if isinstance(b, dict) else None
             if isinstance(uri, str) and not uri.startswith("data:"):
                 raise ShapeError("unreadable", f"glTF buffer '{uri[:80]}' is an external file; upload a .glb, "
                                                "or a .gltf with embedded (data:) buffers")
-        if isinstance(doc, dict) and not isinstance(buffers, (list, type(None))):
+        if not isinstance(buffers, (list, type(None))):
             raise ShapeError("unreadable", "glTF 'buffers' must be a list")
 
 
 def _load_trimesh(data: bytes, ext: str) -> Shape:
     import trimesh
 
-    loaded = trimesh.load(io.BytesIO(data), file_type=ext, process=False)
+    # Geometry only: an OBJ's materials would make trimesh import an image library for textures that
+    # this upload does not carry anyway.
+    extra = {"skip_materials": True} if ext == "obj" else {}
+    loaded = trimesh.load(io.BytesIO(data), file_type=ext, process=False, **extra)
     if isinstance(loaded, trimesh.Scene):
+        for g in loaded.geometry.values():  # dump() copies visuals; a textured one needs an image library
+            if isinstance(g, trimesh.Trimesh):
+                g.visual = trimesh.visual.ColorVisuals()
         geoms = [g for g in loaded.dump() if hasattr(g, "vertices")] if loaded.geometry else []
         meshes = [g for g in geoms if isinstance(g, trimesh.Trimesh) and len(g.faces)]
         if meshes:

@@ -440,3 +440,17 @@ def test_io_guards_count_before_parsing():
         load_shape(gltf_doc(uri="../secret.bin"), "a.gltf")
     assert e.value.code == "unreadable" and "external" in e.value.message
     assert len(load_shape(gltf_doc(), "a.gltf").vertices) == 42
+
+
+def test_io_textured_obj_and_old_gltf():
+    """Found with the assimp corpus: a textured OBJ needed an image library (PIL) only to copy its material;
+    glTF 1.0 got a misleading message."""
+    from fastmesh.io import ShapeError, load_shape
+
+    obj = (b"mtllib missing.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nvt 1 0\nvt 0 1\nusemtl skin\n"
+           b"f 1/1 2/2 3/3\nf 1/1 2/2 4/3\no second\nusemtl other\nf 1/1 3/3 4/2\n")
+    s = load_shape(obj, "textured.obj")
+    assert s.kind == "mesh" and len(s.faces) == 3
+    with pytest.raises(ShapeError) as e:
+        load_shape(json.dumps({"asset": {"version": "1.0"}, "buffers": {"b": {"uri": "x.bin"}}}).encode(), "a.gltf")
+    assert e.value.code == "unreadable" and "glTF 2.0" in e.value.message

@@ -70,8 +70,9 @@ def test_edge_head_is_the_spacetime_distance_mlp():
     torch.testing.assert_close(got, got.T)  # symmetric by construction
 
 
-def test_attention_mask_blocks_attention():
-    m = _model()
+@pytest.mark.parametrize("bias", [False, True])
+def test_attention_mask_blocks_attention(bias):
+    m = _model(distance_bias=bias)
     q, pts, nrm = _shape(12)
     q2 = q.copy()
     q2[5] = (q2[5] + 17) % 128  # move vertex 5
@@ -88,8 +89,9 @@ def test_attention_mask_blocks_attention():
     assert not torch.allclose(h_c[0, 0], h_d[0, 0])  # without the mask it does
 
 
-def test_padding_is_invisible():
-    m = _model()
+@pytest.mark.parametrize("bias", [False, True])
+def test_padding_is_invisible(bias):
+    m = _model(distance_bias=bias)
     q, pts, nrm = _shape(10)
     qp = np.concatenate([q, np.full((4, 3), 77)])
     valid = torch.tensor([[True] * 10 + [False] * 4])
@@ -99,8 +101,9 @@ def test_padding_is_invisible():
     torch.testing.assert_close(a[0], b[0, :10, :10], rtol=1e-4, atol=1e-5)
 
 
-def test_logits_are_permutation_equivariant():
-    m = _model()
+@pytest.mark.parametrize("bias", [False, True])
+def test_logits_are_permutation_equivariant(bias):
+    m = _model(distance_bias=bias)
     q, pts, nrm = _shape(15)
     perm = np.random.default_rng(3).permutation(15)
     with torch.no_grad():

@@ -4,13 +4,17 @@ No worker here: a job's input is what POST /v1/jobs stored; a "finished" job is 
 what a worker writes (start, result npz, finish) through :class:`service.store.Store`, so each
 case is exact and fast.  The worker path end to end is in ``test_web_browser.py``.
 
-Redis: database ``FASTMESH_TEST_WEB_REDIS_DB`` (default 12) of 127.0.0.1:6379, flushed before and after.
+Redis: database ``FASTMESH_TEST_WEB_REDIS_DB`` (default 9) of 127.0.0.1:6379.  Never flushed: every
+app gets a key prefix and queue unique to this run, and its keys are deleted when it stops, so test
+runs that overlap (CI, several people on one machine) cannot delete each other's jobs.
 """
 
 from __future__ import annotations
 
 import io
 import os
+import uuid
+from contextlib import contextmanager
 
 import httpx
 import numpy as np
@@ -24,7 +28,7 @@ from service.settings import Settings
 from service.store import Store, mesh_to_bytes
 from service.testing import ServedApp, redis_for_tests
 
-DB = int(os.environ.get("FASTMESH_TEST_WEB_REDIS_DB", "12"))
+DB = int(os.environ.get("FASTMESH_TEST_WEB_REDIS_DB", "9"))
 BACKGROUND = np.round(np.array([0.965, 0.968, 0.975]) * 255)  # fastmesh.render.RenderConfig.background
 
 
@@ -42,27 +46,50 @@ def covered(img: np.ndarray) -> np.ndarray:
     return np.abs(img[..., :3].astype(float) - BACKGROUND).max(-1) > 6
 
 
+RUN = uuid.uuid4().hex[:8]  # this test run's mark in every key prefix, queue and worker name
+
+
 @pytest.fixture(scope="module")
 def redis_url():
     url, server = redis_for_tests(DB)
-    client = redis.Redis.from_url(url)
-    client.flushdb()
     yield url
-    client.flushdb()
     if server:
         server.stop()
 
 
 def settings_for(redis_url: str, name: str, **kw) -> Settings:
-    return Settings(redis_url=redis_url, redis_prefix=f"tp-{name}", queue_name=f"tp-{name}",
-                    rate_limit_per_minute=0, submit_rate_limit_per_minute=0, **kw)
+    """Settings of an app whose keys and queue belong to this run alone (``tp-<run>-<name>``)."""
+    unique = f"tp-{RUN}-{name}"
+    kw = {"rate_limit_per_minute": 0, "submit_rate_limit_per_minute": 0, **kw}
+    return Settings(redis_url=redis_url, redis_prefix=unique, queue_name=unique, **kw)
+
+
+def forget(settings: Settings) -> None:
+    """Delete every key of this app: its prefix, its RQ queue's keys and the RQ jobs that came from it."""
+    r = redis.Redis.from_url(settings.redis_url)
+    q = settings.queue_name
+    keys = [*r.scan_iter(f"{settings.redis_prefix}:*"), *r.scan_iter(f"rq:*:{q}"), *r.scan_iter(f"rq:*:{q}:*")]
+    keys += [k for k in r.scan_iter("rq:job:*") if r.hget(k, "origin") == q.encode()]
+    if keys:
+        r.delete(*keys)
+    r.srem("rq:queues", f"rq:queue:{q}")  # RQ's registry of queues (a set, not a key per queue)
+
+
+@contextmanager
+def served(settings: Settings):
+    """The API on a free port for the block; stopped and its keys deleted afterwards."""
+    app = ServedApp(settings)
+    try:
+        yield app
+    finally:
+        app.stop()
+        forget(settings)
 
 
 @pytest.fixture(scope="module")
 def open_app(redis_url):
-    app = ServedApp(settings_for(redis_url, "open"))
-    yield app, Store(app.settings), httpx.Client(base_url=app.url, timeout=30)
-    app.stop()
+    with served(settings_for(redis_url, "open")) as app:
+        yield app, Store(app.settings), httpx.Client(base_url=app.url, timeout=30)
 
 
 def submit(client: httpx.Client, data: bytes = None, name: str = "sphere.xyz", headers=None) -> str:
@@ -225,8 +252,7 @@ def test_input_ply_of_a_mesh_samples_its_surface(open_app):
 
 
 def test_keys_isolate_previews(redis_url):
-    app = ServedApp(settings_for(redis_url, "keys", api_keys=["alpha-key", "beta-key"]))
-    try:
+    with served(settings_for(redis_url, "keys", api_keys=["alpha-key", "beta-key"])) as app:
         alpha = httpx.Client(base_url=app.url, headers={"Authorization": "Bearer alpha-key"})
         beta = httpx.Client(base_url=app.url, headers={"Authorization": "Bearer beta-key"})
         anon = httpx.Client(base_url=app.url)
@@ -237,5 +263,15 @@ def test_keys_isolate_previews(redis_url):
             assert r.status_code == 404 and r.json()["error"]["code"] == "not_found"
             r = anon.get(f"/v1/jobs/{job_id}/{path}")
             assert r.status_code == 401 and r.json()["error"]["code"] == "unauthorized"
-    finally:
-        app.stop()
+
+
+def test_an_apps_keys_are_all_forgotten(redis_url):
+    """The clean-up the other tests rely on to share a database with concurrent runs."""
+    s = settings_for(redis_url, "forget")
+    with served(s) as app:
+        submit(httpx.Client(base_url=app.url))
+        r = redis.Redis.from_url(redis_url)
+        assert any(r.scan_iter(f"{s.redis_prefix}:*")) and any(r.scan_iter(f"rq:*:{s.queue_name}"))
+    assert not any(r.scan_iter(f"*{s.queue_name}*"))
+    assert f"rq:queue:{s.queue_name}".encode() not in r.smembers("rq:queues")
+    assert not any(r.hget(k, "origin") == s.queue_name.encode() for k in r.scan_iter("rq:job:*"))

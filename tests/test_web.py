@@ -13,27 +13,22 @@ from pathlib import Path
 
 import httpx
 import pytest
-import redis
+from test_preview import served, settings_for
 
-from service.settings import Settings
-from service.testing import ServedApp, redis_for_tests
+from service.testing import redis_for_tests
 from service.web.routes import THREE_DIR, WEB_DIR
 
 # Static `import ... from 'x'` / `export ... from 'x'` and dynamic `import('x')` specifiers.
 IMPORT_RE = r"""(?:^|\n)\s*(?:import|export)\b[^'"]*?from\s*['"]([^'"]+)['"]|import\(\s*['"]([^'"]+)['"]\s*\)"""
-DB = int(os.environ.get("FASTMESH_TEST_WEB_REDIS_DB", "12"))
+DB = int(os.environ.get("FASTMESH_TEST_WEB_REDIS_DB", "9"))
 
 
 @pytest.fixture(scope="module")
 def client():
     url, server = redis_for_tests(DB)
-    app = ServedApp(Settings(redis_url=url, redis_prefix="tw-routes", queue_name="tw-routes",
-                             api_keys=["k1"], max_upload_bytes=123456, default_formats=["glb", "obj"]))
-    yield httpx.Client(base_url=app.url)
-    app.stop()
-    r = redis.Redis.from_url(url)
-    for k in r.scan_iter("tw-routes:*"):
-        r.delete(k)
+    s = settings_for(url, "routes", api_keys=["k1"], max_upload_bytes=123456, default_formats=["glb", "obj"])
+    with served(s) as app:
+        yield httpx.Client(base_url=app.url)
     if server:
         server.stop()
 

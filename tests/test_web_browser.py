@@ -1,6 +1,6 @@
 """The page in a real headless Chromium (Debian's, driven by playwright) against the real stack.
 
-Real parts: Redis (database ``FASTMESH_TEST_WEB_REDIS_DB``, default 12, flushed before and after),
+Real parts: Redis (database ``FASTMESH_TEST_WEB_REDIS_DB``, default 12; keys unique to the run, deleted after),
 the API served by uvicorn, a ``fastmesh-worker`` subprocess with a tiny random model, three.js from
 ``service/web/node_modules`` and WebGL in Chromium's software renderer.  ``make test`` installs
 chromium (scripts/install-chromium.sh) and three.js (scripts/install-web.sh) first.
@@ -18,18 +18,18 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-import redis
 import trimesh
+from test_preview import served, settings_for
 
-from service.settings import Settings
-from service.testing import ServedApp, WorkerProcess, redis_for_tests
+from service.testing import WorkerProcess, redis_for_tests
 
-DB = int(os.environ.get("FASTMESH_TEST_WEB_REDIS_DB", "12"))
+DB = int(os.environ.get("FASTMESH_TEST_WEB_REDIS_DB", "9"))
 CHROMIUM = os.environ.get("FASTMESH_CHROMIUM", "/usr/bin/chromium")
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-FAST = dict(heartbeat_interval=0.2, heartbeat_ttl=2.0, reaper_interval=0.5, progress_interval=0.05,
-            rate_limit_per_minute=0, submit_rate_limit_per_minute=0)
+# Progress written often (the page shows it); heartbeats left at their defaults: on a loaded machine a short
+# heartbeat TTL gets a busy worker's job requeued, which is the worker tests' subject, not this one's.
+FAST = dict(progress_interval=0.05)
 JOB_TIMEOUT_MS = 120_000  # waiting for a job in the page; the tiny model takes seconds
 
 # Reads the WebGL canvas back (it keeps its drawing buffer) and summarises it: how much of it is not the
@@ -85,10 +85,7 @@ def box_cloud(n: int = 1500) -> bytes:
 @pytest.fixture(scope="module")
 def redis_url():
     url, server = redis_for_tests(DB)
-    client = redis.Redis.from_url(url)
-    client.flushdb()
     yield url
-    client.flushdb()
     if server:
         server.stop()
 
@@ -105,13 +102,16 @@ def weights(tmp_path_factory):
 @pytest.fixture(scope="module")
 def stack(redis_url, weights, tmp_path_factory):
     """An open API (no keys) with one real worker."""
-    s = Settings(redis_url=redis_url, redis_prefix="tw-open", queue_name="tw-open", weights=weights,
-                 debug_step_delay=0.02, **FAST)  # slow enough that the page shows the job running
-    app = ServedApp(s)
-    worker = WorkerProcess(s, "tw-open-w1", tmp_path_factory.mktemp("logs") / "worker.log").wait_ready()
-    yield app
-    worker.stop()
-    app.stop()
+    s = settings_for(redis_url, "browser", weights=weights, debug_step_delay=0.02,  # the page sees it running
+                     **FAST)
+    with served(s) as app:
+        worker = WorkerProcess(s, s.queue_name + "-w1", tmp_path_factory.mktemp("logs") / "worker.log")
+        try:
+            worker.wait_ready()
+            yield app
+        finally:
+            worker.stop()
+            print(f"worker log ({worker.log_path}):\n{worker.log()[-4000:]}")
 
 
 @pytest.fixture(scope="module")
@@ -125,22 +125,34 @@ def browser():
         b.close()
 
 
+@pytest.fixture(scope="module")
+def shot_dir():
+    d = Path(os.environ.get("FASTMESH_WEB_SHOTS") or tempfile.mkdtemp(prefix="fastmesh-shots-"))
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
 @pytest.fixture
-def page(browser):
+def page(browser, shot_dir, request):
     context = browser.new_context(viewport={"width": 1100, "height": 800}, accept_downloads=True)
     pg = context.new_page()
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))
+    # Shown by pytest when the test fails: what the page said, and where its last screenshot is.
+    pg.on("console", lambda m: print(f"[console.{m.type}] {m.text}"))
+    pg.on("requestfailed", lambda r: print(f"[request failed] {r.method} {r.url}: {r.failure}"))
+    pg.on("response", lambda r: r.status >= 400 and print(f"[response] {r.status} {r.request.method} {r.url}"))
     yield pg
+    last = shot_dir / f"{request.node.name}-last.png"
+    pg.screenshot(path=str(last))
+    print(f"last screenshot: {last}")
     context.close()
     assert not errors, f"JavaScript errors on the page: {errors}"
 
 
 @pytest.fixture
-def shots(request):
-    d = Path(os.environ.get("FASTMESH_WEB_SHOTS") or tempfile.mkdtemp(prefix="fastmesh-shots-"))
-    d.mkdir(parents=True, exist_ok=True)
-    return lambda page, name: page.screenshot(path=str(d / f"{request.node.name}-{name}.png"))
+def shots(request, shot_dir):
+    return lambda page, name: page.screenshot(path=str(shot_dir / f"{request.node.name}-{name}.png"))
 
 
 def open_page(page, url: str) -> None:
@@ -251,10 +263,9 @@ def test_a_corrupt_file_shows_the_servers_message(stack, page, tmp_path, shots):
 
 def test_keys_queue_position_queue_full_and_drop(redis_url, page, tmp_path, shots):
     """No worker: jobs stay queued.  Keys on, a queue of one."""
-    s = Settings(redis_url=redis_url, redis_prefix="tw-keys", queue_name="tw-keys", api_keys=["sesame"],
-                 max_queue_depth=1, max_upload_bytes=200_000, **FAST)
-    app = ServedApp(s)
-    try:
+    s = settings_for(redis_url, "browser-keys", api_keys=["sesame"], max_queue_depth=1, max_upload_bytes=200_000,
+                     **FAST)
+    with served(s) as app:
         open_page(page, app.url)
         assert page.is_visible("#api-key")
         choose(page, tmp_path, "cloud.ply", box_cloud(300))
@@ -294,5 +305,3 @@ def test_keys_queue_position_queue_full_and_drop(redis_url, page, tmp_path, shot
         page.wait_for_selector("#status.cancelled")
         assert page.is_hidden("#cancel")
         assert "cancelled" in page.text_content("#recent li")
-    finally:
-        app.stop()

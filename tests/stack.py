@@ -47,9 +47,9 @@ def sphere_points(n: int = 300, seed: int = 0, center=(3.0, -1.0, 2.0)) -> np.nd
     return p / np.linalg.norm(p, axis=1, keepdims=True) + np.asarray(center)
 
 
-def xyz_bytes(points: np.ndarray) -> bytes:
+def xyz_bytes(points: np.ndarray, fmt: str = "%.6f") -> bytes:
     buf = io.StringIO()
-    np.savetxt(buf, points, fmt="%.6f")
+    np.savetxt(buf, points, fmt=fmt)
     return buf.getvalue().encode()
 
 

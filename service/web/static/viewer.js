@@ -123,7 +123,7 @@ export class Viewer {
     if (this.points) this.scene.remove(this.points);
     const n = geom.attributes.position.count;
     // Dots of a fixed size on screen (pixels): sparse clouds get bigger ones, dense ones must not hide the mesh.
-    const size = Math.min(5, Math.max(2, 250 / Math.sqrt(Math.max(n, 1)))) * this.renderer.getPixelRatio();
+    const size = Math.min(4, Math.max(1.5, 160 / Math.sqrt(Math.max(n, 1)))) * this.renderer.getPixelRatio();
     this.points = new THREE.Points(geom, new THREE.PointsMaterial({ color: POINT_COLOR, size, sizeAttenuation: false }));
     this.points.visible = this.pointsOn;
     this.scene.add(this.points);

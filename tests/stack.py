@@ -13,6 +13,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import uuid
 from pathlib import Path
 
 import httpx
@@ -20,13 +21,16 @@ import numpy as np
 import redis
 
 from service.settings import Settings
-from service.testing import free_port, settings_env, wait_for
+from service.testing import WorkerProcess, free_port, settings_env, wait_for
 
 DB = int(os.environ.get("FASTMESH_TEST_STACK_DB", "12"))
 # Fast failure detection and no rate limits: the tests make hundreds of requests in seconds.
 FAST = dict(heartbeat_interval=0.2, heartbeat_ttl=1.5, reaper_interval=0.2, progress_interval=0.05,
             rate_limit_per_minute=0, submit_rate_limit_per_minute=0)
 FINAL = ("succeeded", "failed", "cancelled")
+# In every key prefix, queue and worker name: runs of the suite at the same time (several people share
+# one Redis) never see each other's jobs, and cleaning up deletes only this run's keys, never the database.
+RUN = uuid.uuid4().hex[:8]
 
 
 def tiny_weights(directory: str | os.PathLike) -> str:
@@ -38,7 +42,13 @@ def tiny_weights(directory: str | os.PathLike) -> str:
 
 
 def make_settings(redis_url: str, name: str, **kw) -> Settings:
-    return Settings(redis_url=redis_url, redis_prefix=f"s-{name}", queue_name=f"s-{name}", **{**FAST, **kw})
+    return Settings(redis_url=redis_url, redis_prefix=f"s-{name}-{RUN}", queue_name=f"s-{name}-{RUN}",
+                    **{**FAST, **kw})
+
+
+def wp(settings: Settings, name: str, log_path, **env) -> WorkerProcess:
+    """A ``fastmesh-worker`` subprocess named for this run (RQ refuses two live workers of one name)."""
+    return WorkerProcess(settings, f"{name}-{RUN}", log_path, **env)
 
 
 def sphere_points(n: int = 300, seed: int = 0, center=(3.0, -1.0, 2.0)) -> np.ndarray:
@@ -136,7 +146,14 @@ class ApiProcess:
                 self.kill()
 
 
-def flushed(url: str) -> redis.Redis:
+def forget_run(url: str) -> None:
+    """Delete this run's keys (our prefixes, RQ's queue and registry keys named after our queues)."""
     client = redis.Redis.from_url(url)
-    client.flushdb()
-    return client
+    keys = list(client.scan_iter(f"*{RUN}*", count=1000))
+    # RQ's own job hashes are named after our job ids ("<id>-<attempt>"), not after the queue.
+    ids = {k.decode().rsplit(":job:", 1)[1] for k in keys if b":job:" in k}
+    for pattern in ("rq:job:*", "rq:execution*"):
+        keys += [k for k in client.scan_iter(pattern, count=1000)
+                 if k.decode().split(":")[2].rsplit("-", 1)[0] in ids]
+    for i in range(0, len(keys), 500):
+        client.delete(*keys[i:i + 500])

@@ -10,9 +10,9 @@ import os
 from pathlib import Path
 
 import pytest
-from stack import DB, flushed, make_settings, tiny_weights
+from stack import DB, forget_run, make_settings, tiny_weights, wp
 
-from service.testing import ServedApp, WorkerProcess, redis_for_tests
+from service.testing import ServedApp, redis_for_tests
 
 ROOT = Path(os.environ.get("FASTMESH_ASSIMP_MODELS", "/usr/share/assimp/models"))
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "assimp_corpus.py"
@@ -28,14 +28,13 @@ def corpus_module():
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
     url, server = redis_for_tests(DB)
-    client = flushed(url)
     s = make_settings(url, "assimp", weights=tiny_weights(tmp_path_factory.mktemp("weights")), max_queue_depth=1000)
     app = ServedApp(s)
-    worker = WorkerProcess(s, "assimp-w", tmp_path_factory.mktemp("logs") / "w.log").wait_ready()
+    worker = wp(s, "assimp-w", tmp_path_factory.mktemp("logs") / "w.log").wait_ready()
     yield app, worker
     worker.stop()
     app.stop()
-    client.flushdb()
+    forget_run(url)
     if server:
         server.stop()
 

@@ -30,10 +30,10 @@ from schemathesis.specs.openapi.checks import (
     response_schema_conformance,
     status_code_conformance,
 )
-from stack import DB, assert_error, flushed, make_settings, sphere_points, tiny_weights, wait_final, xyz_bytes
+from stack import DB, assert_error, forget_run, make_settings, sphere_points, tiny_weights, wait_final, wp, xyz_bytes
 
 from fastmesh.io import SUPPORTED_FORMATS
-from service.testing import ServedApp, WorkerProcess, redis_for_tests, wait_for
+from service.testing import ServedApp, redis_for_tests, wait_for
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 LIMITS = dict(max_points=20_000, max_faces=40_000, max_upload_bytes=2_000_000, max_queue_depth=1000)
@@ -46,9 +46,8 @@ CLEAR_4XX = (413, 415, 422)
 @pytest.fixture(scope="module")
 def redis_url():
     url, server = redis_for_tests(DB)
-    client = flushed(url)
     yield url
-    client.flushdb()
+    forget_run(url)
     if server:
         server.stop()
 
@@ -59,7 +58,7 @@ def served(redis_url, tmp_path_factory):
     weights = tiny_weights(tmp_path_factory.mktemp("weights"))
     s = make_settings(redis_url, "bad", weights=weights, **LIMITS)
     app = ServedApp(s)
-    worker = WorkerProcess(s, "bad-w", tmp_path_factory.mktemp("logs") / "w.log").wait_ready()
+    worker = wp(s, "bad-w", tmp_path_factory.mktemp("logs") / "w.log").wait_ready()
     yield app, worker
     assert worker.proc.poll() is None, worker.log()[-3000:]
     worker.stop()

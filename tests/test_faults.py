@@ -15,10 +15,10 @@ import time
 
 import pytest
 import redis
-from stack import DB, ApiProcess, flushed, make_settings, tiny_weights, write_inputs
+from stack import DB, ApiProcess, forget_run, make_settings, tiny_weights, wp, write_inputs
 
 from fastmesh.loadtest import LoadConfig, run
-from service.testing import RedisServer, ServedApp, WorkerProcess, redis_for_tests, wait_for
+from service.testing import RedisServer, ServedApp, redis_for_tests, wait_for
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -36,9 +36,8 @@ def inputs(tmp_path_factory):
 @pytest.fixture(scope="module")
 def shared_redis():
     url, server = redis_for_tests(DB)
-    client = flushed(url)
     yield url
-    client.flushdb()
+    forget_run(url)
     if server:
         server.stop()
 
@@ -94,8 +93,8 @@ def test_sigkill_one_worker_under_load(shared_redis, weights, inputs, tmp_path):
     s = make_settings(shared_redis, "kill", weights=weights, max_attempts=3)
     app = ServedApp(s)
     # The doomed worker is slowed down so that it is surely caught inside a job.
-    doomed = WorkerProcess(s, "kill-doomed", tmp_path / "doomed.log", FASTMESH_DEBUG_STEP_DELAY="0.3")
-    healthy = WorkerProcess(s, "kill-healthy", tmp_path / "healthy.log")
+    doomed = wp(s, "kill-doomed", tmp_path / "doomed.log", FASTMESH_DEBUG_STEP_DELAY="0.3")
+    healthy = wp(s, "kill-healthy", tmp_path / "healthy.log")
     try:
         doomed.wait_ready(), healthy.wait_ready()
         load = Load(LoadConfig(url=app.url, inputs=[inputs], concurrency=3, jobs=10, grace=60,
@@ -136,7 +135,7 @@ def test_redis_restart_with_jobs_queued(weights, inputs, tmp_path):
                                params={"max_vertices": "10"}))
         client = redis.Redis.from_url(server.url)
         wait_for(lambda: client.llen(f"rq:queue:{s.queue_name}") == n, 30, 0.05, what="all jobs queued")
-        worker = WorkerProcess(s, "redis-w", tmp_path / "w.log", FASTMESH_DEBUG_STEP_DELAY="0.05").wait_ready()
+        worker = wp(s, "redis-w", tmp_path / "w.log", FASTMESH_DEBUG_STEP_DELAY="0.05").wait_ready()
         wait_for(lambda: client.scard(f"{s.redis_prefix}:running") == 1, 30, 0.02, what="a job to run")
         server.stop()   # SIGTERM: Redis syncs its append-only file and exits
         time.sleep(1.0)  # clients and the worker meet a refused connection meanwhile
@@ -161,7 +160,7 @@ def test_api_restart_while_jobs_run(shared_redis, weights, inputs, tmp_path):
     """The API process is killed and started again on the same port: clients keep polling and get results."""
     s = make_settings(shared_redis, "apirestart", weights=weights)
     api = ApiProcess(s, log_path=tmp_path / "api.log")
-    worker = WorkerProcess(s, "apirestart-w", tmp_path / "w.log", FASTMESH_DEBUG_STEP_DELAY="0.05")
+    worker = wp(s, "apirestart-w", tmp_path / "w.log", FASTMESH_DEBUG_STEP_DELAY="0.05")
     try:
         worker.wait_ready()
         load = Load(LoadConfig(url=api.url, inputs=[inputs], concurrency=3, jobs=6, grace=60,
@@ -186,7 +185,7 @@ def test_200_jobs_at_once_two_workers(shared_redis, weights, inputs, tmp_path):
     every one of the 200 jobs finishes; nothing lost, no job created twice."""
     s = make_settings(shared_redis, "burst", weights=weights, max_queue_depth=50)
     api = ApiProcess(s, log_path=tmp_path / "api.log")
-    workers = [WorkerProcess(s, f"burst-w{i}", tmp_path / f"w{i}.log") for i in (1, 2)]
+    workers = [wp(s, f"burst-w{i}", tmp_path / f"w{i}.log") for i in (1, 2)]
     try:
         for w in workers:
             w.wait_ready()

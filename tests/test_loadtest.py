@@ -8,18 +8,17 @@ import sys
 
 import httpx
 import pytest
-from stack import DB, flushed, make_settings, tiny_weights, write_inputs
+from stack import DB, forget_run, make_settings, tiny_weights, wp, write_inputs
 
 from fastmesh.loadtest import LoadConfig, format_report, percentiles, run
-from service.testing import ServedApp, WorkerProcess, free_port, redis_for_tests
+from service.testing import ServedApp, free_port, redis_for_tests
 
 
 @pytest.fixture(scope="module")
 def redis_url():
     url, server = redis_for_tests(DB)
-    client = flushed(url)
     yield url
-    client.flushdb()
+    forget_run(url)
     if server:
         server.stop()
 
@@ -29,7 +28,7 @@ def served(redis_url, tmp_path_factory):
     weights = tiny_weights(tmp_path_factory.mktemp("weights"))
     s = make_settings(redis_url, "load", weights=weights, api_keys=["lt-key"])
     app = ServedApp(s)
-    worker = WorkerProcess(s, "load-w", tmp_path_factory.mktemp("logs") / "w.log").wait_ready()
+    worker = wp(s, "load-w", tmp_path_factory.mktemp("logs") / "w.log").wait_ready()
     yield app
     worker.stop()
     app.stop()

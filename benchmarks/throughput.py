@@ -171,13 +171,15 @@ def main() -> int:
 def table(rows: list[tuple[int, int, dict]], model: str, max_vertices: int | None, nice: int = 0) -> str:
     head = (f"model: {model}; max_vertices: {max_vertices or 'model limit'}; cores: {os.cpu_count()}; "
             f"worker nice +{nice}; load average {os.getloadavg()[0]:.1f}\n"
-            f"{'workers':>7} {'users':>5} {'jobs':>5} {'jobs/min':>9} {'e2e p50':>8} {'e2e p95':>8} {'e2e p99':>8} "
+            f"{'workers':>7} {'users':>5} {'jobs':>5} {'fail':>4} {'jobs/min':>9} "
+            f"{'e2e p50':>8} {'e2e p95':>8} {'e2e p99':>8} "
             f"{'queue p50':>9} {'queue p95':>9} {'poll p50':>9} {'poll p99':>9} {'lost':>4} {'http err':>8}\n"
-            f"{'':>7} {'':>5} {'':>5} {'':>9} {'s':>8} {'s':>8} {'s':>8} {'s':>9} {'s':>9} {'ms':>9} {'ms':>9}")
+            f"{'':>7} {'':>5} {'':>5} {'':>4} {'':>9} {'s':>8} {'s':>8} {'s':>8} {'s':>9} {'s':>9} {'ms':>9} {'ms':>9}")
     lines = [head]
     for k, users, r in rows:
         e, q, p = r["end_to_end_s"], r["queue_wait_s"], r["poll"]["ms"]
-        lines.append(f"{k:>7} {users:>5} {r['jobs']['succeeded']:>5} {r['jobs_per_minute']:>9.1f} "
+        j = r["jobs"]
+        lines.append(f"{k:>7} {users:>5} {j['succeeded']:>5} {j['failed']:>4} {r['jobs_per_minute']:>9.1f} "
                      f"{e['p50'] or 0:>8.2f} {e['p95'] or 0:>8.2f} {e['p99'] or 0:>8.2f} {q['p50'] or 0:>9.2f} "
                      f"{q['p95'] or 0:>9.2f} {p['p50'] or 0:>9.2f} {p['p99'] or 0:>9.2f} {r['jobs']['lost']:>4} "
                      f"{sum(r['http_errors'].values()):>8}")

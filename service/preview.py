@@ -48,8 +48,13 @@ class PreviewConfig:
 DEFAULT_PREVIEW = PreviewConfig()
 
 
-def cache_key(store: Store, job_id: str, of: str, size: int, wireframe: bool) -> str:
-    return f"{store.p}:preview:{job_id}:{of}:{size}:{int(wireframe)}"
+def cache_key(store: Store, job_id: str) -> str:
+    """One Redis hash per job holds all its previews, so deleting the job deletes them in one go."""
+    return store.k_preview(job_id)
+
+
+def cache_field(of: str, size: int, wireframe: bool) -> str:
+    return f"{of}:{size}:{int(wireframe)}"
 
 
 def preview_source(store: Store, job: dict) -> tuple[str, object]:
@@ -128,11 +133,10 @@ def preview_router(store: Store, owner: Callable, job_of: Callable[[str, str], d
                 who: str = Depends(owner)) -> Response:
         job = job_of(job_id, who)
         of = "result" if job["status"] == "succeeded" else "input"
-        key = cache_key(store, job_id, of, size, wireframe)
-        png = store.r.get(key)
+        key = cache_key(store, job_id)
+        png = store.r.hget(key, cache_field(of, size, wireframe))
         if png is None:
             of, source = preview_source(store, job)
-            key = cache_key(store, job_id, of, size, wireframe)
             if not slots.acquire(timeout=config.render_wait_seconds):
                 raise ApiError(503, "busy", "too many previews are being rendered; retry shortly",
                                {"Retry-After": "2"})
@@ -142,7 +146,10 @@ def preview_router(store: Store, owner: Callable, job_of: Callable[[str, str], d
                 raise ApiError(422, e.code, f"cannot render a preview: {e.message}") from None
             finally:
                 slots.release()
-            store.r.set(key, png, ex=store.ttl_of(job_id))
+            with store.r.pipeline() as tx:
+                tx.hset(key, cache_field(of, size, wireframe), png)
+                tx.expire(key, store.ttl_of(job_id))
+                tx.execute()
         # A result preview never changes; an input preview turns into the result's at the same URL.
         cache = "private, max-age=86400" if of == "result" else "no-cache"
         return Response(png, media_type="image/png", headers={"Cache-Control": cache, "X-Preview-Of": of})

@@ -172,6 +172,10 @@ class Store:
     def k_queued(self) -> str:
         return f"{self.p}:queued"
 
+    def k_preview(self, job_id: str) -> str:
+        """Hash of the job's rendered previews (``service.preview``)."""
+        return f"{self.p}:preview:{job_id}"
+
     def result_keys(self, job_id: str) -> list[str]:
         return [self.k_result(job_id, f) for f in (*EXPORT_FORMATS, "npz")]
 
@@ -348,7 +352,8 @@ class Store:
         return ok
 
     def delete(self, job_id: str) -> None:
-        self.r.delete(self.k_job(job_id), self.k_input(job_id), self.k_hb(job_id), *self.result_keys(job_id))
+        self.r.delete(self.k_job(job_id), self.k_input(job_id), self.k_hb(job_id), self.k_preview(job_id),
+                      *self.result_keys(job_id))
         self.r.srem(self.k_running, job_id)
         self.r.zrem(self.k_queued, job_id)
 

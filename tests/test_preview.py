@@ -23,7 +23,7 @@ import redis
 import trimesh
 from test_render import decode_png
 
-from service.preview import cache_key
+from service.preview import cache_field, cache_key
 from service.settings import Settings
 from service.store import Store, mesh_to_bytes
 from service.testing import ServedApp, redis_for_tests
@@ -151,7 +151,7 @@ def test_wireframe_draws_dark_edges_and_is_cached_separately(open_app):
     dark = lambda im: int((im[..., :3].max(-1) < 90).sum())  # noqa: E731
     assert dark(wired) > dark(plain) + 100
     for wire in (False, True):
-        assert store.r.exists(cache_key(store, job_id, "result", 96, wire))
+        assert store.r.hexists(cache_key(store, job_id), cache_field("result", 96, wire))
 
 
 def test_preview_is_rendered_once_then_served_from_the_cache(open_app):
@@ -160,8 +160,8 @@ def test_preview_is_rendered_once_then_served_from_the_cache(open_app):
     box = trimesh.creation.box()
     finish(store, job_id, box.vertices, box.faces)
     first = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 64})
-    key = cache_key(store, job_id, "result", 64, False)
-    assert store.r.get(key) == first.content
+    key = cache_key(store, job_id)
+    assert store.r.hget(key, cache_field("result", 64, False)) == first.content
     assert 0 < store.r.ttl(key) <= store.settings.retention_seconds  # expires with the job
     # Without the mesh, only the cache can answer: same bytes.
     store.r.delete(store.k_result(job_id, "npz"), store.k_input(job_id))
@@ -170,6 +170,17 @@ def test_preview_is_rendered_once_then_served_from_the_cache(open_app):
     # Another size is a different rendering; with nothing left to render it is a clear 404.
     gone = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 65})
     assert gone.status_code == 404 and gone.json()["error"]["code"] == "not_found"
+
+
+def test_deleting_a_job_deletes_its_cached_previews(open_app):
+    _, store, c = open_app
+    job_id = submit(c)
+    box = trimesh.creation.box()
+    finish(store, job_id, box.vertices, box.faces)
+    assert c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 64}).status_code == 200
+    assert store.r.exists(cache_key(store, job_id))
+    assert c.delete(f"/v1/jobs/{job_id}").status_code == 204
+    assert not store.r.exists(cache_key(store, job_id))
 
 
 @pytest.mark.parametrize("query", [{"size": 63}, {"size": 1025}, {"size": "big"}, {"size": 2.5},

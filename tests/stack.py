@@ -33,14 +33,6 @@ FINAL = ("succeeded", "failed", "cancelled")
 RUN = uuid.uuid4().hex[:8]
 
 
-def tiny_weights(directory: str | os.PathLike) -> str:
-    """Save the tiny random pipeline (64 vertices at most) to ``directory``; returns it."""
-    from fastmesh.pipeline import Pipeline
-
-    Pipeline.random("tiny", seed=0).save(str(directory))
-    return str(directory)
-
-
 def make_settings(redis_url: str, name: str, **kw) -> Settings:
     return Settings(redis_url=redis_url, redis_prefix=f"s-{name}-{RUN}", queue_name=f"s-{name}-{RUN}",
                     **{**FAST, **kw})

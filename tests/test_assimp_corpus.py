@@ -10,7 +10,7 @@ import os
 from pathlib import Path
 
 import pytest
-from stack import DB, forget_run, make_settings, tiny_weights, wp
+from stack import DB, forget_run, make_settings, wp
 
 from service.testing import ServedApp, redis_for_tests
 
@@ -26,9 +26,9 @@ def corpus_module():
 
 
 @pytest.fixture(scope="module")
-def served(tmp_path_factory):
+def served(weights, tmp_path_factory):
     url, server = redis_for_tests(DB)
-    s = make_settings(url, "assimp", weights=tiny_weights(tmp_path_factory.mktemp("weights")), max_queue_depth=1000)
+    s = make_settings(url, "assimp", weights=weights, max_queue_depth=1000)
     app = ServedApp(s)
     worker = wp(s, "assimp-w", tmp_path_factory.mktemp("logs") / "w.log").wait_ready()
     yield app, worker

@@ -30,7 +30,7 @@ from schemathesis.specs.openapi.checks import (
     response_schema_conformance,
     status_code_conformance,
 )
-from stack import DB, assert_error, forget_run, make_settings, sphere_points, tiny_weights, wait_final, wp, xyz_bytes
+from stack import DB, assert_error, forget_run, make_settings, sphere_points, wait_final, wp, xyz_bytes
 
 from fastmesh.io import SUPPORTED_FORMATS
 from service.testing import ServedApp, redis_for_tests, wait_for
@@ -53,9 +53,8 @@ def redis_url():
 
 
 @pytest.fixture(scope="module")
-def served(redis_url, tmp_path_factory):
+def served(redis_url, weights, tmp_path_factory):
     """An API and one worker with small limits; the worker must survive the whole module."""
-    weights = tiny_weights(tmp_path_factory.mktemp("weights"))
     s = make_settings(redis_url, "bad", weights=weights, **LIMITS)
     app = ServedApp(s)
     worker = wp(s, "bad-w", tmp_path_factory.mktemp("logs") / "w.log").wait_ready()

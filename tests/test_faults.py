@@ -15,17 +15,12 @@ import time
 
 import pytest
 import redis
-from stack import DB, ApiProcess, forget_run, make_settings, tiny_weights, wp, write_inputs
+from stack import DB, ApiProcess, forget_run, make_settings, wp, write_inputs
 
 from fastmesh.loadtest import LoadConfig, run
 from service.testing import RedisServer, ServedApp, redis_for_tests, wait_for
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
-
-
-@pytest.fixture(scope="module")
-def weights(tmp_path_factory):
-    return tiny_weights(tmp_path_factory.mktemp("weights"))
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ import sys
 
 import httpx
 import pytest
-from stack import DB, forget_run, make_settings, tiny_weights, wp, write_inputs
+from stack import DB, forget_run, make_settings, wp, write_inputs
 
 from fastmesh.loadtest import LoadConfig, format_report, percentiles, run
 from service.testing import ServedApp, free_port, redis_for_tests
@@ -24,8 +24,7 @@ def redis_url():
 
 
 @pytest.fixture(scope="module")
-def served(redis_url, tmp_path_factory):
-    weights = tiny_weights(tmp_path_factory.mktemp("weights"))
+def served(redis_url, weights, tmp_path_factory):
     s = make_settings(redis_url, "load", weights=weights, api_keys=["lt-key"])
     app = ServedApp(s)
     worker = wp(s, "load-w", tmp_path_factory.mktemp("logs") / "w.log").wait_ready()

@@ -25,13 +25,6 @@ def pipe() -> Pipeline:
     return Pipeline.random(seed=0)
 
 
-@pytest.fixture(scope="module")
-def weights_dir(tmp_path_factory, pipe) -> str:
-    d = tmp_path_factory.mktemp("weights")
-    pipe.save(d)
-    return str(d)
-
-
 def _sphere(center=(10.0, -4.0, 2.0), scale=3.0) -> Shape:
     m = trimesh.creation.icosphere(2)
     return Shape(vertices=np.asarray(m.vertices) * scale + np.asarray(center), faces=np.asarray(m.faces))
@@ -51,10 +44,10 @@ def test_generate_returns_mesh_in_input_frame(pipe):
     assert res.tokens >= 3 + len(res.vertices)  # BOS, >= 1 block token, offsets, EOS
 
 
-def test_same_seed_same_mesh_and_save_load_roundtrip(pipe, weights_dir):
+def test_same_seed_same_mesh_and_save_load_roundtrip(pipe, weights):
     shape = _sphere()
     a = pipe.generate(shape, GenerateParams(seed=3, max_vertices=20, temperature=1.0))
-    b = Pipeline.from_pretrained(weights_dir).generate(shape, GenerateParams(seed=3, max_vertices=20, temperature=1.0))
+    b = Pipeline.from_pretrained(weights).generate(shape, GenerateParams(seed=3, max_vertices=20, temperature=1.0))
     assert np.allclose(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)
 
 
@@ -108,11 +101,11 @@ def _cli(*args, check=True):
                           check=check, timeout=300)
 
 
-def test_cli_generate_file_json(tmp_path, weights_dir):
+def test_cli_generate_file_json(tmp_path, weights):
     src = tmp_path / "ball.obj"
     trimesh.Trimesh(*[getattr(_sphere(), k) for k in ("vertices", "faces")]).export(src)
     out = tmp_path / "out.glb"
-    r = _cli("generate", str(src), "-o", str(out), "--weights", weights_dir, "--max-vertices", "20", "--json")
+    r = _cli("generate", str(src), "-o", str(out), "--weights", weights, "--max-vertices", "20", "--json")
     rec = json.loads(r.stdout.strip().splitlines()[-1])
     assert set(rec) == {"input", "output", "vertices", "faces", "tokens", "timings"}
     assert set(rec["timings"]) == {"load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total"}
@@ -120,7 +113,7 @@ def test_cli_generate_file_json(tmp_path, weights_dir):
     assert len(mesh.faces) == rec["faces"] > 0
 
 
-def test_cli_generate_directory(tmp_path, weights_dir):
+def test_cli_generate_directory(tmp_path, weights):
     src = tmp_path / "in"
     src.mkdir()
     sphere = _sphere()
@@ -129,7 +122,7 @@ def test_cli_generate_directory(tmp_path, weights_dir):
     trimesh.Trimesh(sphere.vertices, sphere.faces).export(src / "b.ply")
     (src / "broken.obj").write_text("v 1 2\nf 1 2 3\n")
     out = tmp_path / "out"
-    r = _cli("generate", str(src), "-o", str(out), "--weights", weights_dir, "--max-vertices", "12",
+    r = _cli("generate", str(src), "-o", str(out), "--weights", weights, "--max-vertices", "12",
              "--format", "obj", check=False)
     assert r.returncode == 1  # one input failed ...
     assert "broken.obj" in r.stderr

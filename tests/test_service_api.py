@@ -45,15 +45,6 @@ def redis_url():
         server.stop()
 
 
-@pytest.fixture(scope="module")
-def weights(tmp_path_factory):
-    from fastmesh.pipeline import Pipeline
-
-    d = tmp_path_factory.mktemp("weights")
-    Pipeline.random("tiny", seed=0).save(str(d))
-    return str(d)
-
-
 def make_settings(redis_url: str, name: str, **kw) -> Settings:
     return Settings(redis_url=redis_url, redis_prefix=f"t-{name}", queue_name=f"t-{name}", **{**FAST, **kw})
 

@@ -11,7 +11,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
 import trimesh
 
 from service.testing import free_port, wait_for
@@ -30,15 +29,6 @@ def alive(pid: int) -> bool:
     except ProcessLookupError:
         return False
     return True
-
-
-@pytest.fixture(scope="module")
-def weights(tmp_path_factory):
-    from fastmesh.pipeline import Pipeline
-
-    d = tmp_path_factory.mktemp("weights")
-    Pipeline.random("tiny", seed=0).save(str(d))
-    return str(d)
 
 
 def run_env(**extra) -> dict:

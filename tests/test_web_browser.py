@@ -91,15 +91,6 @@ def redis_url():
 
 
 @pytest.fixture(scope="module")
-def weights(tmp_path_factory):
-    from fastmesh.pipeline import Pipeline
-
-    d = tmp_path_factory.mktemp("weights")
-    Pipeline.random("tiny", seed=0).save(str(d))
-    return str(d)
-
-
-@pytest.fixture(scope="module")
 def stack(redis_url, weights, tmp_path_factory):
     """An open API (no keys) with one real worker."""
     s = settings_for(redis_url, "browser", weights=weights, debug_step_delay=0.02,  # the page sees it running

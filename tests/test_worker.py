@@ -33,15 +33,6 @@ def redis_url():
         server.stop()
 
 
-@pytest.fixture(scope="module")
-def weights(tmp_path_factory):
-    from fastmesh.pipeline import Pipeline
-
-    d = tmp_path_factory.mktemp("weights")
-    Pipeline.random("tiny", seed=0).save(str(d))
-    return str(d)
-
-
 class Env:
     """An app (own prefix and queue) and the workers started for it, all stopped by :meth:`close`."""
 

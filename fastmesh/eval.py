@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 
 from .faces import mesh_from_adjacency
-from .filtering import edges_from_logits, filter_predictions
 from .io import SUPPORTED_FORMATS, Normalization, Shape, ShapeError, load_shape, sample_surface
 from .metrics import edge_metrics, edges_from_faces, surface_distance
 from .tokenizer import dequantize, quantize_mesh
@@ -140,11 +139,7 @@ def evaluate_gt_vertices(pipe, pairs: list[tuple[Path, Path]], filtering: bool =
         n_fp = pipe.face.cfg.encoder.n_points
         pts, nrm = sample_surface(shape, n_fp, seed=seed, vertices=norm.apply(shape.vertices))
         t = time.perf_counter()
-        predict = pipe.face.predictor(q, pts, nrm)
-        if filtering:
-            edges = filter_predictions(predict, len(q), pipe.filter_config).edges
-        else:
-            edges = edges_from_logits(predict(np.arange(len(q)), None), 0.5)
+        edges = pipe.face.predict_edges(q, pts, nrm, filtering=pipe.filter_config if filtering else None)
         seconds = time.perf_counter() - t
         m = edge_metrics(edges, edges_from_faces(true_faces))
         v, f = mesh_from_adjacency(dequantize(q), edges)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from fastmesh.models.encoder import EncoderConfig
+from fastmesh.models.encoder import EncoderConfig, farthest_point_sample
 from fastmesh.models.generate import SamplingConfig, generate, generate_uncached
 from fastmesh.models.vertex import VertexConfig, VertexDecoder
 from fastmesh.tokenizer import vertex as vt
@@ -14,9 +14,9 @@ from fastmesh.tokenizer import vertex as vt
 torch.set_num_threads(1)
 
 
-def _model(seed: int = 0) -> VertexDecoder:
+def _model(seed: int = 0, anchors: int = 0) -> VertexDecoder:
     torch.manual_seed(seed)
-    enc = EncoderConfig(n_points=64, n_latents=4, dim=32, depth=1, heads=2, n_freqs=4)
+    enc = EncoderConfig(n_points=64, n_latents=4, dim=32, depth=1, heads=2, n_freqs=4, anchors=anchors)
     m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc)).eval()
     with torch.no_grad():  # spread the logits so greedy choices are not near-ties
         m.head.weight.normal_(0, 1.0)
@@ -37,9 +37,9 @@ def _trim(row: torch.Tensor) -> list[int]:
     return row[: row.index(vt.EOS) + 1] if vt.EOS in row else [t for t in row if t != vt.PAD]
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_cached_equals_uncached_at_temperature_zero(seed):
-    m = _model(seed)
+@pytest.mark.parametrize("seed,anchors", [(0, 0), (1, 0), (0, 8)])
+def test_cached_equals_uncached_at_temperature_zero(seed, anchors):
+    m = _model(seed, anchors)
     prefix = _prefix(m, 3, seed)
     cached = generate(m, prefix, SamplingConfig(temperature=0, max_vertices=12))
     uncached = generate_uncached(m, prefix, max_vertices=12)
@@ -47,6 +47,30 @@ def test_cached_equals_uncached_at_temperature_zero(seed):
     for a, b in zip(cached, uncached, strict=True):
         assert a.tolist() == _trim(b)
     assert any(len(a) > 4 for a in cached)  # not trivially BOS EOS
+
+
+def test_anchored_prefix_has_one_token_per_anchor_and_follows_the_points():
+    m = _model(0, anchors=8)
+    prefix = _prefix(m, 2)
+    assert prefix.shape == (2, 8, 32)
+    g = torch.Generator().manual_seed(0)
+    pts = torch.rand(1, 64, 3, generator=g) - 0.5
+    nrm = torch.nn.functional.normalize(torch.randn(1, 64, 3, generator=g), dim=-1)
+    with torch.no_grad():
+        moved = m.condition(pts + 0.1, nrm)
+        assert not torch.allclose(m.condition(pts, nrm), moved)
+
+
+def test_farthest_point_sample_spreads_and_is_deterministic():
+    g = torch.Generator().manual_seed(0)
+    # two tight clusters far apart: the second sample must come from the other cluster
+    a = torch.randn(1, 50, 3, generator=g) * 0.01
+    pts = torch.cat([a, a + 1.0], dim=1)
+    idx = farthest_point_sample(pts, 2)
+    assert idx[0, 0] == 0 and idx[0, 1] >= 50
+    many = farthest_point_sample(pts.expand(3, -1, -1), 10)
+    assert many.shape == (3, 10) and len(set(many[0].tolist())) == 10
+    assert torch.equal(many[0], many[2])
 
 
 def test_sampled_sequences_decode_and_respect_max_vertices():

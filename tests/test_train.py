@@ -136,3 +136,22 @@ def test_init_starts_from_saved_weights(cache, tmp_path):
     assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
     assert main(["train", "face", "--data", str(cache), "--out", str(tmp_path / "x"), "--init", str(first),
                  "--config", str(_config(tmp_path, "face"))]) == 2
+
+
+def test_init_with_a_new_architecture_keeps_the_tensors_that_fit(cache, tmp_path):
+    """--init with a --config of another encoder: same-named, same-shaped tensors come from the saved network."""
+    first, second = tmp_path / "first", tmp_path / "second"
+    cfg = _config(tmp_path, "vertex")
+    assert main(["train", "vertex", "--data", str(cache), "--out", str(first), "--config", str(cfg),
+                 "--set", "steps=2"]) == 0
+    d = json.loads(cfg.read_text())
+    d["model"].setdefault("encoder", {})["anchors"] = 8
+    cfg2 = tmp_path / "anchored.json"
+    cfg2.write_text(json.dumps(d))
+    assert main(["train", "vertex", "--data", str(cache), "--out", str(second), "--config", str(cfg2),
+                 "--init", str(first), "--set", "steps=1", "--set", "lr=0.0"]) == 0
+    a, b = load_file(str(first / "model.safetensors")), load_file(str(second / "model.safetensors"))
+    assert "encoder.latents" in a and "encoder.latents" not in b
+    shared = [k for k in b if k in a]
+    assert len(shared) == len(b) and all(np.array_equal(a[k], b[k]) for k in shared)
+    assert load_model(second)[0].cfg.encoder.anchors == 8

@@ -5,6 +5,14 @@ set of learned latent queries through one cross-attention, then refined by a few
 self-attention layers.  Cost is linear in the number of points, and the output
 (``n_latents`` x ``dim``) conditions every FastMesh network as a prefix.
 
+With ``anchors`` > 0 the queries are not learned vectors but the features of that many
+farthest-point samples of the input: each output token then belongs to a place on the
+surface, and the vertex decoder adds the cell embedding of that place to it, so
+"which input region is near the next vertex" becomes a similarity between embeddings
+the decoder already uses for its own vertices (see ``VertexDecoder.condition``).
+Learned latents (``anchors`` = 0) left the decoder of session 1 ignoring its condition
+after three epochs (it emitted one sequence for every shape).
+
 Why a prefix rather than cross-attention in the decoder: with a KV cache the prefix
 is prefilled once per shape and each decoded token attends to ``n_latents`` more
 keys (64 by default: cheap next to the sequence); cross-attention would add a second
@@ -29,6 +37,26 @@ class EncoderConfig:
     depth: int = 2  # self-attention layers after the cross-attention
     heads: int = 4
     n_freqs: int = 8
+    anchors: int = 0  # > 0: farthest-point-sampled anchor queries replace the n_latents learned ones
+
+
+def farthest_point_sample(points: torch.Tensor, m: int) -> torch.Tensor:
+    """Indices (B, m) of ``m`` farthest-point samples of (B, P, 3) points, starting at point 0.
+
+    Deterministic given the points; m sequential steps of O(B * P) work (about 10 ms for
+    B = 16, P = 2048, m = 256 on a laptop core), so it runs inside the forward pass.
+    """
+    b, p, _ = points.shape
+    m = min(m, p)
+    rows = torch.arange(b, device=points.device)
+    idx = torch.zeros(b, m, dtype=torch.long, device=points.device)
+    dist = torch.full((b, p), float("inf"), device=points.device, dtype=points.dtype)
+    far = torch.zeros(b, dtype=torch.long, device=points.device)
+    for i in range(m):
+        idx[:, i] = far
+        dist = torch.minimum(dist, (points - points[rows, far][:, None]).square().sum(-1))
+        far = dist.argmax(-1)
+    return idx
 
 
 class PointEncoder(nn.Module):
@@ -37,16 +65,32 @@ class PointEncoder(nn.Module):
         self.cfg = cfg
         in_dim = 3 + 6 * cfg.n_freqs + 3
         self.point_proj = nn.Sequential(nn.Linear(in_dim, cfg.dim), nn.GELU(), nn.Linear(cfg.dim, cfg.dim))
-        self.latents = nn.Parameter(torch.randn(cfg.n_latents, cfg.dim) * 0.02)
+        if not cfg.anchors:
+            self.latents = nn.Parameter(torch.randn(cfg.n_latents, cfg.dim) * 0.02)
         self.read = Block(cfg.dim, cfg.heads, cross_dim=cfg.dim)
         self.layers = nn.ModuleList([Block(cfg.dim, cfg.heads) for _ in range(cfg.depth)])
         self.norm = RMSNorm(cfg.dim)
 
-    def forward(self, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
-        """points, normals: (B, P, 3) in the unit cube -> latents (B, n_latents, dim)."""
+    @property
+    def n_tokens(self) -> int:
+        return self.cfg.anchors or self.cfg.n_latents
+
+    def forward(self, points: torch.Tensor, normals: torch.Tensor, return_anchors: bool = False):
+        """points, normals: (B, P, 3) in the unit cube -> latents (B, n_tokens, dim).
+
+        With ``return_anchors`` also the (B, anchors, 3) anchor positions (None without anchors).
+        """
         feats = self.point_proj(torch.cat([fourier_features(points, self.cfg.n_freqs), normals], dim=-1))
-        x = self.latents.expand(points.shape[0], -1, -1)
+        anchor_pts = None
+        if self.cfg.anchors:
+            with torch.no_grad():
+                idx = farthest_point_sample(points.float(), self.cfg.anchors)
+            x = feats.gather(1, idx[..., None].expand(-1, -1, feats.shape[-1]))
+            anchor_pts = points.gather(1, idx[..., None].expand(-1, -1, 3))
+        else:
+            x = self.latents.expand(points.shape[0], -1, -1)
         x = self.read(x, context=feats)
         for layer in self.layers:
             x = layer(x)
-        return self.norm(x)
+        x = self.norm(x)
+        return (x, anchor_pts) if return_anchors else x

@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..tokenizer import vertex as vt
+from ..tokenizer.quantize import LEVELS
 from .encoder import EncoderConfig, PointEncoder
 from .layers import Block, CoordEmbedding, RMSNorm, init_weights, rotary
 
@@ -90,8 +91,18 @@ class VertexDecoder(nn.Module):
     # ------------------------------------------------------------------ pieces
 
     def condition(self, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
-        """(B, P, 3) points + normals -> (B, M, dim) prefix."""
-        return self.cond_proj(self.encoder(points, normals))
+        """(B, P, 3) points + normals -> (B, M, dim) prefix.
+
+        Anchored encoders (``EncoderConfig.anchors``) also add the cell embedding of each
+        anchor's 7-bit cell, the same table offset tokens use for their vertex: a vertex
+        token and an input region at the same place start out similar.
+        """
+        latents, anchor_pts = self.encoder(points, normals, return_anchors=True)
+        prefix = self.cond_proj(latents)
+        if anchor_pts is not None:
+            cells = ((anchor_pts.float() + 0.5) * LEVELS).floor().clamp(0, LEVELS - 1).long()
+            prefix = prefix + self.cell_emb(cells)
+        return prefix
 
     def embed(self, tokens: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
         """(B, T) tokens and their current block (from ``grammar_state``) -> (B, T, dim)."""

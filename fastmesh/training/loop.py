@@ -123,9 +123,7 @@ def train(task, data: str | MeshDataset, out: str, cfg: TrainConfig, resume: boo
         torch.manual_seed(cfg.seed)  # same initial weights on every run (and every rank) with the same seed
         model, state = task.build_model(cfg.model), None
         if init:
-            model, meta = load_model(init, device="cpu")
-            if meta["kind"] != task.kind:
-                raise ValueError(f"--init {init} holds a {meta['kind']} network, not {task.kind}")
+            model = _init_from(task, model, init, bool(cfg.model), log)
     model.to(device).train()
     decay = [p for n, p in model.named_parameters() if p.ndim >= 2 and "emb" not in n]
     no_decay = [p for n, p in model.named_parameters() if not (p.ndim >= 2 and "emb" not in n)]
@@ -215,6 +213,28 @@ def train(task, data: str | MeshDataset, out: str, cfg: TrainConfig, resume: boo
     if world > 1:
         dist.barrier()
     return record
+
+
+def _init_from(task, model, init: str, have_config: bool, log):
+    """The model to start from for ``--init``.
+
+    Without a network config the saved network is used as it is.  With one (``--config``)
+    the configured network keeps its fresh initialisation except for every tensor the saved
+    network has under the same name and shape: so an architecture change (say anchored
+    encoder queries) still starts from the trained decoder layers and embeddings.
+    """
+    saved, meta = load_model(init, device="cpu")
+    if meta["kind"] != task.kind:
+        raise ValueError(f"--init {init} holds a {meta['kind']} network, not {task.kind}")
+    if not have_config:
+        return saved
+    own, theirs = model.state_dict(), saved.state_dict()
+    taken = {k: v.to(own[k].dtype) for k, v in theirs.items() if k in own and own[k].shape == v.shape}
+    model.load_state_dict(taken, strict=False)
+    fresh = sorted(set(own) - set(taken))
+    if _is_main():
+        log(json.dumps({"init": init, "tensors_loaded": len(taken), "tensors_fresh": fresh}))
+    return model
 
 
 @torch.no_grad()

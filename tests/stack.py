@@ -8,6 +8,7 @@ the tiny random model.  Small, finite inputs made here.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import subprocess
@@ -21,7 +22,7 @@ import numpy as np
 import redis
 
 from service.settings import Settings
-from service.testing import WorkerProcess, free_port, settings_env, wait_for
+from service.testing import WorkerProcess, free_port, redis_for_tests, settings_env, wait_for
 
 DB = int(os.environ.get("FASTMESH_TEST_STACK_DB", "12"))
 # Fast failure detection and no rate limits: the tests make hundreds of requests in seconds.
@@ -31,6 +32,20 @@ FINAL = ("succeeded", "failed", "cancelled")
 # In every key prefix, queue and worker name: runs of the suite at the same time (several people share
 # one Redis) never see each other's jobs, and cleaning up deletes only this run's keys, never the database.
 RUN = uuid.uuid4().hex[:8]
+
+
+@contextlib.contextmanager
+def flushed_redis(db: int):
+    """URL of Redis database ``db``, emptied before and after: for modules that count every key in it."""
+    url, server = redis_for_tests(db)
+    client = redis.Redis.from_url(url)
+    client.flushdb()
+    try:
+        yield url
+    finally:
+        client.flushdb()
+        if server:
+            server.stop()
 
 
 def make_settings(redis_url: str, name: str, **kw) -> Settings:

@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 import redis
 import trimesh
+from stack import flushed_redis
 
 from service.settings import Settings
-from service.testing import ServedApp, WorkerProcess, redis_for_tests, wait_for
+from service.testing import ServedApp, WorkerProcess, wait_for
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -36,13 +37,8 @@ def sphere_xyz(n: int = 400, seed: int = 0) -> bytes:
 
 @pytest.fixture(scope="module")
 def redis_url():
-    url, server = redis_for_tests(DB)
-    client = redis.Redis.from_url(url)
-    client.flushdb()
-    yield url
-    client.flushdb()
-    if server:
-        server.stop()
+    with flushed_redis(DB) as url:
+        yield url
 
 
 def make_settings(redis_url: str, name: str, **kw) -> Settings:

@@ -13,9 +13,10 @@ import time
 import httpx
 import pytest
 import redis
+from stack import flushed_redis
 from test_service_api import assert_error, make_settings, submit, wait_final
 
-from service.testing import ServedApp, WorkerProcess, redis_for_tests, wait_for
+from service.testing import ServedApp, WorkerProcess, wait_for
 
 DB = int(os.environ.get("FASTMESH_TEST_REDIS_DB", "13"))
 SLOW = "0.3"  # seconds per progress callback (~10 per job with the tiny model): jobs last seconds, not 0.1 s
@@ -24,13 +25,8 @@ DOOMED = "1.0"  # workers about to be killed: their jobs last long enough to be 
 
 @pytest.fixture(scope="module")
 def redis_url():
-    url, server = redis_for_tests(DB)
-    client = redis.Redis.from_url(url)
-    client.flushdb()
-    yield url
-    client.flushdb()
-    if server:
-        server.stop()
+    with flushed_redis(DB) as url:
+        yield url
 
 
 class Env:

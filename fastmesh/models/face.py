@@ -122,11 +122,15 @@ class FaceModel(nn.Module):
         w2, b2 = self.edge_out.weight.float()[0], self.edge_out.bias.float()
         rows = []
         rt = right.transpose(-1, -2)
-        for s in range(0, n, chunk):
-            d = 2.0 * (left[:, :, s:s + chunk] @ rt)  # (B, H, r, N): the H spacetime distances
-            r = d.shape[2]
-            hid = F.gelu(torch.einsum("kh,bhx->bkx", w1, d.reshape(b, heads, r * n)) + b1[:, None])
-            rows.append((torch.einsum("k,bkx->bx", w2, hid) + b2).view(b, r, n))
+        # float32 on purpose, outside autocast: these contractions are tiny (6, 32 and 16 wide) and
+        # memory-bound, and under bf16 autocast oneDNN's AMX matmul dies on some of their shapes
+        # (SIGFPE in its blocking heuristic, seen on Sapphire-Rapids-class CPUs with torch 2.13).
+        with torch.autocast(device_type=h.device.type, enabled=False):
+            for s in range(0, n, chunk):
+                d = 2.0 * (left[:, :, s:s + chunk] @ rt)  # (B, H, r, N): the H spacetime distances
+                r = d.shape[2]
+                hid = F.gelu(torch.einsum("kh,bhx->bkx", w1, d.reshape(b, heads, r * n)) + b1[:, None])
+                rows.append((torch.einsum("k,bkx->bx", w2, hid) + b2).view(b, r, n))
         return torch.cat(rows, dim=1)
 
     # ------------------------------------------------------------------ training

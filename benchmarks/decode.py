@@ -1,12 +1,17 @@
 """Vertex-decoder speed: per-token latency vs a matrix-vector bound, and FastMesh vs BPT length.
 
     python benchmarks/decode.py [--weights DIR] [--data data/corpus-1k.npz] [--meshes 20] [--threads 1]
+                                [--backend torch|onnx|both]
 
 1. Per-token latency of the decoder with its KV cache (batch 1, fp32), against the
    *matrix-vector bound*: the time of the bare matrix-vector products with the same
    weight matrices (every Linear of every layer plus the output head), i.e. the work
-   no implementation of this network can skip.
-2. For validation meshes: the FastMesh sequence length and the BPT sequence length of
+   no implementation of this network can skip.  Backends: eager PyTorch and the ONNX
+   Runtime decode step (``models.onnx_decode``), timed interleaved in the same run so
+   a busy machine slows both alike.
+2. The real ``generate()`` loop (grammar mask + sampling per token) at temperature 0,
+   tokens/s, and its cost per token beyond the bare decode step.
+3. For validation meshes: the FastMesh sequence length and the BPT sequence length of
    the same quantised mesh, and the measured time of the same decoder producing
    sequences of each length (forced lengths; same cache, same code path).
 """
@@ -25,7 +30,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fastmesh.data import load_dataset  # noqa: E402
+from fastmesh.models.generate import generate  # noqa: E402
 from fastmesh.models.kv_cache import KVCache  # noqa: E402
+from fastmesh.params import SamplingConfig  # noqa: E402
 from fastmesh.pipeline import Pipeline  # noqa: E402
 from fastmesh.tokenizer import bpt  # noqa: E402
 from fastmesh.tokenizer import vertex as vt  # noqa: E402
@@ -33,10 +40,16 @@ from fastmesh.tokenizer import vertex as vt  # noqa: E402
 
 @torch.inference_mode()
 def time_decode(model, prefix: torch.Tensor, n_tokens: int) -> float:
-    """Seconds to prefill and then decode exactly ``n_tokens`` tokens (greedy, grammar not enforced)."""
+    """Seconds to prefill and then decode exactly ``n_tokens`` tokens (greedy, grammar not enforced).
+
+    ``model`` is a ``VertexDecoder`` or an ``OrtDecoder`` (which brings its own cache).
+    """
     cfg = model.cfg
     m = prefix.shape[1]
-    cache = KVCache(cfg.depth, 1, cfg.heads, m + n_tokens + 1, cfg.head_dim)
+    if hasattr(model, "new_cache"):
+        cache = model.new_cache(1, m + n_tokens + 1, "cpu", torch.float32)
+    else:
+        cache = KVCache(cfg.depth, 1, cfg.heads, m + n_tokens + 1, cfg.head_dim)
     t = time.perf_counter()
     tok = torch.full((1, 1), vt.BOS, dtype=torch.long)
     logits = model.prefill(prefix, tok, cache)
@@ -62,12 +75,22 @@ def matvec_bound(model, repeats: int = 50) -> float:
     return (time.perf_counter() - t) / repeats
 
 
+def time_generate(model, prefix: torch.Tensor, max_vertices: int) -> tuple[int, float]:
+    """(tokens, seconds) of the real sampling loop, greedy, with the grammar mask."""
+    t = time.perf_counter()
+    out = generate(model, prefix, SamplingConfig(temperature=0, max_vertices=max_vertices))
+    return len(out[0]), time.perf_counter() - t
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--weights", default=None)
     ap.add_argument("--data", default="data/corpus-1k.npz")
     ap.add_argument("--meshes", type=int, default=20)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--backend", choices=("torch", "onnx", "both"), default="both")
+    ap.add_argument("--tokens", type=int, default=400, help="tokens per latency measurement")
+    ap.add_argument("--rounds", type=int, default=5, help="interleaved repetitions (the median is reported)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     pipe = Pipeline.from_pretrained(args.weights, device="cpu")
@@ -78,13 +101,42 @@ def main() -> int:
     nrm = torch.nn.functional.normalize(torch.randn(1, enc.n_points, 3), dim=-1)
     with torch.inference_mode():
         prefix = model.condition(pts, nrm)
-    time_decode(model, prefix, 32)  # warm up
-    n = 400
-    per_tok = time_decode(model, prefix, n) / n
-    bound = matvec_bound(model)
+    backends = {}
+    if args.backend in ("torch", "both"):
+        backends["torch"] = model
+    if args.backend in ("onnx", "both"):
+        from fastmesh.models.onnx_decode import OrtDecoder
+
+        t = time.perf_counter()
+        backends["onnx"] = OrtDecoder(model)
+        print(f"onnx export + session: {time.perf_counter() - t:.2f} s")
+    n = args.tokens
+    times: dict[str, list[float]] = {k: [] for k in backends}
+    gens: dict[str, list[tuple[int, float]]] = {k: [] for k in backends}
+    for dec in backends.values():
+        time_decode(dec, prefix, 32)  # warm up
+    bounds = []
+    for _ in range(args.rounds):  # interleaved (the bound too), so load changes hit everything alike
+        bounds.append(matvec_bound(model))
+        for name, dec in backends.items():
+            times[name].append(time_decode(dec, prefix, n) / n)
+            gens[name].append(time_generate(dec, prefix, max_vertices=n))
+    bound = statistics.median(bounds)
     print(f"decoder: {n_par / 1e6:.2f} M parameters (without the point encoder), threads={args.threads}")
-    print(f"per-token latency (KV cache, {n} tokens): {per_tok * 1e3:.2f} ms")
-    print(f"matrix-vector bound: {bound * 1e3:.2f} ms/token  -> ratio {per_tok / bound:.2f}x")
+    print(f"matrix-vector bound: {bound * 1e3:.2f} ms/token")
+    per_tok = {}
+    for name in backends:
+        per_tok[name] = statistics.median(times[name])
+        print(f"{name:>5}: per-token latency (KV cache, {n} tokens, median of {args.rounds}): "
+              f"{per_tok[name] * 1e3:.2f} ms  -> ratio {per_tok[name] / bound:.2f}x the bound")
+    for name in backends:
+        n_gen = gens[name][0][0]
+        t_gen = statistics.median(s / k for k, s in gens[name])
+        print(f"{name:>5}: generate() greedy, {n_gen} tokens: {1 / t_gen:.0f} tokens/s, {t_gen * 1e3:.2f} ms/token "
+              f"(grammar mask + sampling + loop: {(t_gen - per_tok[name]) * 1e3:+.2f} ms/token)")
+    if len(per_tok) == 2:
+        print(f"onnx speed-up over torch: {per_tok['torch'] / per_tok['onnx']:.2f}x per token (same run)")
+    model = backends["onnx" if "onnx" in backends else "torch"]
 
     if not Path(args.data).exists():
         print(f"(no {args.data}: skipping the BPT comparison)")

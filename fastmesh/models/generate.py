@@ -9,6 +9,7 @@ once the budget is spent.  Temperature 0 is greedy decoding.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -16,6 +17,9 @@ from ..params import SamplingConfig
 from ..tokenizer import vertex as vt
 from .kv_cache import KVCache
 from .vertex import VertexDecoder, grammar_mask, grammar_state
+
+if TYPE_CHECKING:
+    from .onnx_decode import OrtDecoder
 
 
 class Cancelled(Exception):
@@ -44,13 +48,14 @@ def sample_next(logits: torch.Tensor, cfg: SamplingConfig, gen: torch.Generator 
 
 
 @torch.inference_mode()
-def generate(model: VertexDecoder, prefix: torch.Tensor, cfg: SamplingConfig,
+def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: SamplingConfig,
              progress: Callable[[int, int], None] | None = None,
              should_cancel: Callable[[], bool] | None = None, progress_every: int = 16) -> list[torch.Tensor]:
     """Sample one vertex-token sequence per prefix row.
 
     Parameters
     ----------
+    model : the decoder, or an ``onnx_decode.OrtDecoder`` wrapping it (same ``prefill``/``decode_step``).
     prefix : (B, M, dim) condition from ``model.condition``.
     cfg : sampling settings.
     progress : called as ``progress(step, max_vertices_so_far)`` every ``progress_every`` steps.
@@ -65,8 +70,11 @@ def generate(model: VertexDecoder, prefix: torch.Tensor, cfg: SamplingConfig,
     device = prefix.device
     # Worst case: a block token for every vertex, plus BOS and EOS.
     max_tokens = 2 * cfg.max_vertices + 2
-    cache = KVCache(model.cfg.depth, b, model.cfg.heads, m + max_tokens, model.cfg.head_dim,
-                    device=device, dtype=prefix.dtype)
+    if hasattr(model, "new_cache"):  # another backend (models.onnx_decode) brings its own cache layout
+        cache = model.new_cache(b, m + max_tokens, device, prefix.dtype)
+    else:
+        cache = KVCache(model.cfg.depth, b, model.cfg.heads, m + max_tokens, model.cfg.head_dim,
+                        device=device, dtype=prefix.dtype)
     gen = torch.Generator(device=device).manual_seed(cfg.seed)
     tokens = torch.full((b, 1), vt.BOS, dtype=torch.long, device=device)
     logits = model.prefill(prefix, tokens, cache)

@@ -155,3 +155,19 @@ def test_init_with_a_new_architecture_keeps_the_tensors_that_fit(cache, tmp_path
     shared = [k for k in b if k in a]
     assert len(shared) == len(b) and all(np.array_equal(a[k], b[k]) for k in shared)
     assert load_model(second)[0].cfg.encoder.anchors == 8
+
+
+def test_vertex_validation_reports_how_much_the_condition_helps(cache):
+    """cond_gain = loss with another mesh's points - loss with its own: finite, and exactly 0 for one shape twice."""
+    from fastmesh.training.loop import load_train_config
+    from fastmesh.training.tasks import VertexTask
+
+    task, ds = VertexTask(), load_dataset(cache)
+    # anchored: the prefix carries each shape's anchor cells, so even a random decoder's loss depends on it
+    cfg = load_train_config(None, {"model": {**TINY["vertex"]["model"], "encoder": {**ENC, "anchors": 8}}})
+    model = task.build_model(cfg.model).eval()
+    every = np.arange(len(ds))
+    gain = task.evaluate(model, ds, every, cfg, "cpu")["cond_gain"]
+    assert np.isfinite(gain) and gain != 0.0
+    same = np.full(4, every[0])  # the same mesh four times: swapping conditions changes nothing
+    assert task.evaluate(model, ds, same, cfg, "cpu")["cond_gain"] == 0.0

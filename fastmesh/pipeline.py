@@ -137,7 +137,7 @@ class Pipeline:
             raise ValueError("only size='tiny' is defined")
         torch.manual_seed(seed)
         enc = EncoderConfig(n_points=256, n_latents=8, dim=32, depth=1, heads=2, n_freqs=4)
-        vertex = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, max_vertices=64))
+        vertex = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, max_vertices=64, evidence=True))
         enhancer = Enhancer(EnhancerConfig(dim=32, depth=1, heads=2, encoder=enc))
         face = FaceModel(FaceModelConfig(dim=32, depth=1, heads=2, edge_heads=4, edge_mlp_hidden=4, encoder=enc))
         with torch.no_grad():
@@ -202,6 +202,7 @@ class Pipeline:
         n_vp = self.vertex.cfg.encoder.n_points
         with torch.inference_mode():
             prefix = self.vertex.condition(pts_t[:, :n_vp], nrm_t[:, :n_vp])
+            evidence = self.vertex.point_evidence(pts_t[:, :n_vp])
         timings["encode"] = time.perf_counter() - t
         check_cancel()
 
@@ -215,7 +216,8 @@ class Pipeline:
             report("vertices", lo + (hi - lo) * min(1.0, n_vert / max_v))
 
         report("vertices", lo)
-        tokens = generate(self.decoder, prefix, sampling, progress=on_step, should_cancel=should_cancel)[0]
+        tokens = generate(self.decoder, prefix, sampling, progress=on_step, should_cancel=should_cancel,
+                          evidence=evidence)[0]
         tokens = tokens.cpu().numpy()
         q = vt.decode(tokens, strict=True)
         timings["vertices"] = time.perf_counter() - t

@@ -14,22 +14,28 @@ from fastmesh.tokenizer import vertex as vt
 torch.set_num_threads(1)
 
 
-def _model(seed: int = 0, anchors: int = 0) -> VertexDecoder:
+def _model(seed: int = 0, anchors: int = 0, evidence: bool = False) -> VertexDecoder:
     torch.manual_seed(seed)
     enc = EncoderConfig(n_points=64, n_latents=4, dim=32, depth=1, heads=2, n_freqs=4, anchors=anchors)
-    m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc)).eval()
+    m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, evidence=evidence)).eval()
     with torch.no_grad():  # spread the logits so greedy choices are not near-ties
         m.head.weight.normal_(0, 1.0)
         m.tok_emb.weight.normal_(0, 0.5)
+        if evidence:  # as if trained: strong, varied biases per evidence level
+            m.evidence.table.weight.normal_(0, 3.0)
+            m.evidence.block_table.weight.normal_(0, 3.0)
     return m
 
 
-def _prefix(m: VertexDecoder, b: int, seed: int = 0) -> torch.Tensor:
+def _points(b: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     g = torch.Generator().manual_seed(seed)
     pts = torch.rand(b, 64, 3, generator=g) - 0.5
-    nrm = torch.nn.functional.normalize(torch.randn(b, 64, 3, generator=g), dim=-1)
+    return pts, torch.nn.functional.normalize(torch.randn(b, 64, 3, generator=g), dim=-1)
+
+
+def _prefix(m: VertexDecoder, b: int, seed: int = 0) -> torch.Tensor:
     with torch.no_grad():
-        return m.condition(pts, nrm)
+        return m.condition(*_points(b, seed))
 
 
 def _trim(row: torch.Tensor) -> list[int]:
@@ -37,12 +43,13 @@ def _trim(row: torch.Tensor) -> list[int]:
     return row[: row.index(vt.EOS) + 1] if vt.EOS in row else [t for t in row if t != vt.PAD]
 
 
-@pytest.mark.parametrize("seed,anchors", [(0, 0), (1, 0), (0, 8)])
-def test_cached_equals_uncached_at_temperature_zero(seed, anchors):
-    m = _model(seed, anchors)
+@pytest.mark.parametrize("seed,anchors,evidence", [(0, 0, False), (1, 0, False), (0, 8, False), (2, 8, True)])
+def test_cached_equals_uncached_at_temperature_zero(seed, anchors, evidence):
+    m = _model(seed, anchors, evidence)
     prefix = _prefix(m, 3, seed)
-    cached = generate(m, prefix, SamplingConfig(temperature=0, max_vertices=12))
-    uncached = generate_uncached(m, prefix, max_vertices=12)
+    ev = m.point_evidence(_points(3, seed)[0]) if evidence else None
+    cached = generate(m, prefix, SamplingConfig(temperature=0, max_vertices=12), evidence=ev)
+    uncached = generate_uncached(m, prefix, max_vertices=12, evidence=ev)
     assert len(cached) == 3
     for a, b in zip(cached, uncached, strict=True):
         assert a.tolist() == _trim(b)
@@ -59,6 +66,25 @@ def test_anchored_prefix_has_one_token_per_anchor_and_follows_the_points():
     with torch.no_grad():
         moved = m.condition(pts + 0.1, nrm)
         assert not torch.allclose(m.condition(pts, nrm), moved)
+
+
+def test_evidence_bias_counts_points_around_each_candidate_cell():
+    """The bias of an offset token depends only on the point counts around its cell; block tokens on their block."""
+    m = _model(0, evidence=True)
+    pts = torch.tensor([[[0.01, 0.01, 0.01]] * 5 + [[-0.45, -0.45, -0.45]]])  # 5 points in one cell, 1 far away
+    ev = m.point_evidence(pts)
+    cell = ((pts[0, 0] + 0.5) * 128).floor().long()  # (65, 65, 65): block (4, 4, 4), offset (1, 1, 1)
+    blk = int((cell[0] // 16) * 64 + (cell[1] // 16) * 8 + cell[2] // 16)
+    bias = ev.logit_bias(torch.tensor([[blk, -1]]))
+    tab, btab = m.evidence.table.weight[:, 0], m.evidence.block_table.weight[:, 0]
+    here = vt.OFFSET0 + 1 * 256 + 1 * 16 + 1
+    far = vt.OFFSET0 + 15 * 256 + 15 * 16 + 15  # cell (79, 79, 79): no point within 8 cells
+    # 5 points -> level floor(log2 6) = 2 at every scale (2, 4, 8 cells): index (2 * 6 + 2) * 6 + 2
+    assert torch.isclose(bias[0, 0, here], tab[(2 * 6 + 2) * 6 + 2])
+    assert torch.isclose(bias[0, 0, far], tab[0])
+    assert torch.isclose(bias[0, 0, vt.BLOCK0 + blk], btab[2]) and torch.isclose(bias[0, 0, vt.BLOCK0], btab[1])
+    assert torch.isclose(bias[0, 0, vt.BLOCK0 + 1], btab[0])
+    assert bias[0, 1, vt.OFFSET0:].abs().max() == 0 and bias[0, :, : vt.N_SPECIAL].abs().max() == 0
 
 
 def test_farthest_point_sample_spreads_and_is_deterministic():

@@ -15,6 +15,7 @@ import torch
 
 from ..params import SamplingConfig
 from ..tokenizer import vertex as vt
+from .evidence import Evidence
 from .kv_cache import KVCache
 from .vertex import VertexDecoder, grammar_mask, grammar_state
 
@@ -50,7 +51,8 @@ def sample_next(logits: torch.Tensor, cfg: SamplingConfig, gen: torch.Generator 
 @torch.inference_mode()
 def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: SamplingConfig,
              progress: Callable[[int, int], None] | None = None,
-             should_cancel: Callable[[], bool] | None = None, progress_every: int = 16) -> list[torch.Tensor]:
+             should_cancel: Callable[[], bool] | None = None, progress_every: int = 16,
+             evidence: Evidence | None = None) -> list[torch.Tensor]:
     """Sample one vertex-token sequence per prefix row.
 
     Parameters
@@ -60,6 +62,7 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
     cfg : sampling settings.
     progress : called as ``progress(step, max_vertices_so_far)`` every ``progress_every`` steps.
     should_cancel : polled at the same cadence; ``True`` raises :class:`Cancelled`.
+    evidence : from ``model.point_evidence(points)`` when the decoder was trained with it.
 
     Returns
     -------
@@ -85,6 +88,8 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
     n_vert = torch.zeros(b, dtype=torch.long, device=device)
     done = torch.zeros(b, dtype=torch.bool, device=device)
     for step in range(1, max_tokens):
+        if evidence is not None:
+            logits = logits + evidence.logit_bias(block[:, None])[:, 0]
         mask = grammar_mask(prev, block, offset, eos_only=n_vert >= cfg.max_vertices)
         nxt = sample_next(logits.masked_fill(~mask, float("-inf")), cfg, gen)
         nxt = torch.where(done, torch.full_like(nxt, vt.PAD), nxt)
@@ -113,11 +118,12 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
 
 
 @torch.inference_mode()
-def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: int) -> torch.Tensor:
+def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: int,
+                      evidence: Evidence | None = None) -> torch.Tensor:
     """Greedy decoding without a cache: the slow reference the cached path must equal."""
     tokens = torch.full((prefix.shape[0], 1), vt.BOS, dtype=torch.long, device=prefix.device)
     for _ in range(2 * max_vertices + 1):
-        logits = model(tokens, prefix=prefix)[:, -1]
+        logits = model(tokens, prefix=prefix, evidence=evidence)[:, -1]
         n_vert = (tokens >= vt.OFFSET0).sum(1)
         block, offset = grammar_state(tokens)
         eos_only = n_vert >= max_vertices

@@ -23,6 +23,7 @@ from torch import nn
 from ..tokenizer import vertex as vt
 from ..tokenizer.quantize import LEVELS
 from .encoder import EncoderConfig, PointEncoder
+from .evidence import Evidence, PointEvidence
 from .layers import Block, CoordEmbedding, RMSNorm, init_weights, rotary
 
 
@@ -33,6 +34,7 @@ class VertexConfig:
     heads: int = 8
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     max_vertices: int = 1000  # the data variant it was trained on (1000 or 4000)
+    evidence: bool = False  # add the learned point-evidence logit bias (models.evidence)
 
     @property
     def head_dim(self) -> int:
@@ -87,6 +89,8 @@ class VertexDecoder(nn.Module):
         self.norm = RMSNorm(cfg.dim)
         self.head = nn.Linear(cfg.dim, vt.VOCAB_SIZE, bias=False)
         init_weights(self)
+        # after init_weights: its tables start at zero (no bias until training finds the evidence useful)
+        self.evidence = PointEvidence() if cfg.evidence else None
 
     # ------------------------------------------------------------------ pieces
 
@@ -103,6 +107,10 @@ class VertexDecoder(nn.Module):
             cells = ((anchor_pts.float() + 0.5) * LEVELS).floor().clamp(0, LEVELS - 1).long()
             prefix = prefix + self.cell_emb(cells)
         return prefix
+
+    def point_evidence(self, points: torch.Tensor) -> Evidence | None:
+        """(B, P, 3) points -> the :class:`Evidence` whose logit bias ``forward``/``generate`` add (None if off)."""
+        return None if self.evidence is None else self.evidence(points)
 
     def embed(self, tokens: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
         """(B, T) tokens and their current block (from ``grammar_state``) -> (B, T, dim)."""
@@ -125,19 +133,23 @@ class VertexDecoder(nn.Module):
     # ------------------------------------------------------------------ training / reference
 
     def forward(self, tokens: torch.Tensor, prefix: torch.Tensor | None = None,
-                points: torch.Tensor | None = None, normals: torch.Tensor | None = None) -> torch.Tensor:
+                points: torch.Tensor | None = None, normals: torch.Tensor | None = None,
+                evidence: Evidence | None = None) -> torch.Tensor:
         """Uncached pass: tokens (B, T) -> logits (B, T, VOCAB) for the *next* token.
 
-        The condition is ``prefix`` (B, M, dim), or computed from ``points``/``normals`` (B, P, 3)
-        (the training path, so DDP sees one forward).  Grammar masking is applied here
-        too, so training and decoding see the same distribution.
+        The condition is ``prefix`` (B, M, dim) and ``evidence``, or both computed from
+        ``points``/``normals`` (B, P, 3) (the training path, so DDP sees one forward).
+        Grammar masking is applied here too, so training and decoding see the same distribution.
         """
         if prefix is None:
             prefix = self.condition(points, normals)
+            evidence = self.point_evidence(points)
         block, offset = grammar_state(tokens)
         x = torch.cat([prefix.to(self.tok_emb.weight.dtype), self.embed(tokens, block)], dim=1)
-        logits = self._run(x, 0)[:, prefix.shape[1]:]
-        return logits.float().masked_fill(~grammar_mask(tokens, block, offset), float("-inf"))
+        logits = self._run(x, 0)[:, prefix.shape[1]:].float()
+        if evidence is not None:
+            logits = logits + evidence.logit_bias(block)
+        return logits.masked_fill(~grammar_mask(tokens, block, offset), float("-inf"))
 
     def loss(self, tokens: torch.Tensor, **cond) -> torch.Tensor:
         """Next-token cross entropy over BOS..EOS of padded (B, T) sequences."""

@@ -59,16 +59,23 @@ class Evidence:
         b, t = block.shape
         # Block tokens: the block grid's flat index is the block id itself (x_hi, y_hi, z_hi).
         block_bias = self.m.block_table(self.levels[-1]).squeeze(-1)  # (B, 512)
-        blk = block.clamp(min=0)
-        bxyz = torch.stack([blk // 64, (blk // 8) % 8, blk % 8], dim=-1)  # (B, T, 3)
-        idx = None
-        for s, lev, part in zip(SHIFTS, self.levels, self.parts, strict=False):
-            flat = _flat(bxyz * (16 >> s), CELLS >> s)[..., None] + part  # (B, T, 4096)
-            lv = lev.gather(1, flat.view(b, -1)).view(b, t, -1)
-            idx = lv if idx is None else idx * LEVELS + lv
-        off_bias = self.m.table(idx).squeeze(-1) * (block >= 0)[..., None]  # no block yet: no evidence
+        # Offset tokens: a sequence visits a few dozen blocks over hundreds of positions, so the
+        # 4096-wide rows are computed once per distinct (shape, block) and then indexed.
+        rows = torch.arange(b, device=block.device)[:, None].expand(b, t)
+        key, inverse = torch.unique(rows * (vt.N_BLOCKS + 1) + block + 1, return_inverse=True)
+        off_bias = self._offset_rows(key // (vt.N_BLOCKS + 1), key % (vt.N_BLOCKS + 1) - 1)[inverse]
         special = block_bias.new_zeros(b, t, vt.N_SPECIAL)
         return torch.cat([special, block_bias[:, None].expand(b, t, -1), off_bias], dim=-1)
+
+    def _offset_rows(self, rows: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
+        """(U,) shape index and block id (-1: none) -> (U, 4096) bias of every offset token."""
+        blk = block.clamp(min=0)
+        bxyz = torch.stack([blk // 64, (blk // 8) % 8, blk % 8], dim=-1)  # (U, 3)
+        idx = None
+        for s, lev, part in zip(SHIFTS, self.levels, self.parts, strict=False):
+            lv = lev[rows[:, None], _flat(bxyz * (16 >> s), CELLS >> s)[:, None] + part]  # (U, 4096)
+            idx = lv if idx is None else idx * LEVELS + lv
+        return self.m.table(idx).squeeze(-1) * (block >= 0)[:, None]  # no block yet: no evidence
 
 
 def _flat(c: torch.Tensor, res: int) -> torch.Tensor:

@@ -87,9 +87,12 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
     prev = tokens[:, 0]
     n_vert = torch.zeros(b, dtype=torch.long, device=device)
     done = torch.zeros(b, dtype=torch.bool, device=device)
+    ev_block = ev_bias = None
     for step in range(1, max_tokens):
-        if evidence is not None:
-            logits = logits + evidence.logit_bias(block[:, None])[:, 0]
+        if evidence is not None:  # the bias changes only when a sequence enters a new block
+            if ev_block is None or not torch.equal(block, ev_block):
+                ev_bias, ev_block = evidence.logit_bias(block[:, None])[:, 0], block.clone()
+            logits = logits + ev_bias
         mask = grammar_mask(prev, block, offset, eos_only=n_vert >= cfg.max_vertices)
         nxt = sample_next(logits.masked_fill(~mask, float("-inf")), cfg, gen)
         nxt = torch.where(done, torch.full_like(nxt, vt.PAD), nxt)

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from fastmesh.models.encoder import EncoderConfig, farthest_point_sample
+from fastmesh.models.evidence import GAIN
 from fastmesh.models.generate import SamplingConfig, generate, generate_uncached
 from fastmesh.models.vertex import VertexConfig, VertexDecoder
 from fastmesh.tokenizer import vertex as vt
@@ -22,8 +23,8 @@ def _model(seed: int = 0, anchors: int = 0, evidence: bool = False) -> VertexDec
         m.head.weight.normal_(0, 1.0)
         m.tok_emb.weight.normal_(0, 0.5)
         if evidence:  # as if trained: strong, varied biases per evidence level
-            m.evidence.table.weight.normal_(0, 3.0)
-            m.evidence.block_table.weight.normal_(0, 3.0)
+            m.evidence.table.weight.normal_(0, 3.0 / GAIN)
+            m.evidence.block_table.weight.normal_(0, 3.0 / GAIN)
     return m
 
 
@@ -76,7 +77,7 @@ def test_evidence_bias_counts_points_around_each_candidate_cell():
     cell = ((pts[0, 0] + 0.5) * 128).floor().long()  # (65, 65, 65): block (4, 4, 4), offset (1, 1, 1)
     blk = int((cell[0] // 16) * 64 + (cell[1] // 16) * 8 + cell[2] // 16)
     bias = ev.logit_bias(torch.tensor([[blk, -1]]))
-    tab, btab = m.evidence.table.weight[:, 0], m.evidence.block_table.weight[:, 0]
+    tab, btab = GAIN * m.evidence.table.weight[:, 0], GAIN * m.evidence.block_table.weight[:, 0]
     here = vt.OFFSET0 + 1 * 256 + 1 * 16 + 1
     far = vt.OFFSET0 + 15 * 256 + 15 * 16 + 15  # cell (79, 79, 79): no point within 8 cells
     # 5 points -> level floor(log2 6) = 2 at every scale (2, 4, 8 cells): index (2 * 6 + 2) * 6 + 2

@@ -30,6 +30,10 @@ SHIFTS = (1, 2, 3)  # cube sides 2, 4, 8 cells: the 2048 condition points cover 
 LEVELS = 6  # count levels 0, 1, 2-3, 4-7, 8-15, 16+
 BLOCK_SHIFT = 4  # a block is 16 cells per axis
 BLOCK_LEVELS = 8
+# Adam moves each parameter by about the learning rate per step: at 1e-3 a zero-initialised table
+# would need thousands of steps to reach a bias of a few nats.  Scaling its output lets it get
+# there in about a hundred, at the learning rate the transformer needs.
+GAIN = 32.0
 
 
 def _level(count: torch.Tensor, levels: int) -> torch.Tensor:
@@ -58,7 +62,7 @@ class Evidence:
         """(B, T) current block ids (-1: none yet) -> (B, T, VOCAB) bias (0 on special tokens)."""
         b, t = block.shape
         # Block tokens: the block grid's flat index is the block id itself (x_hi, y_hi, z_hi).
-        block_bias = self.m.block_table(self.levels[-1]).squeeze(-1)  # (B, 512)
+        block_bias = GAIN * self.m.block_table(self.levels[-1]).squeeze(-1)  # (B, 512)
         # Offset tokens: a sequence visits a few dozen blocks over hundreds of positions, so the
         # 4096-wide rows are computed once per distinct (shape, block) and then indexed.
         rows = torch.arange(b, device=block.device)[:, None].expand(b, t)
@@ -75,7 +79,7 @@ class Evidence:
         for s, lev, part in zip(SHIFTS, self.levels, self.parts, strict=False):
             lv = lev[rows[:, None], _flat(bxyz * (16 >> s), CELLS >> s)[:, None] + part]  # (U, 4096)
             idx = lv if idx is None else idx * LEVELS + lv
-        return self.m.table(idx).squeeze(-1) * (block >= 0)[:, None]  # no block yet: no evidence
+        return GAIN * self.m.table(idx).squeeze(-1) * (block >= 0)[:, None]  # no block yet: no evidence
 
 
 def _flat(c: torch.Tensor, res: int) -> torch.Tensor:

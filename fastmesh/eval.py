@@ -142,7 +142,7 @@ def evaluate_gt_vertices(pipe, pairs: list[tuple[Path, Path]], filtering: bool =
         edges = pipe.face.predict_edges(q, pts, nrm, filtering=pipe.filter_config if filtering else None)
         seconds = time.perf_counter() - t
         m = edge_metrics(edges, edges_from_faces(true_faces))
-        v, f = mesh_from_adjacency(dequantize(q), edges)
+        v, f = mesh_from_adjacency(dequantize(q), edges, pipe.face_config)
         row = {"name": inp.stem, "vertices": int(len(q)), "true_faces": int(len(true_faces)),
                "faces": int(len(f)), "precision": m["precision"], "recall": m["recall"], "f1": m["f1"],
                "seconds": round(seconds, 4)}

@@ -25,10 +25,16 @@ SEED = 0
 
 @dataclass(frozen=True)
 class SurfaceDistance:
-    """Chamfer and Hausdorff distance in % of the longest bounding-box side."""
+    """Chamfer and Hausdorff distance in % of the longest bounding-box side.
+
+    ``mean_ab`` and ``mean_ba`` are the two halves of CD (mean distance from a's samples to b and
+    from b's to a): with a = result and b = reference, stray surface and holes respectively.
+    """
 
     cd: float
     hd: float
+    mean_ab: float = float("nan")
+    mean_ba: float = float("nan")
 
     def to_dict(self) -> dict:
         return {"cd": self.cd, "hd": self.hd}
@@ -83,7 +89,8 @@ def surface_distance(a: tuple[np.ndarray, np.ndarray | None], b: tuple[np.ndarra
     d_ab, d_ba = nearest_distances(pa, pb)
     cd = 100.0 * (d_ab.mean() + d_ba.mean()) / 2.0
     hd = 100.0 * max(d_ab.max(), d_ba.max())
-    return SurfaceDistance(cd=float(cd), hd=float(hd))
+    return SurfaceDistance(cd=float(cd), hd=float(hd), mean_ab=float(100.0 * d_ab.mean()),
+                           mean_ba=float(100.0 * d_ba.mean()))
 
 
 def chamfer(a: tuple[np.ndarray, np.ndarray | None], b: tuple[np.ndarray, np.ndarray | None],

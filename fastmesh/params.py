@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 @dataclass
 class SamplingConfig:
-    temperature: float = 0.5
+    temperature: float = 0.3
     top_k: int = 50
     top_p: float = 0.95
     max_vertices: int = 1000
@@ -29,7 +29,7 @@ class GenerateParams:
     """User-facing generation settings (the service's form fields have the same names)."""
 
     seed: int = 0
-    temperature: float = 0.5
+    temperature: float = 0.3
     top_k: int = 50
     top_p: float = 0.95
     max_vertices: int | None = None  # None: the vertex model's own limit

@@ -118,7 +118,9 @@ class Pipeline:
         settings = root / "pipeline.json"
         extra = json.loads(settings.read_text()) if settings.exists() else {}
         fcfg = FilterConfig(**extra.get("filtering", {}))
-        return cls(nets["vertex"], nets["enhancer"], nets["face"], device=dev, filter_config=fcfg, source=str(root))
+        face_cfg = FaceConfig(**{"remove_unreferenced": True, **extra.get("faces", {})})
+        return cls(nets["vertex"], nets["enhancer"], nets["face"], device=dev, filter_config=fcfg,
+                   face_config=face_cfg, source=str(root))
 
     @classmethod
     def random(cls, size: str = "tiny", seed: int = 0, device: str | None = None) -> Pipeline:
@@ -145,11 +147,12 @@ class Pipeline:
         return cls(vertex, enhancer, face, device=auto_device(device), source=f"random:{size}:{seed}")
 
     def save(self, directory: str | os.PathLike) -> None:
-        """Write the three networks (and the filtering settings) so ``from_pretrained`` can load them."""
+        """Write the three networks (and the filtering and clean-up settings) so ``from_pretrained`` can load them."""
         root = Path(directory)
         for name, net in zip(NETWORKS, (self.vertex, self.enhancer, self.face), strict=True):
             save_model(net, name, root / name)
-        (root / "pipeline.json").write_text(json.dumps({"filtering": asdict(self.filter_config)}, indent=2))
+        settings = {"filtering": asdict(self.filter_config), "faces": asdict(self.face_config)}
+        (root / "pipeline.json").write_text(json.dumps(settings, indent=2))
 
     def info(self) -> dict:
         return {"source": self.source, "device": str(self.device), "max_vertices": self.max_vertices,

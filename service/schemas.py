@@ -15,7 +15,7 @@ JOB_EXAMPLE = {
     "created_at": "2025-05-01T12:00:00.000000Z",
     "started_at": "2025-05-01T12:00:00.210000Z",
     "finished_at": "2025-05-01T12:00:04.870000Z",
-    "params": {"seed": 0, "temperature": 0.5, "top_k": 10, "top_p": 0.95, "max_vertices": 1000,
+    "params": {"seed": 0, "temperature": 0.3, "top_k": 10, "top_p": 0.95, "max_vertices": 1000,
                "enhancer": True, "filtering": True, "formats": ["glb"]},
     "input": {"filename": "chair.ply", "kind": "points", "points": 20000, "vertices": None, "faces": None},
     "result": {"vertices": 412, "faces": 806, "tokens": 412, "formats": ["glb"]},

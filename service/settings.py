@@ -53,6 +53,8 @@ class Settings(BaseSettings):
     heartbeat_ttl: float = Field(10.0, gt=0, description="A running job whose heartbeat is older is taken as lost.")
     reaper_interval: float = Field(3.0, gt=0, description="Seconds between scans for lost and overdue jobs.")
     progress_interval: float = Field(0.25, ge=0, description="Least seconds between two progress writes of a job.")
+    redis_outage_wait: float = Field(60.0, gt=0, description="Seconds a worker whose Redis vanished mid-job waits for "
+                                     "it before giving up (the job is then requeued by the reaper).")
     weights: str | None = Field(None, description="Weights directory for the workers; unset = shipped weights.")
     device: str | None = Field(None, description="Torch device for the workers (cpu, cuda); unset = best available.")
     debug_step_delay: float = Field(0.0, ge=0, description="Testing only: a worker sleeps this long in every "

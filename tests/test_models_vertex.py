@@ -23,8 +23,8 @@ def _model(seed: int = 0, anchors: int = 0, evidence: bool = False) -> VertexDec
         m.head.weight.normal_(0, 1.0)
         m.tok_emb.weight.normal_(0, 0.5)
         if evidence:  # as if trained: strong, varied biases per evidence level
-            m.evidence.table.weight.normal_(0, 3.0 / GAIN)
-            m.evidence.block_table.weight.normal_(0, 3.0 / GAIN)
+            for t in (m.evidence.table, m.evidence.block_table, m.evidence.skip_table, m.evidence.eos_table):
+                t.weight.normal_(0, 3.0 / GAIN)
     return m
 
 
@@ -70,7 +70,8 @@ def test_anchored_prefix_has_one_token_per_anchor_and_follows_the_points():
 
 
 def test_evidence_bias_counts_points_around_each_candidate_cell():
-    """The bias of an offset token depends only on the point counts around its cell; block tokens on their block."""
+    """The bias of an offset token depends only on the point counts around its cell; a block token on its
+    block's count and the occupied blocks it would skip; EOS on the occupied blocks still ahead."""
     m = _model(0, evidence=True)
     pts = torch.tensor([[[0.01, 0.01, 0.01]] * 5 + [[-0.45, -0.45, -0.45]]])  # 5 points in one cell, 1 far away
     ev = m.point_evidence(pts)
@@ -78,14 +79,21 @@ def test_evidence_bias_counts_points_around_each_candidate_cell():
     blk = int((cell[0] // 16) * 64 + (cell[1] // 16) * 8 + cell[2] // 16)
     bias = ev.logit_bias(torch.tensor([[blk, -1]]))
     tab, btab = GAIN * m.evidence.table.weight[:, 0], GAIN * m.evidence.block_table.weight[:, 0]
+    stab, etab = GAIN * m.evidence.skip_table.weight[:, 0], GAIN * m.evidence.eos_table.weight[:, 0]
     here = vt.OFFSET0 + 1 * 256 + 1 * 16 + 1
     far = vt.OFFSET0 + 15 * 256 + 15 * 16 + 15  # cell (79, 79, 79): no point within 8 cells
     # 5 points -> level floor(log2 6) = 2 at every scale (2, 4, 8 cells): index (2 * 6 + 2) * 6 + 2
     assert torch.isclose(bias[0, 0, here], tab[(2 * 6 + 2) * 6 + 2])
     assert torch.isclose(bias[0, 0, far], tab[0])
-    assert torch.isclose(bias[0, 0, vt.BLOCK0 + blk], btab[2]) and torch.isclose(bias[0, 0, vt.BLOCK0], btab[1])
-    assert torch.isclose(bias[0, 0, vt.BLOCK0 + 1], btab[0])
-    assert bias[0, 1, vt.OFFSET0:].abs().max() == 0 and bias[0, :, : vt.N_SPECIAL].abs().max() == 0
+    assert bias[0, 1, vt.OFFSET0:].abs().max() == 0  # no block yet: no offset evidence
+    # Occupied blocks: 0 (the far point) and blk.  In blk both are behind: nothing skipped, nothing remaining.
+    b0, b1, bb = vt.BLOCK0, vt.BLOCK0 + 1, vt.BLOCK0 + blk
+    assert torch.isclose(bias[0, 0, bb], btab[2] + stab[0]) and torch.isclose(bias[0, 0, b0], btab[1] + stab[0])
+    assert torch.isclose(bias[0, 0, b1], btab[0] + stab[0]) and torch.isclose(bias[0, 0, vt.EOS], etab[0])
+    # Before any block: going to blk or block 1 skips block 0 (level 1); two occupied blocks remain (level 1).
+    assert torch.isclose(bias[0, 1, bb], btab[2] + stab[1]) and torch.isclose(bias[0, 1, b0], btab[1] + stab[0])
+    assert torch.isclose(bias[0, 1, b1], btab[0] + stab[1]) and torch.isclose(bias[0, 1, vt.EOS], etab[1])
+    assert bias[0, :, [vt.PAD, vt.BOS]].abs().max() == 0
 
 
 def test_farthest_point_sample_spreads_and_is_deterministic():

@@ -13,6 +13,8 @@ import pytest
 import torch
 import trimesh
 
+from fastmesh.faces import FaceConfig
+from fastmesh.filtering import FilterConfig
 from fastmesh.io import Shape, load_shape, sample_surface
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weights_dir
@@ -49,6 +51,15 @@ def test_same_seed_same_mesh_and_save_load_roundtrip(pipe, weights):
     a = pipe.generate(shape, GenerateParams(seed=3, max_vertices=20, temperature=1.0))
     b = Pipeline.from_pretrained(weights).generate(shape, GenerateParams(seed=3, max_vertices=20, temperature=1.0))
     assert np.allclose(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)
+
+
+def test_filtering_and_cleanup_settings_survive_save_load(tmp_path):
+    p = Pipeline.random(seed=0)
+    p.filter_config = FilterConfig(first_threshold=0.6, final_threshold=0.4, candidate_passes=1)
+    p.face_config = FaceConfig(remove_unreferenced=True, drop_coplanar_diagonals=True)
+    p.save(tmp_path)
+    q = Pipeline.from_pretrained(tmp_path)
+    assert q.filter_config == p.filter_config and q.face_config == p.face_config
 
 
 def test_max_vertices_is_respected(pipe):

@@ -18,6 +18,7 @@ import redis
 from rq.timeouts import JobTimeoutException
 
 from fastmesh.io import ShapeError
+from service.processes import wait_for
 from service.settings import Settings
 from service.store import Store, mesh_to_bytes, shape_from_bytes, timeout_error
 
@@ -131,12 +132,22 @@ def run_job(job_id: str, attempt: int) -> None:
         _run(store, job_id, attempt)
     except JobTimeoutException:  # RQ's hard timeout, the backstop of our cooperative one
         store.finish(job_id, attempt, "failed", error=timeout_error(store.settings.job_timeout))
+    except (redis.ConnectionError, redis.TimeoutError) as e:
+        # Redis went away mid-job (restart, failover): not the job's fault, and reporting a failure
+        # would fail too.  Wait for Redis, then hand the job back; only then return to RQ, whose own
+        # bookkeeping after a job would otherwise meet the outage and stop the worker for good.
+        log.warning("job %s: Redis unreachable (%s); handing it back when Redis returns", job_id, e)
+        try:
+            wait_for(lambda: _redis_answers(store), store.settings.redis_outage_wait, 0.5, what="Redis")
+        except TimeoutError:
+            raise e from None  # the worker exits; the API's reaper requeues the job once its heartbeat lapses
+        _release(store, job_id, attempt, "Redis was unreachable")
     except Exception as e:  # a bug or Redis trouble: fail this job clearly rather than retry it forever
         log.exception("job %s crashed", job_id)
         store.finish(job_id, attempt, "failed",
                      error={"code": "internal", "message": f"worker error: {type(e).__name__}: {e}"[:500]})
     except BaseException:  # cold shutdown (SystemExit, KeyboardInterrupt): hand the job back, then go
-        _release(store, job_id, attempt)
+        _release(store, job_id, attempt, "worker shutting down")
         raise
     finally:
         STATE.current = None
@@ -169,7 +180,7 @@ def _run(store: Store, job_id: str, attempt: int) -> None:
         if ctl.timed_out:
             store.finish(job_id, attempt, "failed", timings=timings, error=timeout_error(store.settings.job_timeout))
         elif STATE.shutting_down and not ctl.lost:
-            _release(store, job_id, attempt)
+            _release(store, job_id, attempt, "worker shutting down")
         log.info("job %s attempt %d stopped (%s)", job_id, attempt,
                  "timeout" if ctl.timed_out else "cancelled or superseded" if ctl.lost else "shutdown")
         return
@@ -200,10 +211,17 @@ def _run(store: Store, job_id: str, attempt: int) -> None:
     log.info("job %s succeeded: %d vertices, %d faces", job_id, info["vertices"], info["faces"])
 
 
-def _release(store: Store, job_id: str, attempt: int) -> None:
-    """Give a job back to the queue because this worker is shutting down (not the job's fault)."""
+def _redis_answers(store: Store) -> bool:
+    try:
+        return bool(store.r.ping())
+    except redis.RedisError:
+        return False
+
+
+def _release(store: Store, job_id: str, attempt: int, reason: str) -> None:
+    """Give a job back to the queue for a reason that is not the job's fault."""
     ok = store.transition(job_id, "running", {"status": "queued", "attempt": attempt + 1, "stage": "queued",
                                               "fraction": 0.0, "worker": ""}, attempt=attempt, final=True)
     if ok:
         store.enqueue(job_id, attempt + 1)
-        log.warning("job %s handed back to the queue (worker shutting down)", job_id)
+        log.warning("job %s handed back to the queue (%s)", job_id, reason)

@@ -16,6 +16,18 @@ level(n) = min(floor(log2(1 + n)), L - 1).  The tables are learned (zeros at sta
 no effect until training finds the evidence useful), so the output is a product of
 experts: what the transformer expects of an artist mesh, times what the surface
 allows.  Counting points is O(P); the bias of a token costs three gathers.
+
+Two more tables read the *sequence* against the surface.  Blocks are emitted in
+increasing id order, so from the current block one knows how many blocks holding input
+points are still ahead (``remaining``) and how many a candidate block token would jump
+over (``skipped``):
+
+    EOS:                        eos_table[level(remaining)]
+    block token b (current c):  block_table[level(n_4)] + skip_table[level(skipped(c, b))]
+
+Without them a decoder that has not learned its input well stops early or leaves whole
+parts of the shape out (both seen with this decoder before they were added): ending while occupied
+blocks remain, or jumping over them, now costs what training finds it costs.
 """
 
 from __future__ import annotations
@@ -30,6 +42,7 @@ SHIFTS = (1, 2, 3)  # cube sides 2, 4, 8 cells: the 2048 condition points cover 
 LEVELS = 6  # count levels 0, 1, 2-3, 4-7, 8-15, 16+
 BLOCK_SHIFT = 4  # a block is 16 cells per axis
 BLOCK_LEVELS = 8
+SEQ_LEVELS = 8  # occupied blocks remaining / skipped: 0, 1, 2-3, ..., 64+
 # Adam moves each parameter by about the learning rate per step: at 1e-3 a zero-initialised table
 # would need thousands of steps to reach a bias of a few nats.  Scaling its output lets it get
 # there in about a hundred, at the learning rate the transformer needs.
@@ -53,23 +66,36 @@ class Evidence:
             grid = torch.zeros(b, (CELLS >> s) ** 3, device=points.device)
             grid.scatter_add_(1, flat, torch.ones_like(flat, dtype=grid.dtype))
             self.levels.append(_level(grid, n_levels))
+        # Occupied blocks up to and including each block id (the order blocks are emitted in).
+        occupied = (self.levels[-1] > 0).float()  # (B, 512)
+        self.occ_incl = occupied.cumsum(1)
+        self.occ_excl = self.occ_incl - occupied
         # The coarse index of cell (block * 16 + offset) is linear: base(block) + part(offset).
         o = torch.arange(vt.N_OFFSETS, device=points.device)
         oxyz = torch.stack([o // 256, (o // 16) % 16, o % 16], dim=-1)  # the tokenizer's bit layout
         self.parts = [_flat(oxyz >> s, CELLS >> s) for s in SHIFTS]
 
     def logit_bias(self, block: torch.Tensor) -> torch.Tensor:
-        """(B, T) current block ids (-1: none yet) -> (B, T, VOCAB) bias (0 on special tokens)."""
+        """(B, T) current block ids (-1: none yet) -> (B, T, VOCAB) bias (0 on PAD and BOS)."""
         b, t = block.shape
-        # Block tokens: the block grid's flat index is the block id itself (x_hi, y_hi, z_hi).
-        block_bias = GAIN * self.m.block_table(self.levels[-1]).squeeze(-1)  # (B, 512)
-        # Offset tokens: a sequence visits a few dozen blocks over hundreds of positions, so the
-        # 4096-wide rows are computed once per distinct (shape, block) and then indexed.
+        # A sequence visits a few dozen blocks over hundreds of positions, so the rows of the
+        # bias are computed once per distinct (shape, block) and then indexed.
         rows = torch.arange(b, device=block.device)[:, None].expand(b, t)
         key, inverse = torch.unique(rows * (vt.N_BLOCKS + 1) + block + 1, return_inverse=True)
-        off_bias = self._offset_rows(key // (vt.N_BLOCKS + 1), key % (vt.N_BLOCKS + 1) - 1)[inverse]
-        special = block_bias.new_zeros(b, t, vt.N_SPECIAL)
-        return torch.cat([special, block_bias[:, None].expand(b, t, -1), off_bias], dim=-1)
+        u_rows, u_block = key // (vt.N_BLOCKS + 1), key % (vt.N_BLOCKS + 1) - 1
+        return torch.cat(self._sequence_rows(u_rows, u_block) + [self._offset_rows(u_rows, u_block)],
+                         dim=-1)[inverse]
+
+    def _sequence_rows(self, rows: torch.Tensor, block: torch.Tensor) -> list[torch.Tensor]:
+        """(U,) shape index and current block (-1: none) -> [(U, 3) special, (U, 512) block] bias."""
+        done = self.occ_incl[rows, block.clamp(min=0)] * (block >= 0)  # occupied blocks emitted so far
+        remaining = self.occ_incl[rows, -1] - done  # occupied blocks after the current one
+        skipped = (self.occ_excl[rows] - done[:, None]).clamp(min=0)  # occupied blocks strictly between
+        block_bias = self.m.block_table(self.levels[-1][rows]).squeeze(-1) \
+            + self.m.skip_table(_level(skipped, SEQ_LEVELS)).squeeze(-1)
+        special = block_bias.new_zeros(len(rows), vt.N_SPECIAL)
+        special[:, vt.EOS] = self.m.eos_table(_level(remaining, SEQ_LEVELS)).squeeze(-1)
+        return [GAIN * special, GAIN * block_bias]
 
     def _offset_rows(self, rows: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
         """(U,) shape index and block id (-1: none) -> (U, 4096) bias of every offset token."""
@@ -88,14 +114,16 @@ def _flat(c: torch.Tensor, res: int) -> torch.Tensor:
 
 
 class PointEvidence(nn.Module):
-    """The learned tables of :class:`Evidence` (LEVELS^3 + BLOCK_LEVELS scalars)."""
+    """The learned tables of :class:`Evidence` (LEVELS^3 + BLOCK_LEVELS + 2 * SEQ_LEVELS scalars)."""
 
     def __init__(self):
         super().__init__()
         self.table = nn.Embedding(LEVELS ** len(SHIFTS), 1)
         self.block_table = nn.Embedding(BLOCK_LEVELS, 1)
-        nn.init.zeros_(self.table.weight)
-        nn.init.zeros_(self.block_table.weight)
+        self.skip_table = nn.Embedding(SEQ_LEVELS, 1)
+        self.eos_table = nn.Embedding(SEQ_LEVELS, 1)
+        for t in (self.table, self.block_table, self.skip_table, self.eos_table):
+            nn.init.zeros_(t.weight)
 
     def forward(self, points: torch.Tensor) -> Evidence:
         """(B, P, 3) points in the unit cube -> their :class:`Evidence`."""

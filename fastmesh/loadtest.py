@@ -146,7 +146,8 @@ class _Run:
 
 async def _request(run: _Run, http: httpx.AsyncClient, method: str, url: str, route: str,
                    until: Callable[[], float], **kw) -> httpx.Response | None:
-    """One logical request: retried on 429 (after Retry-After), 5xx and connection errors until ``until()``.
+    """One logical request: retried on 429 and 409 + Retry-After (after it), 5xx and connection errors until
+    ``until()``.
 
     Returns the first answer that is neither, or None when the deadline passed first.
     """
@@ -160,7 +161,8 @@ async def _request(run: _Run, http: httpx.AsyncClient, method: str, url: str, ro
             backoff = min(backoff * 2, 4.0)
             continue
         run.count(method, route, r.status_code)
-        if r.status_code == 429:
+        # 429, and 409 with Retry-After (the same Idempotency-Key still being processed): "later".
+        if r.status_code == 429 or (r.status_code == 409 and "Retry-After" in r.headers):
             ra = r.headers.get("Retry-After")
             if ra is None:
                 run.missing_retry_after += 1

@@ -41,6 +41,7 @@ JOB_ID = Path(..., description="Job id as returned by POST /v1/jobs.",
               examples=["3f2b9c1d4e5f40718293a4b5c6d7e8f9"])
 ID_RE = re.compile(r"[0-9a-f]{32}")
 MEDIA = {"glb": "model/gltf-binary", "obj": "model/obj", "ply": "application/ply"}
+IDEMPOTENCY_WAIT = 5.0  # seconds a retry waits for the job of a request holding the same Idempotency-Key
 DESCRIPTION = """Upload a point cloud or a dense mesh, poll the job, download a clean artist-style mesh.
 
 1. `POST /v1/jobs` with a multipart `file` (obj, glb, gltf, ply, stl, off, xyz, txt, npy, npz) -> 202 + job.
@@ -174,17 +175,22 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
         load_seconds = time.perf_counter() - t0
         info = input_info(filename, shape)
         blob = shape_to_bytes(shape)
+        job_id = store.new_id()
         if idempotency_key:
-            claim = f"pending {fingerprint}"
-            other = store.idempotency_claim(who, idempotency_key, claim)
-            if other is not None:  # a concurrent retry won the race: answer with its job
-                existing = _idempotent_job(store, who, idempotency_key, fingerprint, wait=5.0)
+            # The claim names the job id before the job exists: an API killed between creating the job
+            # and answering leaves a key that a retry resolves to that job, not a second one.
+            claim = f"{job_id} {fingerprint} pending"
+            if store.idempotency_claim(who, idempotency_key, claim) is not None:
+                # Another request holds the key: answer with its job once it exists.  A claim that
+                # expires meanwhile (its API process died before creating the job) is ours to take.
+                existing = _idempotent_job(store, who, idempotency_key, fingerprint, wait=IDEMPOTENCY_WAIT)
                 if existing is not None:
                     return job_response(existing, 200)
-                raise ApiError(409, "conflict", "a request with this Idempotency-Key is still being processed",
-                               {"Retry-After": "1"})
+                if store.idempotency_claim(who, idempotency_key, claim) is not None:
+                    raise ApiError(409, "conflict", "a request with this Idempotency-Key is still being processed",
+                                   {"Retry-After": "1"})
         try:
-            job_id = store.create(who, params, info, blob, load_seconds, max_queued=settings.max_queue_depth)
+            store.create(who, params, info, blob, load_seconds, max_queued=settings.max_queue_depth, job_id=job_id)
         except QueueFull:  # the early check above raced with concurrent submissions: the queue filled meanwhile
             if idempotency_key:
                 store.idempotency_release(who, idempotency_key)
@@ -285,22 +291,26 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
 
 
 def _idempotent_job(store: Store, who: str, key: str, fingerprint: str, wait: float = 0.0) -> dict | None:
-    """The job an Idempotency-Key already names (same request), None if unclaimed; 409 for another request."""
+    """The job an Idempotency-Key already names (same request), None if unclaimed; 409 for another request.
+
+    A claim still marked pending whose job does not exist yet belongs to a request in flight (or to
+    an API process killed before creating the job: the claim then expires after ``PENDING_TTL``);
+    this waits up to ``wait`` seconds for its job to appear.
+    """
     deadline = time.monotonic() + wait
     while True:
-        k = f"{store.p}:idem:{who}:{hashlib.sha256(key.encode()).hexdigest()}"
-        raw = store.r.get(k)
+        raw = store.idempotency_get(who, key)
         if raw is None:
             return None
-        job_id, _, fp = raw.decode().partition(" ")
-        job = store.get(job_id) if job_id != "pending" else None
-        if job_id != "pending" and (job is None or job["owner"] != who):
+        job_id, fp, *pending = raw.split(" ")
+        job = store.get(job_id)
+        if (job is None or job["owner"] != who) and not pending:
             store.idempotency_release(who, key)  # its job was deleted or expired: the key is free again
             return None
         if fp != fingerprint:
             raise ApiError(409, "idempotency_conflict",
                            "this Idempotency-Key was used for a different file or parameters")
-        if job is not None:
+        if job is not None and job["owner"] == who:
             return job
         if time.monotonic() >= deadline:
             return None

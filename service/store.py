@@ -10,7 +10,7 @@ Layout (``P`` is ``Settings.redis_prefix``)::
     P:running               set of job ids in status "running" (what the reaper scans)
     P:queued                zset job id -> time enqueued (the reaper finds queue entries lost with a worker)
     P:suspects              hash job id -> when its queue entry was first seen missing
-    P:idem:<owner>:<sha>    "<job id> <request fingerprint>" for Idempotency-Key
+    P:idem:<owner>:<sha>    "<job id> <request fingerprint>" for Idempotency-Key (+ " pending" until created)
     P:rate:<kind>:<owner>:<minute>   fixed-window request counters
     P:workers               zset worker name -> last heartbeat (unix seconds)
     P:worker:<name>         hash: pid host loads jobs weights started_at
@@ -46,7 +46,7 @@ TIMING_KEYS = ("queue", "load", "encode", "vertices", "enhancer", "faces", "filt
 STAGE_BUCKETS = (0.01, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0)
 TASK = "worker.tasks.run_job"  # by name: the API never imports the worker (or torch)
 RQ_GRACE = 30  # RQ's hard timeout backs up our cooperative one by this many seconds
-PENDING_TTL = 30  # seconds an Idempotency-Key stays claimed by a request still being processed
+PENDING_TTL = 10  # seconds an Idempotency-Key stays claimed by a request that has not created its job yet
 
 # KEYS: job, hb, running set, queued zset, keys to EXPIRE...
 # ARGV: allowed statuses (comma list), attempt ('' = any), ttl ('' = keep), job id,
@@ -240,12 +240,13 @@ class Store:
         return bool(self._transition(keys=keys, args=argv))
 
     def create(self, owner: str, params: dict, input_info: dict, shape_bytes: bytes, load_seconds: float,
-               max_queued: int | None = None) -> str:
+               max_queued: int | None = None, job_id: str | None = None) -> str:
         """Store a new queued job and its input, and enqueue it.  Returns the job id.
 
+        ``job_id`` (from :meth:`new_id`) lets a caller name the job before it exists.
         Raises :class:`QueueFull` when ``max_queued`` jobs are already queued (checked atomically).
         """
-        job_id = uuid.uuid4().hex
+        job_id = job_id or self.new_id()
         now = time.time()
         if max_queued is not None and not self._admit(keys=[self.k_queued], args=[job_id, now, max_queued]):
             raise QueueFull(job_id)
@@ -262,6 +263,10 @@ class Store:
             pipe.execute()
         self.enqueue(job_id, 1)
         return job_id
+
+    @staticmethod
+    def new_id() -> str:
+        return uuid.uuid4().hex
 
     def enqueue(self, job_id: str, attempt: int) -> None:
         rq_id = f"{job_id}-{attempt}"
@@ -372,21 +377,30 @@ class Store:
         return t if t and t > 0 else self.settings.retention_seconds
 
     # ------------------------------------------------------------------ idempotency and rate limits
+    def _k_idem(self, owner: str, key: str) -> str:
+        return f"{self.p}:idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}"
+
+    def idempotency_get(self, owner: str, key: str) -> str | None:
+        """What ``key`` names: "<job id> <fingerprint>" or, while being created, "<job id> <fingerprint> pending"."""
+        raw = self.r.get(self._k_idem(owner, key))
+        return raw.decode() if raw is not None else None
+
     def idempotency_claim(self, owner: str, key: str, job_id_fp: str) -> str | None:
-        """Claim ``key`` for ``job_id_fp`` ("pending <fingerprint>").  Returns the existing claim, or None if ours.
+        """Claim ``key`` for ``job_id_fp`` ("<job id> <fingerprint> pending").  Returns the existing claim, or
+        None if ours.
 
         The claim lives ``PENDING_TTL`` seconds until :meth:`idempotency_replace` names the job: an API
         killed in between must not block the key for the whole retention time.
         """
-        k = f"{self.p}:idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}"
+        k = self._k_idem(owner, key)
         if self.r.set(k, job_id_fp, nx=True, ex=PENDING_TTL):
             return None
         old = self.r.get(k)
         return old.decode() if old else None
 
     def idempotency_replace(self, owner: str, key: str, old: str, new: str) -> bool:
-        """Swap a claim pointing at a job that no longer exists (compare-and-set)."""
-        k = f"{self.p}:idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}"
+        """Swap claim ``old`` for ``new`` (compare-and-set)."""
+        k = self._k_idem(owner, key)
         with self.r.pipeline() as pipe:
             try:
                 pipe.watch(k)
@@ -401,7 +415,7 @@ class Store:
                 return False
 
     def idempotency_release(self, owner: str, key: str) -> None:
-        self.r.delete(f"{self.p}:idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}")
+        self.r.delete(self._k_idem(owner, key))
 
     def rate_hit(self, kind: str, owner: str, limit: int) -> int:
         """Count one request in this minute's window; return seconds to wait (0 = allowed)."""

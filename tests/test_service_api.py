@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import os
+import time
 
 import httpx
 import numpy as np
@@ -16,7 +17,9 @@ import redis
 import trimesh
 from stack import flushed_redis
 
+from service import store as store_module
 from service.settings import Settings
+from service.store import Store
 from service.testing import ServedApp, WorkerProcess, wait_for
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -367,6 +370,31 @@ def test_idempotency_key_scoped_per_api_key(keyed):
     httpx.delete(f"{keyed.url}/v1/jobs/{a.json()['id']}", headers=auth)
     d = submit(keyed.url, headers=one, seed=6)
     assert d.status_code == 202 and d.json()["id"] != a.json()["id"]
+
+
+def test_idempotency_key_of_a_request_whose_api_died(keyed):
+    """An API process killed mid-request leaves its Idempotency-Key claimed ("pending"): a retry gets the
+    job if it was created, and a new one (not a 409 for ever) once the claim of a job never created expires."""
+    store = Store(keyed.settings)
+    auth = {"Authorization": "Bearer key-one"}
+    first = submit(keyed.url, headers={**auth, "Idempotency-Key": "died-1"}, seed=8)
+    assert first.status_code == 202
+    job_id = first.json()["id"]
+    who = store.get(job_id)["owner"]  # the hash of key-one
+    claim = store.idempotency_get(who, "died-1")
+    assert claim.startswith(f"{job_id} ") and not claim.endswith(" pending")
+    # Killed after creating the job, before naming it final.
+    store.r.set(store._k_idem(who, "died-1"), f"{claim} pending", ex=store_module.PENDING_TTL)
+    again = submit(keyed.url, headers={**auth, "Idempotency-Key": "died-1"}, seed=8)
+    assert again.status_code == 200 and again.json()["id"] == job_id
+    # Killed before creating the job: the retry waits for the claim to expire, then creates the job.
+    fp = claim.split(" ")[1]
+    store.r.set(store._k_idem(who, "died-2"), f"{Store.new_id()} {fp} pending", px=1500)
+    t0 = time.monotonic()
+    late = submit(keyed.url, headers={**auth, "Idempotency-Key": "died-2"}, seed=8)
+    assert late.status_code == 202 and late.json()["id"] != job_id, late.text
+    assert 1.0 < time.monotonic() - t0 < 5.0
+    assert store.idempotency_get(who, "died-2") == f"{late.json()['id']} {fp}"
 
 
 def test_concurrent_retries_with_one_idempotency_key_make_one_job(keyed):

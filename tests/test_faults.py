@@ -106,7 +106,7 @@ def test_sigkill_one_worker_under_load(shared_redis, weights, inputs, tmp_path):
         doomed.proc.send_signal(signal.SIGKILL)
         doomed.proc.wait()
         rep = load.result(120)
-        assert rep["jobs"]["succeeded"] == 10 and rep["jobs"]["lost"] == 0 and rep["jobs"]["failed"] == 0, rep
+        assert rep["jobs"]["succeeded"] == 10 and rep["jobs"]["lost"] == 0 and rep["jobs"]["failed"] == 0, (rep["jobs"], rep["job_errors"])
         assert healthy.proc.poll() is None  # the other worker never noticed
         job = jobs_in_redis(s)[victim]
         assert job["status"] == "succeeded" and int(job["attempt"]) >= 2, job
@@ -136,7 +136,7 @@ def test_redis_restart_with_jobs_queued(weights, inputs, tmp_path):
         time.sleep(1.0)  # clients and the worker meet a refused connection meanwhile
         server.start()  # same port, same directory: state comes back from the append-only file
         rep = load.result(150)
-        assert rep["jobs"]["accepted"] == n and rep["jobs"]["succeeded"] == n, rep
+        assert rep["jobs"]["accepted"] == n and rep["jobs"]["succeeded"] == n, (rep["jobs"], rep["job_errors"])
         assert rep["jobs"]["lost"] == 0 and rep["jobs"]["failed"] == 0, rep
         ids = [i for i in jobs_in_redis(s)]
         assert len(ids) == n  # no job was created twice by retried uploads
@@ -166,7 +166,7 @@ def test_api_restart_while_jobs_run(shared_redis, weights, inputs, tmp_path):
         time.sleep(1.0)
         api.start()
         rep = load.result(120)
-        assert rep["jobs"]["succeeded"] == 6 and rep["jobs"]["lost"] == 0, rep
+        assert rep["jobs"]["succeeded"] == 6 and rep["jobs"]["lost"] == 0, (rep["jobs"], rep["job_errors"])
         assert rep["http_errors"].get("transport", 0) >= 1, rep["http_errors"]  # they did see it go away
         assert "Traceback" not in api.log()
         assert_each_succeeded_once(s, list(jobs_in_redis(s)), worker.log())

@@ -106,7 +106,8 @@ def test_sigkill_one_worker_under_load(shared_redis, weights, inputs, tmp_path):
         doomed.proc.send_signal(signal.SIGKILL)
         doomed.proc.wait()
         rep = load.result(120)
-        assert rep["jobs"]["succeeded"] == 10 and rep["jobs"]["lost"] == 0 and rep["jobs"]["failed"] == 0, (rep["jobs"], rep["job_errors"])
+        jobs = rep["jobs"]
+        assert jobs["succeeded"] == 10 and jobs["lost"] == 0 and jobs["failed"] == 0, (jobs, rep["job_errors"])
         assert healthy.proc.poll() is None  # the other worker never noticed
         job = jobs_in_redis(s)[victim]
         assert job["status"] == "succeeded" and int(job["attempt"]) >= 2, job

@@ -64,9 +64,9 @@ def main() -> int:
         seen["predict"], seen["n"] = predict, n
         return run_filter(predict, n, cfg)
 
-    def spy_mesh(positions, edges, cfg=None):
-        seen["positions"] = positions
-        return build_mesh(positions, edges, cfg)
+    def spy_mesh(positions, edges, cfg=None, points=None):
+        seen["positions"], seen["points"] = positions, points
+        return build_mesh(positions, edges, cfg, points=points)
 
     pipeline_module.filter_predictions, pipeline_module.mesh_from_adjacency = spy_filter, spy_mesh
     for temp in [float(t) for t in args.temperatures.split(",")]:
@@ -85,8 +85,9 @@ def main() -> int:
                 else:
                     edges = run_filter(seen["predict"], seen["n"], cfg).edges
                 for diag in (False, True):
-                    v, f = build_mesh(seen["positions"], edges,
-                                      FaceConfig(remove_unreferenced=True, drop_coplanar_diagonals=diag))
+                    cfg_faces = FaceConfig(remove_unreferenced=True, drop_coplanar_diagonals=diag,
+                                           support_tol=pipe.face_config.support_tol)  # as shipped
+                    v, f = build_mesh(seen["positions"], edges, cfg_faces, points=seen["points"])
                     if len(f) == 0:
                         rows[k, diag].append([np.nan] * 6)
                         continue

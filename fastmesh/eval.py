@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .faces import mesh_from_adjacency
-from .io import SUPPORTED_FORMATS, Normalization, Shape, ShapeError, load_shape, sample_surface
+from .io import SUPPORTED_FORMATS, Normalization, Shape, ShapeError, input_surface, load_shape, sample_surface
 from .metrics import edge_metrics, edges_from_faces, surface_distance
 from .tokenizer import dequantize, quantize_mesh
 
@@ -142,7 +142,8 @@ def evaluate_gt_vertices(pipe, pairs: list[tuple[Path, Path]], filtering: bool =
         edges = pipe.face.predict_edges(q, pts, nrm, filtering=pipe.filter_config if filtering else None)
         seconds = time.perf_counter() - t
         m = edge_metrics(edges, edges_from_faces(true_faces))
-        v, f = mesh_from_adjacency(dequantize(q), edges, pipe.face_config)
+        surface = input_surface(shape, norm.apply(shape.vertices), pipe.face_config.support_points, seed)
+        v, f = mesh_from_adjacency(dequantize(q), edges, pipe.face_config, points=surface)
         row = {"name": inp.stem, "vertices": int(len(q)), "true_faces": int(len(true_faces)),
                "faces": int(len(f)), "precision": m["precision"], "recall": m["recall"], "f1": m["f1"],
                "seconds": round(seconds, 4)}

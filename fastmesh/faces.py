@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .metrics import normalize_edges
+from .support import drop_unsupported
 
 # Wedges expanded per vectorised chunk: bounds memory at ~100 MB for any adjacency.
 _CHUNK = 2_000_000
@@ -45,6 +46,12 @@ class FaceConfig:
         outward (positive signed volume about the mesh centroid).
     remove_unreferenced : bool
         Drop vertices no face uses (returned vertices are then a subset).
+    support_tol : float or None
+        With the input's surface samples given: drop faces that stray farther than this from
+        them (:func:`fastmesh.support.drop_unsupported`; relative to their longest side).
+    support_points : int
+        How many samples of the input surface to check against (a point cloud with fewer points
+        gives all of them).
     """
 
     drop_zero_area: bool = True
@@ -53,6 +60,8 @@ class FaceConfig:
     coplanar_tol: float = 0.5 / 128
     orient: bool = True
     remove_unreferenced: bool = False
+    support_tol: float | None = None
+    support_points: int = 16384
 
 
 # --------------------------------------------------------------------------- graphs
@@ -336,7 +345,8 @@ def remove_unreferenced(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nda
     return np.asarray(vertices)[used], remap[f], np.flatnonzero(used)
 
 
-def mesh_from_adjacency(vertices: np.ndarray, adj, config: FaceConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+def mesh_from_adjacency(vertices: np.ndarray, adj, config: FaceConfig | None = None,
+                        points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and a predicted adjacency -> a cleaned, oriented triangle mesh.
 
     Parameters
@@ -345,6 +355,9 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: FaceConfig | None = N
         Positions (any frame; tolerances are relative to the bounding box).
     adj : (N, N) array, sparse matrix or (E, 2) edge list
     config : FaceConfig
+    points : (P, 3) float, optional
+        Samples of the input surface in the frame of ``vertices``: with ``config.support_tol``,
+        faces that leave that surface are dropped.
 
     Returns
     -------
@@ -358,6 +371,8 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: FaceConfig | None = N
         f = drop_degenerate(v, f, cfg.area_tol)
     if cfg.drop_coplanar_diagonals:
         f = drop_coplanar_diagonals(v, f, cfg.coplanar_tol)
+    if cfg.support_tol is not None and points is not None:
+        f = drop_unsupported(v, f, points, cfg.support_tol)
     if cfg.orient:
         f = orient_faces(v, f)
     if cfg.remove_unreferenced:

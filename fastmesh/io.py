@@ -395,6 +395,15 @@ def sample_surface(shape: Shape, n: int, seed: int | None = 0,
     return sample_triangles(v, shape.faces, n, rng)
 
 
+def input_surface(shape: Shape, vertices: np.ndarray, n: int, seed: int | None) -> np.ndarray:
+    """(<= n, 3) samples of the input surface at ``vertices`` (the shape's, in another frame) for the
+    face support check: a point cloud of at most ``n`` points gives all of them (resampling would
+    duplicate points and hide their spacing)."""
+    if shape.faces is None and len(vertices) <= n:
+        return np.asarray(vertices)
+    return sample_surface(shape, n, seed=seed, vertices=vertices)[0]
+
+
 def sample_triangles(v: np.ndarray, faces: np.ndarray, n: int,
                      rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Uniform samples on triangles ``v[faces]``; returns (n, 3) points and face normals."""

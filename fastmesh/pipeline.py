@@ -25,7 +25,7 @@ import torch
 
 from .faces import FaceConfig, mesh_from_adjacency
 from .filtering import FilterConfig, edges_from_logits, filter_predictions
-from .io import Normalization, Shape, export_mesh, sample_surface
+from .io import Normalization, Shape, export_mesh, input_surface, sample_surface
 from .models.checkpoint import load_model, save_model
 from .models.encoder import EncoderConfig
 from .models.generate import Cancelled, generate
@@ -263,7 +263,10 @@ class Pipeline:
         total_face = time.perf_counter() - t
         timings["faces"] = calls[0] if calls else total_face
         t = time.perf_counter()
-        verts, faces = mesh_from_adjacency(positions, edges, self.face_config)
+        support = None
+        if self.face_config.support_tol is not None:  # the input surface the faces must lie on
+            support = input_surface(shape, norm.apply(shape.vertices), self.face_config.support_points, params.seed)
+        verts, faces = mesh_from_adjacency(positions, edges, self.face_config, points=support)
         timings["faces"] += time.perf_counter() - t  # triangle extraction belongs to the face stage
         timings["filtering"] = total_face - (calls[0] if calls else total_face)
         if len(faces) == 0:

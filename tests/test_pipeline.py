@@ -56,7 +56,7 @@ def test_same_seed_same_mesh_and_save_load_roundtrip(pipe, weights):
 def test_filtering_and_cleanup_settings_survive_save_load(tmp_path):
     p = Pipeline.random(seed=0)
     p.filter_config = FilterConfig(first_threshold=0.6, final_threshold=0.4, candidate_passes=1)
-    p.face_config = FaceConfig(remove_unreferenced=True, drop_coplanar_diagonals=True)
+    p.face_config = FaceConfig(remove_unreferenced=True, drop_coplanar_diagonals=True, support_tol=0.02)
     p.save(tmp_path)
     q = Pipeline.from_pretrained(tmp_path)
     assert q.filter_config == p.filter_config and q.face_config == p.face_config

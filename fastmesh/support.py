@@ -1,0 +1,104 @@
+"""Faces checked against the input surface.
+
+The face model connects vertices it believes share a triangle; when it is wrong, the triangle
+spans empty space (two nearby parts boxed together, a spike to a stray vertex).  The input shape
+tells those apart from real faces: a real face lies on the sampled surface, a wrong one leaves
+it.  :func:`support_distance` measures how far each face strays, :func:`drop_unsupported` removes
+the ones that stray too far.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+SPACING_FACTOR = 3.0  # the limit is never below this many median point spacings
+GRID = 6  # face samples per edge of the barycentric grid: 21 points inside each triangle
+
+
+def _barycentric_grid(n: int) -> np.ndarray:
+    """(K, 3) barycentric coordinates of a triangular grid strictly inside the triangle."""
+    ij = [(i, j) for i in range(n) for j in range(n - i)]
+    return np.array([[(i + 1 / 3) / n, (j + 1 / 3) / n, (n - i - j - 2 / 3) / n] for i, j in ij])
+
+
+_BARY = _barycentric_grid(GRID)
+
+
+def face_samples(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, K, 3) points on a barycentric grid inside each face."""
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64).reshape(-1, 3)]
+    return np.einsum("kj,fjd->fkd", _BARY, tri)
+
+
+def support_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
+                     tree: cKDTree | None = None) -> np.ndarray:
+    """How far each face strays from the input surface.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float
+    faces : (F, 3) int
+    points : (P, 3) float
+        Dense samples of the input surface, in the frame of ``vertices``.
+    tree : cKDTree of ``points``, optional (built when not given)
+
+    Returns
+    -------
+    (F,) float64 : the median, over a grid of points inside the face, of the distance to the
+    nearest input point (same unit as the positions).
+    """
+    samples = face_samples(vertices, faces)
+    if len(samples) == 0:
+        return np.zeros(0)
+    if tree is None:
+        tree = cKDTree(np.asarray(points, dtype=np.float64))
+    dist, _ = tree.query(samples.reshape(-1, 3))
+    return np.median(dist.reshape(samples.shape[:2]), axis=1)
+
+
+def drop_unsupported(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, tol: float) -> np.ndarray:
+    """The faces that lie on the input surface.
+
+    A face is dropped when its :func:`support_distance` exceeds the limit: ``tol`` times the
+    points' longest side, and at least ``SPACING_FACTOR`` median point spacings.  Except: a vertex
+    that lies on the surface (within the limit) keeps its best-supported face when all its faces
+    would go, so that a thin part joined by wrong faces is not cut off.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float
+    faces : (F, 3) int
+    points : (P, 3) float
+        Dense samples of the input surface (a few thousand or more).
+    tol : float
+        Relative to the longest side of the points' bounding box.
+
+    Returns
+    -------
+    (F', 3) int64 : the kept faces, in their order.
+    """
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    pts = np.asarray(points, dtype=np.float64)
+    if len(faces) == 0 or len(pts) < 2:
+        return faces
+    tree = cKDTree(pts)
+    # Between sparse samples a face on the surface is itself up to about half their spacing away.
+    nn, _ = tree.query(pts, k=2)
+    limit = max(tol * float((pts.max(0) - pts.min(0)).max()), SPACING_FACTOR * float(np.median(nn[:, 1])))
+    score = support_distance(vertices, faces, pts, tree)
+    bad = score > limit
+    if not bad.any():
+        return faces
+    # A vertex on the surface keeps its best-supported face: dropping all its faces would cut off
+    # the thin part it ends (a spear tip, a leaf) instead of a wrong connection.
+    dist_v, _ = tree.query(np.asarray(vertices, dtype=np.float64))
+    order = np.argsort(score)  # best-supported first: each orphaned vertex meets its best face first
+    kept_v = np.zeros(len(dist_v), dtype=bool)
+    kept_v[faces[~bad].ravel()] = True
+    for fi in order[bad[order]]:
+        tri = faces[fi]
+        if any(not kept_v[v] and dist_v[v] <= limit for v in tri):
+            bad[fi] = False
+            kept_v[tri] = True
+    return faces[~bad]

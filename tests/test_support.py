@@ -1,0 +1,95 @@
+"""Faces checked against the input surface (fastmesh.support)."""
+
+import numpy as np
+import trimesh
+
+from fastmesh.faces import FaceConfig, mesh_from_adjacency
+from fastmesh.io import Shape, input_surface, sample_triangles
+from fastmesh.metrics import edges_from_faces
+from fastmesh.support import drop_unsupported, support_distance
+
+
+def _grid(n: int, x0: float, x1: float) -> np.ndarray:
+    """(n*n, 3) points on the square [x0, x1] x [0, 1] at z = 0."""
+    u = np.linspace(0, 1, n)
+    xx, yy = np.meshgrid(x0 + (x1 - x0) * u, u)
+    return np.stack([xx.ravel(), yy.ravel(), np.zeros(n * n)], 1)
+
+
+def _two_squares():
+    """Two unit squares side by side with a gap of 1 (x in [0,1] and [2,3]); the input samples both."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0],
+                  [2, 0, 0], [3, 0, 0], [3, 1, 0], [2, 1, 0]], float)
+    real = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    bridge = np.array([[1, 4, 7], [1, 7, 2]])  # spans the empty gap between the squares
+    points = np.concatenate([_grid(40, 0, 1), _grid(40, 2, 3)])
+    return v, real, bridge, points
+
+
+def test_support_distance_is_zero_on_the_surface_and_large_across_a_gap():
+    v, real, bridge, points = _two_squares()
+    d = support_distance(v, np.concatenate([real, bridge]), points)
+    assert d.shape == (6,)
+    assert (d[:4] < 0.02).all()
+    assert (d[4:] > 0.2).all()
+
+
+def test_faces_across_empty_space_are_dropped_and_the_others_kept():
+    v, real, bridge, points = _two_squares()
+    kept = drop_unsupported(v, np.concatenate([real, bridge]), points, tol=0.03)
+    assert kept.tolist() == real.tolist()
+
+
+def test_sparse_samples_do_not_drop_faces_that_lie_on_them():
+    """The limit grows with the point spacing: 5 x 5 samples of a square still support its faces."""
+    v, real, _, _ = _two_squares()
+    sparse = np.concatenate([_grid(5, 0, 1), _grid(5, 2, 3)])
+    assert drop_unsupported(v, real, sparse, tol=0.01).tolist() == real.tolist()
+
+
+def test_a_vertex_on_the_surface_keeps_its_best_face():
+    """A thin part whose only faces stray (a spike to a correct tip) is not cut off: the tip keeps one face."""
+    v, real, _, points = _two_squares()
+    tip = np.array([[0.5, 0.5, 1.0]])  # on the input: a pole sampled along x = y = 0.5
+    pole = np.stack([np.full(50, 0.5), np.full(50, 0.5), np.linspace(0, 1, 50)], 1)
+    v = np.concatenate([v, tip])
+    spikes = np.array([[0, 1, 8], [1, 2, 8], [2, 3, 8]])  # wide fans from the square's corners to the tip
+    faces = np.concatenate([real, spikes])
+    kept = drop_unsupported(v, faces, np.concatenate([points, pole]), tol=0.03)
+    assert 8 in kept  # the tip stays in the mesh
+    assert len(kept) == len(real) + 1
+    # The same fans to a tip that no input point supports all go.
+    v_off = v.copy()
+    v_off[8] = [0.5, 0.5, 3.0]
+    assert drop_unsupported(v_off, faces, np.concatenate([points, pole]), tol=0.03).tolist() == real.tolist()
+
+
+def test_mesh_from_adjacency_checks_support_only_when_asked():
+    v, real, bridge, points = _two_squares()
+    edges = edges_from_faces(np.concatenate([real, bridge]))
+    _, f_all = mesh_from_adjacency(v, edges, FaceConfig(orient=False))
+    _, f_sup = mesh_from_adjacency(v, edges, FaceConfig(orient=False, support_tol=0.03), points=points)
+    _, f_nopts = mesh_from_adjacency(v, edges, FaceConfig(orient=False, support_tol=0.03))
+    assert len(f_all) == len(f_nopts) > len(f_sup)
+    # No kept triangle joins the two squares (vertices 0-3 and 4-7).
+    assert all(len({int(i) // 4 for i in f}) == 1 for f in f_sup)
+
+
+def test_support_on_a_sampled_mesh_keeps_every_face():
+    sphere = trimesh.creation.icosphere(2)
+    points = sample_triangles(sphere.vertices, sphere.faces, 20000, np.random.default_rng(0))[0]
+    kept = drop_unsupported(sphere.vertices, sphere.faces, points, tol=0.03)
+    assert len(kept) == len(sphere.faces)
+
+
+def test_input_surface_keeps_a_small_point_cloud_and_samples_the_rest():
+    rng = np.random.default_rng(0)
+    small, big = rng.normal(size=(300, 3)), rng.normal(size=(5000, 3))
+    cloud = Shape(vertices=small, normals=np.tile([0.0, 0.0, 1.0], (300, 1)))
+    assert np.array_equal(input_surface(cloud, small * 2, 1000, seed=0), small * 2)  # all, in the given frame
+    dense = Shape(vertices=big, normals=np.tile([0.0, 0.0, 1.0], (5000, 1)))
+    out = input_surface(dense, big, 1000, seed=0)
+    assert len(out) == 1000 and len(np.unique(out, axis=0)) == 1000  # no duplicates
+    sphere = trimesh.creation.icosphere(2)
+    mesh = Shape(vertices=sphere.vertices, faces=sphere.faces)
+    assert input_surface(mesh, sphere.vertices, 1000, seed=0).shape == (1000, 3)

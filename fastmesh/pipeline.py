@@ -205,7 +205,7 @@ class Pipeline:
         n_vp = self.vertex.cfg.encoder.n_points
         with torch.inference_mode():
             prefix = self.vertex.condition(pts_t[:, :n_vp], nrm_t[:, :n_vp])
-            evidence = self.vertex.point_evidence(pts_t[:, :n_vp])
+            evidence = self.vertex.point_evidence(pts_t[:, :n_vp], nrm_t[:, :n_vp])
         timings["encode"] = time.perf_counter() - t
         check_cancel()
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from fastmesh.models.encoder import EncoderConfig, farthest_point_sample
-from fastmesh.models.evidence import GAIN
+from fastmesh.models.evidence import GAIN, SPREAD_EDGES
 from fastmesh.models.generate import SamplingConfig, generate, generate_uncached
 from fastmesh.models.vertex import VertexConfig, VertexDecoder
 from fastmesh.tokenizer import vertex as vt
@@ -15,16 +15,19 @@ from fastmesh.tokenizer import vertex as vt
 torch.set_num_threads(1)
 
 
-def _model(seed: int = 0, anchors: int = 0, evidence: bool = False) -> VertexDecoder:
+def _model(seed: int = 0, anchors: int = 0, evidence: bool = False, normals: bool = False) -> VertexDecoder:
     torch.manual_seed(seed)
     enc = EncoderConfig(n_points=64, n_latents=4, dim=32, depth=1, heads=2, n_freqs=4, anchors=anchors)
-    m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, evidence=evidence)).eval()
+    m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, evidence=evidence,
+                                   evidence_normals=normals)).eval()
     with torch.no_grad():  # spread the logits so greedy choices are not near-ties
         m.head.weight.normal_(0, 1.0)
         m.tok_emb.weight.normal_(0, 0.5)
         if evidence:  # as if trained: strong, varied biases per evidence level
-            for t in (m.evidence.table, m.evidence.block_table, m.evidence.skip_table, m.evidence.eos_table):
-                t.weight.normal_(0, 3.0 / GAIN)
+            for t in (m.evidence.table, m.evidence.block_table, m.evidence.skip_table, m.evidence.eos_table,
+                      m.evidence.corner_table):
+                if t is not None:
+                    t.weight.normal_(0, 3.0 / GAIN)
     return m
 
 
@@ -44,11 +47,13 @@ def _trim(row: torch.Tensor) -> list[int]:
     return row[: row.index(vt.EOS) + 1] if vt.EOS in row else [t for t in row if t != vt.PAD]
 
 
-@pytest.mark.parametrize("seed,anchors,evidence", [(0, 0, False), (1, 0, False), (0, 8, False), (2, 8, True)])
-def test_cached_equals_uncached_at_temperature_zero(seed, anchors, evidence):
-    m = _model(seed, anchors, evidence)
+@pytest.mark.parametrize("seed,anchors,evidence,normals",
+                         [(0, 0, False, False), (1, 0, False, False), (0, 8, False, False), (2, 8, True, False),
+                          (3, 8, True, True)])
+def test_cached_equals_uncached_at_temperature_zero(seed, anchors, evidence, normals):
+    m = _model(seed, anchors, evidence, normals)
     prefix = _prefix(m, 3, seed)
-    ev = m.point_evidence(_points(3, seed)[0]) if evidence else None
+    ev = m.point_evidence(*_points(3, seed)) if evidence else None
     cached = generate(m, prefix, SamplingConfig(temperature=0, max_vertices=12), evidence=ev)
     uncached = generate_uncached(m, prefix, max_vertices=12, evidence=ev)
     assert len(cached) == 3
@@ -94,6 +99,34 @@ def test_evidence_bias_counts_points_around_each_candidate_cell():
     assert torch.isclose(bias[0, 1, bb], btab[2] + stab[1]) and torch.isclose(bias[0, 1, b0], btab[1] + stab[0])
     assert torch.isclose(bias[0, 1, b1], btab[0] + stab[1]) and torch.isclose(bias[0, 1, vt.EOS], etab[1])
     assert bias[0, :, [vt.PAD, vt.BOS]].abs().max() == 0
+
+
+def test_corner_evidence_reads_the_spread_of_the_normals():
+    """With ``evidence_normals`` an offset token also gets corner_table[state at 2 cells, state at 4 cells]:
+    0 without points, 1 where the normals agree (a plane, seen from either side), higher where they bend."""
+    m = _model(0, evidence=True, normals=True)
+    up, side = [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]
+    # Cell (65, 65, 65): 4 points with normals up and down (a thin sheet: flat).  Cell (69, 65, 65), in
+    # another 2-cube and 4-cube (4..7 along x) of the same block: 2 points up, 2 sideways (a crease).
+    pts = torch.tensor([[[0.01, 0.01, 0.01]] * 4 + [[0.04, 0.01, 0.01]] * 4])
+    nrm = torch.tensor([[up, [0.0, 0.0, -1.0], up, [0.0, 0.0, -1.0], up, up, side, side]])
+    ev = m.point_evidence(pts, nrm)
+    blk = 4 * 64 + 4 * 8 + 4
+    bias = ev.logit_bias(torch.tensor([[blk]]))[0, 0]
+    tab, ctab = GAIN * m.evidence.table.weight[:, 0], GAIN * m.evidence.corner_table.weight[:, 0]
+    n_states = len(SPREAD_EDGES) + 2
+
+    def offset(x, y, z):
+        return vt.OFFSET0 + x * 256 + y * 16 + z
+
+    count = (2 * 6 + 2) * 6 + 3  # 4 points in the 2- and 4-cubes (level 2), all 8 in the 8-cube (level 3)
+    # spread of (up, up, side, side) = 1 - |(2, 0, 2)| / 4 = 0.29: the top level; of (up, -up, ...) = 0.
+    flat, crease = 1, len(SPREAD_EDGES) + 1
+    assert torch.isclose(bias[offset(1, 1, 1)], tab[count] + ctab[flat * n_states + flat])
+    assert torch.isclose(bias[offset(5, 1, 1)], tab[count] + ctab[crease * n_states + crease])
+    assert torch.isclose(bias[offset(15, 15, 15)], tab[0] + ctab[0])  # no points near: state 0 at both scales
+    with pytest.raises(ValueError, match="normals"):
+        m.point_evidence(pts)
 
 
 def test_farthest_point_sample_spreads_and_is_deterministic():

@@ -28,6 +28,17 @@ over (``skipped``):
 Without them a decoder that has not learned its input well stops early or leaves whole
 parts of the shape out (both seen with this decoder before they were added): ending while occupied
 blocks remain, or jumping over them, now costs what training finds it costs.
+
+Optionally (``PointEvidence(normals=True)``) a last table reads the input *normals*: artist
+vertices sit where the surface bends (corners, creases), rarely inside a flat region, and point
+counts alone cannot tell the two apart (a decoder without it filled the flat walls of a building
+with hundreds of vertices).  Per cube of side 2^s cells, the spread of the normals in it,
+
+    spread = 1 - |sum of n| / count     (each n with the sign that makes its largest component positive,
+                                         so the two sides of a thin sheet count as one direction)
+
+is 0 on a plane and grows with the bend; it is cut into SPREAD_EDGES levels (and one for "no points"),
+and an offset token gets  corner_table[state_1, state_2]  from its cubes of side 2 and 4 cells.
 """
 
 from __future__ import annotations
@@ -43,6 +54,9 @@ LEVELS = 6  # count levels 0, 1, 2-3, 4-7, 8-15, 16+
 BLOCK_SHIFT = 4  # a block is 16 cells per axis
 BLOCK_LEVELS = 8
 SEQ_LEVELS = 8  # occupied blocks remaining / skipped: 0, 1, 2-3, ..., 64+
+NORMAL_SHIFTS = (1, 2)  # cubes of side 2 and 4 cells for the normal spread
+SPREAD_EDGES = (0.01, 0.05, 0.2)  # spread levels: flat, slightly bent, bent, corner (+ "no points")
+SPREAD_STATES = len(SPREAD_EDGES) + 2
 # Adam moves each parameter by about the learning rate per step: at 1e-3 a zero-initialised table
 # would need thousands of steps to reach a bias of a few nats.  Scaling its output lets it get
 # there in about a hundred, at the learning rate the transformer needs.
@@ -56,7 +70,7 @@ def _level(count: torch.Tensor, levels: int) -> torch.Tensor:
 class Evidence:
     """Point counts of one batch of shapes; turns the current block into a logit bias."""
 
-    def __init__(self, module: PointEvidence, points: torch.Tensor):
+    def __init__(self, module: PointEvidence, points: torch.Tensor, normals: torch.Tensor | None = None):
         self.m = module
         b = points.shape[0]
         cells = ((points.detach().float() + 0.5) * CELLS).floor().clamp(0, CELLS - 1).long()  # (B, P, 3)
@@ -74,6 +88,12 @@ class Evidence:
         o = torch.arange(vt.N_OFFSETS, device=points.device)
         oxyz = torch.stack([o // 256, (o // 16) % 16, o % 16], dim=-1)  # the tokenizer's bit layout
         self.parts = [_flat(oxyz >> s, CELLS >> s) for s in SHIFTS]
+        self.spread = None  # per NORMAL_SHIFTS: (B, res^3) spread state of every cube
+        if module.corner_table is not None:
+            if normals is None:
+                raise ValueError("this decoder's evidence reads the input normals: pass them")
+            self.spread = [_spread_states(cells >> s, normals.detach().float(), CELLS >> s) for s in NORMAL_SHIFTS]
+            self.spread_parts = [_flat(oxyz >> s, CELLS >> s) for s in NORMAL_SHIFTS]
 
     def logit_bias(self, block: torch.Tensor) -> torch.Tensor:
         """(B, T) current block ids (-1: none yet) -> (B, T, VOCAB) bias (0 on PAD and BOS)."""
@@ -105,7 +125,14 @@ class Evidence:
         for s, lev, part in zip(SHIFTS, self.levels, self.parts, strict=False):
             lv = lev[rows[:, None], _flat(bxyz * (16 >> s), CELLS >> s)[:, None] + part]  # (U, 4096)
             idx = lv if idx is None else idx * LEVELS + lv
-        return GAIN * self.m.table(idx).squeeze(-1) * (block >= 0)[:, None]  # no block yet: no evidence
+        bias = self.m.table(idx).squeeze(-1)
+        if self.spread is not None:
+            idx = None
+            for s, st, part in zip(NORMAL_SHIFTS, self.spread, self.spread_parts, strict=True):
+                sv = st[rows[:, None], _flat(bxyz * (16 >> s), CELLS >> s)[:, None] + part]
+                idx = sv if idx is None else idx * SPREAD_STATES + sv
+            bias = bias + self.m.corner_table(idx).squeeze(-1)
+        return GAIN * bias * (block >= 0)[:, None]  # no block yet: no evidence
 
 
 def _flat(c: torch.Tensor, res: int) -> torch.Tensor:
@@ -113,18 +140,37 @@ def _flat(c: torch.Tensor, res: int) -> torch.Tensor:
     return (c[..., 0] * res + c[..., 1]) * res + c[..., 2]
 
 
-class PointEvidence(nn.Module):
-    """The learned tables of :class:`Evidence` (LEVELS^3 + BLOCK_LEVELS + 2 * SEQ_LEVELS scalars)."""
+def _spread_states(coarse: torch.Tensor, normals: torch.Tensor, res: int) -> torch.Tensor:
+    """(B, P, 3) coarse cells and (B, P, 3) unit normals -> (B, res^3) spread state (0: no points)."""
+    b = coarse.shape[0]
+    flat = _flat(coarse, res)  # (B, P)
+    # One sign per direction: the largest component positive (n and -n then agree).
+    big = normals.abs().argmax(-1, keepdim=True)
+    n = normals * torch.where(normals.gather(-1, big) < 0, -1.0, 1.0)
+    total = torch.zeros(b, res ** 3, 3, device=normals.device)
+    total.scatter_add_(1, flat[..., None].expand(-1, -1, 3), n)
+    count = torch.zeros(b, res ** 3, device=normals.device)
+    count.scatter_add_(1, flat, torch.ones_like(flat, dtype=count.dtype))
+    spread = 1.0 - total.norm(dim=-1) / count.clamp(min=1)
+    edges = torch.tensor(SPREAD_EDGES, device=normals.device)
+    return torch.where(count > 0, 1 + torch.bucketize(spread, edges), 0)
 
-    def __init__(self):
+
+class PointEvidence(nn.Module):
+    """The learned tables of :class:`Evidence` (LEVELS^3 + BLOCK_LEVELS + 2 * SEQ_LEVELS scalars, and
+    SPREAD_STATES^2 with ``normals``)."""
+
+    def __init__(self, normals: bool = False):
         super().__init__()
         self.table = nn.Embedding(LEVELS ** len(SHIFTS), 1)
         self.block_table = nn.Embedding(BLOCK_LEVELS, 1)
         self.skip_table = nn.Embedding(SEQ_LEVELS, 1)
         self.eos_table = nn.Embedding(SEQ_LEVELS, 1)
-        for t in (self.table, self.block_table, self.skip_table, self.eos_table):
-            nn.init.zeros_(t.weight)
+        self.corner_table = nn.Embedding(SPREAD_STATES ** len(NORMAL_SHIFTS), 1) if normals else None
+        for t in (self.table, self.block_table, self.skip_table, self.eos_table, self.corner_table):
+            if t is not None:
+                nn.init.zeros_(t.weight)
 
-    def forward(self, points: torch.Tensor) -> Evidence:
-        """(B, P, 3) points in the unit cube -> their :class:`Evidence`."""
-        return Evidence(self, points)
+    def forward(self, points: torch.Tensor, normals: torch.Tensor | None = None) -> Evidence:
+        """(B, P, 3) points in the unit cube (and their normals) -> their :class:`Evidence`."""
+        return Evidence(self, points, normals)

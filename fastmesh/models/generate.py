@@ -62,7 +62,7 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
     cfg : sampling settings.
     progress : called as ``progress(step, max_vertices_so_far)`` every ``progress_every`` steps.
     should_cancel : polled at the same cadence; ``True`` raises :class:`Cancelled`.
-    evidence : from ``model.point_evidence(points)`` when the decoder was trained with it.
+    evidence : from ``model.point_evidence(points, normals)`` when the decoder was trained with it.
 
     Returns
     -------

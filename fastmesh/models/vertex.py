@@ -35,6 +35,7 @@ class VertexConfig:
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     max_vertices: int = 1000  # the data variant it was trained on (1000 or 4000)
     evidence: bool = False  # add the learned point-evidence logit bias (models.evidence)
+    evidence_normals: bool = False  # ... and its normal-spread ("corner") table
 
     @property
     def head_dim(self) -> int:
@@ -90,7 +91,7 @@ class VertexDecoder(nn.Module):
         self.head = nn.Linear(cfg.dim, vt.VOCAB_SIZE, bias=False)
         init_weights(self)
         # after init_weights: its tables start at zero (no bias until training finds the evidence useful)
-        self.evidence = PointEvidence() if cfg.evidence else None
+        self.evidence = PointEvidence(normals=cfg.evidence_normals) if cfg.evidence else None
 
     # ------------------------------------------------------------------ pieces
 
@@ -108,9 +109,10 @@ class VertexDecoder(nn.Module):
             prefix = prefix + self.cell_emb(cells)
         return prefix
 
-    def point_evidence(self, points: torch.Tensor) -> Evidence | None:
-        """(B, P, 3) points -> the :class:`Evidence` whose logit bias ``forward``/``generate`` add (None if off)."""
-        return None if self.evidence is None else self.evidence(points)
+    def point_evidence(self, points: torch.Tensor, normals: torch.Tensor | None = None) -> Evidence | None:
+        """(B, P, 3) points (and normals) -> the :class:`Evidence` whose logit bias ``forward``/``generate``
+        add (None if off)."""
+        return None if self.evidence is None else self.evidence(points, normals)
 
     def embed(self, tokens: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
         """(B, T) tokens and their current block (from ``grammar_state``) -> (B, T, dim)."""
@@ -143,7 +145,7 @@ class VertexDecoder(nn.Module):
         """
         if prefix is None:
             prefix = self.condition(points, normals)
-            evidence = self.point_evidence(points)
+            evidence = self.point_evidence(points, normals)
         block, offset = grammar_state(tokens)
         x = torch.cat([prefix.to(self.tok_emb.weight.dtype), self.embed(tokens, block)], dim=1)
         logits = self._run(x, 0)[:, prefix.shape[1]:].float()

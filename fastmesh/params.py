@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+MAX_CANDIDATES = 16  # each candidate costs a full generation
+
 
 @dataclass
 class SamplingConfig:
@@ -35,11 +37,14 @@ class GenerateParams:
     max_vertices: int | None = None  # None: the vertex model's own limit
     enhancer: bool = True
     filtering: bool = True
+    candidates: int = 2  # meshes sampled (seeds seed, seed+1, ...); the one nearest the input is returned
 
     def validate(self, limit: int = 4000) -> None:
         """Raise ValueError naming the first bad field."""
-        if not isinstance(self.seed, int) or not 0 <= self.seed < 2**63:
-            raise ValueError("seed must be an integer in [0, 2^63)")
+        if not isinstance(self.seed, int) or not 0 <= self.seed < 2**63 - MAX_CANDIDATES:
+            raise ValueError(f"seed must be an integer in [0, 2^63 - {MAX_CANDIDATES})")
+        if not isinstance(self.candidates, int) or not 1 <= self.candidates <= MAX_CANDIDATES:
+            raise ValueError(f"candidates must be an integer in [1, {MAX_CANDIDATES}]")
         if self.max_vertices is not None and not 3 <= self.max_vertices <= limit:
             raise ValueError(f"max_vertices must be in [3, {limit}]")
         self.sampling(limit).validate()

@@ -31,6 +31,7 @@ from .models.encoder import EncoderConfig
 from .models.generate import Cancelled, generate
 from .models.onnx_decode import choose_decoder
 from .params import GenerateParams
+from .support import surface_fit
 from .tokenizer import dequantize
 from .tokenizer import vertex as vt
 
@@ -170,6 +171,11 @@ class Pipeline:
                  should_cancel: Callable[[], bool] | None = None) -> GenerateResult:
         """Turn a shape into an artist-style mesh in the shape's own frame.
 
+        With ``params.candidates`` > 1 (and a temperature above 0) that many meshes are sampled
+        (decoder seeds ``seed``, ``seed + 1``, ...) and the one closest to the input surface is
+        returned: a sampled sequence sometimes leaves out a part or fills a flat region with
+        vertices, and the input tells which.
+
         Parameters
         ----------
         shape : Shape
@@ -188,12 +194,7 @@ class Pipeline:
         """
         params = params or GenerateParams()
         params.validate(limit=self.max_vertices)
-        timings: dict[str, float] = {}
         report = progress or (lambda stage, fraction: None)
-
-        def check_cancel():
-            if should_cancel is not None and should_cancel():
-                raise Cancelled("generation cancelled")
 
         # Encode: normalise and sample the surface once; each network reads its share.
         t = time.perf_counter()
@@ -206,13 +207,58 @@ class Pipeline:
         with torch.inference_mode():
             prefix = self.vertex.condition(pts_t[:, :n_vp], nrm_t[:, :n_vp])
             evidence = self.vertex.point_evidence(pts_t[:, :n_vp], nrm_t[:, :n_vp])
-        timings["encode"] = time.perf_counter() - t
-        check_cancel()
+        n_cand = params.candidates if params.temperature > 0 else 1  # greedy decoding: one answer
+        surface = None  # the input surface the faces must lie on and the candidates are scored against
+        if self.face_config.support_tol is not None or n_cand > 1:
+            surface = input_surface(shape, norm.apply(shape.vertices), self.face_config.support_points, params.seed)
+        timings = {"encode": time.perf_counter() - t, "vertices": 0.0, "enhancer": 0.0, "faces": 0.0,
+                   "filtering": 0.0}
+
+        best, fits, errors = None, [], []
+        for k in range(n_cand):
+            if should_cancel is not None and should_cancel():
+                raise Cancelled("generation cancelled")
+            def share(stage, fraction, k=k):
+                """Candidate k reports its stages inside its share of everything after the encoder."""
+                e = _STAGE_SPAN["encode"][1]
+                report(stage, e + (k + (fraction - e) / (1 - e)) * (1 - e) / n_cand)
+
+            seed = params.seed + k
+            try:
+                cand = self._candidate(prefix, evidence, pts, nrm, surface, params, seed, share, should_cancel,
+                                       timings)
+            except GenerationError as err:
+                errors.append(err)
+                continue
+            t = time.perf_counter()
+            fit = surface_fit(cand["vertices"], cand["faces"], surface, seed) if n_cand > 1 else 0.0
+            timings["filtering"] += time.perf_counter() - t  # choosing among candidates: a filtering step
+            fits.append(round(float(fit), 6))
+            if best is None or fit < best["fit"]:
+                best = {**cand, "fit": fit, "seed": seed}
+        if best is None:
+            raise errors[0]
+        report("filtering", 1.0)
+        info = {"generated_vertices": best["generated_vertices"], "edges": best["edges"], "candidates": n_cand,
+                "chosen_seed": best["seed"]}
+        if n_cand > 1:
+            info["fits"] = fits  # mean surface distance of each candidate that produced a mesh (unit cube)
+        return GenerateResult(vertices=norm.invert(best["vertices"]), faces=best["faces"], tokens=best["tokens"],
+                              timings=timings, info=info)
+
+    def _candidate(self, prefix, evidence, pts, nrm, surface, params: GenerateParams, seed: int,
+                   report: Callable[[str, float], None], should_cancel, timings: dict) -> dict:
+        """One sampled mesh in the normalised frame; adds its stage times to ``timings``."""
+
+        def check_cancel():
+            if should_cancel is not None and should_cancel():
+                raise Cancelled("generation cancelled")
 
         # Stage I: vertex tokens.
         t = time.perf_counter()
         lo, hi = _STAGE_SPAN["vertices"]
         sampling = params.sampling(self.max_vertices)
+        sampling.seed = seed
         max_v = sampling.max_vertices
 
         def on_step(step: int, n_vert: int) -> None:
@@ -223,7 +269,7 @@ class Pipeline:
                           evidence=evidence)[0]
         tokens = tokens.cpu().numpy()
         q = vt.decode(tokens, strict=True)
-        timings["vertices"] = time.perf_counter() - t
+        timings["vertices"] += time.perf_counter() - t
         if len(q) < 3:
             raise GenerationError("no_vertices", f"the vertex decoder produced {len(q)} vertices; try another seed")
         check_cancel()
@@ -236,7 +282,7 @@ class Pipeline:
             positions = self.enhancer.refine(q, pts[:n_ep], nrm[:n_ep])
         else:
             positions = dequantize(q)
-        timings["enhancer"] = time.perf_counter() - t
+        timings["enhancer"] += time.perf_counter() - t
         check_cancel()
 
         # Stage II: edges in one bidirectional pass, then (optionally) filtered re-predictions.
@@ -261,16 +307,13 @@ class Pipeline:
         else:
             edges = edges_from_logits(timed(np.arange(len(q)), None), 0.5)
         total_face = time.perf_counter() - t
-        timings["faces"] = calls[0] if calls else total_face
         t = time.perf_counter()
-        support = None
-        if self.face_config.support_tol is not None:  # the input surface the faces must lie on
-            support = input_surface(shape, norm.apply(shape.vertices), self.face_config.support_points, params.seed)
-        verts, faces = mesh_from_adjacency(positions, edges, self.face_config, points=support)
-        timings["faces"] += time.perf_counter() - t  # triangle extraction belongs to the face stage
-        timings["filtering"] = total_face - (calls[0] if calls else total_face)
+        verts, faces = mesh_from_adjacency(positions, edges, self.face_config, points=surface)
+        # The first pass and triangle extraction are the face stage; re-predictions are filtering.
+        timings["faces"] += (calls[0] if calls else total_face) + time.perf_counter() - t
+        timings["filtering"] += total_face - (calls[0] if calls else total_face)
         if len(faces) == 0:
             raise GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")
         report("filtering", 1.0)
-        return GenerateResult(vertices=norm.invert(verts), faces=faces, tokens=int(len(tokens)), timings=timings,
-                              info={"generated_vertices": int(len(q)), "edges": int(len(edges))})
+        return {"vertices": verts, "faces": faces, "tokens": int(len(tokens)), "generated_vertices": int(len(q)),
+                "edges": int(len(edges))}

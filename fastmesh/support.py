@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .io import sample_triangles
+
 SPACING_FACTOR = 3.0  # the limit is never below this many median point spacings
 GRID = 6  # face samples per edge of the barycentric grid: 21 points inside each triangle
 
@@ -102,3 +104,32 @@ def drop_unsupported(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
             bad[fi] = False
             kept_v[tri] = True
     return faces[~bad]
+
+
+FIT_SAMPLES = 4096  # points sampled on a candidate mesh to score it against the input
+
+
+def surface_fit(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, seed: int = 0) -> float:
+    """How well a mesh matches the input surface: a Chamfer distance (lower is better).
+
+    Parameters
+    ----------
+    vertices : (N, 3) float
+    faces : (F, 3) int, at least one
+    points : (P, 3) float
+        Samples of the input surface, in the frame of ``vertices``.
+    seed : int
+        Of the area-weighted samples drawn on the mesh.
+
+    Returns
+    -------
+    float : (mean distance from mesh samples to the points + mean distance from the points to the
+    mesh samples) / 2, in the unit of the positions.  Stray surface raises the first half, parts
+    the mesh leaves out the second.
+    """
+    samples, _ = sample_triangles(np.asarray(vertices, dtype=np.float64), np.asarray(faces), FIT_SAMPLES,
+                                  np.random.default_rng(seed))
+    pts = np.asarray(points, dtype=np.float64)
+    stray, _ = cKDTree(pts).query(samples)
+    missed, _ = cKDTree(samples).query(pts)
+    return float(stray.mean() + missed.mean()) / 2

@@ -23,6 +23,7 @@ from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from fastmesh.io import EXPORT_FORMATS, ShapeError, export_mesh, load_shape
+from fastmesh.params import MAX_CANDIDATES
 
 from . import errors
 from .errors import ApiError
@@ -141,6 +142,11 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
                                                examples=[defaults.get("max_vertices")]),
                enhancer: bool | None = Form(None, description=f"Run the vertex enhancer ({d('enhancer')})."),
                filtering: bool | None = Form(None, description=f"Filter bad faces ({d('filtering')})."),
+               candidates: int | None = Form(None, ge=1, le=MAX_CANDIDATES,
+                                             description="Meshes sampled (seeds seed, seed+1, ...); the one "
+                                                         "nearest the input is returned; 1 is fastest "
+                                                         f"({d('candidates')}).",
+                                             examples=[defaults.get("candidates")]),
                formats: str | None = Form(None, description="Comma list of glb, obj, ply exported with the job "
                                                             f"(default {','.join(settings.default_formats)}).",
                                           examples=["glb,obj"]),
@@ -152,7 +158,8 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
             raise ApiError(429, "rate_limited", f"more than {settings.submit_rate_limit_per_minute} submissions "
                                                 "per minute for this key", {"Retry-After": str(wait)})
         params = build_params({"seed": seed, "temperature": temperature, "top_k": top_k, "top_p": top_p,
-                               "max_vertices": max_vertices, "enhancer": enhancer, "filtering": filtering},
+                               "max_vertices": max_vertices, "enhancer": enhancer, "filtering": filtering,
+                               "candidates": candidates},
                               formats, settings.default_formats, store.vertex_limit())
         data = file.file.read(settings.max_upload_bytes + 1)
         if len(data) > settings.max_upload_bytes:

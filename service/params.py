@@ -11,8 +11,6 @@ from fastmesh.io import EXPORT_FORMATS, Shape
 
 from .errors import ApiError
 
-GENERATION_FIELDS = ("seed", "temperature", "top_k", "top_p", "max_vertices", "enhancer", "filtering")
-
 
 def generation_defaults() -> dict:
     """The pipeline's own defaults (shown in the OpenAPI description and used for omitted fields)."""

@@ -16,9 +16,9 @@ JOB_EXAMPLE = {
     "started_at": "2025-05-01T12:00:00.210000Z",
     "finished_at": "2025-05-01T12:00:04.870000Z",
     "params": {"seed": 0, "temperature": 0.3, "top_k": 10, "top_p": 0.95, "max_vertices": 1000,
-               "enhancer": True, "filtering": True, "formats": ["glb"]},
+               "enhancer": True, "filtering": True, "candidates": 2, "formats": ["glb"]},
     "input": {"filename": "chair.ply", "kind": "points", "points": 20000, "vertices": None, "faces": None},
-    "result": {"vertices": 412, "faces": 806, "tokens": 412, "formats": ["glb"]},
+    "result": {"vertices": 412, "faces": 806, "tokens": 412, "formats": ["glb"], "seed": 1},
     "timings": {"queue": 0.21, "load": 0.05, "encode": 0.12, "vertices": 3.1, "enhancer": 0.2, "faces": 0.9,
                 "filtering": 0.05, "export": 0.02, "total": 4.87},
     "error": None,
@@ -55,6 +55,8 @@ class ResultInfo(BaseModel):
     faces: int
     tokens: int = Field(description="Vertex tokens generated.")
     formats: list[str] = Field(description="Formats exported with the job; the others are converted on request.")
+    seed: int | None = Field(None, description="Decoder seed of the returned mesh, one of the candidates' "
+                                               "seed, seed+1, ... (the same parameters give the same mesh).")
 
 
 class Timings(BaseModel):

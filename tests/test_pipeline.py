@@ -18,6 +18,7 @@ from fastmesh.filtering import FilterConfig
 from fastmesh.io import Shape, load_shape, sample_surface
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weights_dir
+from fastmesh.support import surface_fit
 
 torch.set_num_threads(1)
 
@@ -60,6 +61,33 @@ def test_filtering_and_cleanup_settings_survive_save_load(tmp_path):
     p.save(tmp_path)
     q = Pipeline.from_pretrained(tmp_path)
     assert q.filter_config == p.filter_config and q.face_config == p.face_config
+
+
+def test_candidates_return_the_one_nearest_the_input(pipe):
+    """candidates=K samples K meshes (decoder seeds s, s+1, ...) and returns the best fit to the input;
+    candidate 0 is exactly what candidates=1 gives."""
+    shape = _sphere()
+    one = pipe.generate(shape, GenerateParams(seed=5, max_vertices=24, temperature=1.0, candidates=1))
+    many = pipe.generate(shape, GenerateParams(seed=5, max_vertices=24, temperature=1.0, candidates=4))
+    assert one.info["candidates"] == 1 and one.info["chosen_seed"] == 5 and "fits" not in one.info
+    fits = many.info["fits"]
+    assert many.info["candidates"] == 4 and len(fits) == 4 and len(set(fits)) > 1  # they differ
+    assert many.info["chosen_seed"] == 5 + int(np.argmin(fits))
+    norm_scale = (shape.bounds[1] - shape.bounds[0]).max()
+    chosen = surface_fit(many.vertices / norm_scale, many.faces,
+                         sample_surface(shape, 16384, seed=5)[0] / norm_scale, seed=many.info["chosen_seed"])
+    assert chosen == pytest.approx(min(fits), rel=1e-3)  # fits are in the unit cube; scale-invariant otherwise
+    if many.info["chosen_seed"] == 5:
+        assert np.allclose(many.vertices, one.vertices) and np.array_equal(many.faces, one.faces)
+    # Greedy decoding has one answer: no candidates are drawn.
+    greedy = pipe.generate(shape, GenerateParams(seed=5, max_vertices=24, temperature=0, candidates=4))
+    assert greedy.info["candidates"] == 1
+
+
+@pytest.mark.parametrize("bad", [0, 17, 2.5])
+def test_candidates_out_of_range_is_a_clear_error(pipe, bad):
+    with pytest.raises(ValueError, match="candidates"):
+        pipe.generate(_sphere(), GenerateParams(candidates=bad))
 
 
 def test_max_vertices_is_respected(pipe):

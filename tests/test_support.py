@@ -6,7 +6,7 @@ import trimesh
 from fastmesh.faces import FaceConfig, mesh_from_adjacency
 from fastmesh.io import Shape, input_surface, sample_triangles
 from fastmesh.metrics import edges_from_faces
-from fastmesh.support import drop_unsupported, support_distance
+from fastmesh.support import drop_unsupported, support_distance, surface_fit
 
 
 def _grid(n: int, x0: float, x1: float) -> np.ndarray:
@@ -93,3 +93,12 @@ def test_input_surface_keeps_a_small_point_cloud_and_samples_the_rest():
     sphere = trimesh.creation.icosphere(2)
     mesh = Shape(vertices=sphere.vertices, faces=sphere.faces)
     assert input_surface(mesh, sphere.vertices, 1000, seed=0).shape == (1000, 3)
+
+
+def test_surface_fit_is_small_on_the_surface_and_grows_with_what_is_missing_or_stray():
+    sphere = trimesh.creation.icosphere(3)
+    points = sample_triangles(sphere.vertices, sphere.faces, 20000, np.random.default_rng(1))[0]
+    whole = surface_fit(sphere.vertices, sphere.faces, points)
+    half = surface_fit(sphere.vertices, sphere.faces[sphere.triangles_center[:, 2] > 0], points)
+    stray = surface_fit(sphere.vertices * 1.3, sphere.faces, points)
+    assert whole < 0.03 and half > 5 * whole and stray > 10 * whole  # whole: the sampling noise alone

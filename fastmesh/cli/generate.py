@@ -27,6 +27,9 @@ def add_sampling_args(p) -> None:
     p.add_argument("--top-k", type=int, default=d.top_k, help="0 disables")
     p.add_argument("--top-p", type=float, default=d.top_p)
     p.add_argument("--max-vertices", type=int, default=None, help="default: the model's limit")
+    p.add_argument("--candidates", type=int, default=d.candidates,
+                   help="meshes sampled (seeds SEED, SEED+1, ...); the one nearest the input is kept "
+                        "(1 = fastest)")
     p.add_argument("--no-enhancer", action="store_true", help="skip the fidelity enhancer (7-bit cell centres)")
     p.add_argument("--no-filtering", action="store_true", help="one face pass, no prediction filtering")
     p.add_argument("--weights", metavar="DIR", help="weights folder (default: the shipped weights)")
@@ -40,7 +43,7 @@ def params_from_args(args):
 
     return GenerateParams(seed=args.seed, temperature=args.temperature, top_k=args.top_k, top_p=args.top_p,
                           max_vertices=args.max_vertices, enhancer=not args.no_enhancer,
-                          filtering=not args.no_filtering)
+                          filtering=not args.no_filtering, candidates=args.candidates)
 
 
 def load_pipeline(args):

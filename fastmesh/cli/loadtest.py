@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
-PARAMS = ("seed", "temperature", "top_k", "top_p", "max_vertices", "formats")
+PARAMS = ("seed", "temperature", "top_k", "top_p", "max_vertices", "candidates", "formats")
 
 
 def register(sub) -> None:
@@ -29,6 +29,7 @@ def register(sub) -> None:
     p.add_argument("--top-k", type=int, default=None)
     p.add_argument("--top-p", type=float, default=None)
     p.add_argument("--max-vertices", type=int, default=None)
+    p.add_argument("--candidates", type=int, default=None, help="meshes sampled per job (1 = fastest)")
     p.add_argument("--formats", default=None, help="formats exported with each job (e.g. glb,obj)")
     p.add_argument("--no-enhancer", action="store_true", help="skip the fidelity enhancer")
     p.add_argument("--no-filtering", action="store_true", help="skip prediction filtering")

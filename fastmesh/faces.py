@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .metrics import normalize_edges
-from .support import drop_unsupported
+from .support import drop_unsupported, support_distance
 
 # Wedges expanded per vectorised chunk: bounds memory at ~100 MB for any adjacency.
 _CHUNK = 2_000_000
@@ -52,6 +52,9 @@ class FaceConfig:
     support_points : int
         How many samples of the input surface to check against (a point cloud with fewer points
         gives all of them).
+    max_faces_per_edge : int or None
+        Keep faces best-supported first (with the input's samples; else in order) while no edge
+        carries more than this many (:func:`limit_faces_per_edge`); 2 = edge-manifold.
     """
 
     drop_zero_area: bool = True
@@ -62,6 +65,7 @@ class FaceConfig:
     remove_unreferenced: bool = False
     support_tol: float | None = None
     support_points: int = 16384
+    max_faces_per_edge: int | None = None
 
 
 # --------------------------------------------------------------------------- graphs
@@ -264,6 +268,37 @@ def drop_coplanar_diagonals(vertices: np.ndarray, faces: np.ndarray, coplanar_to
     return f[keep]
 
 
+def limit_faces_per_edge(faces: np.ndarray, score: np.ndarray, max_per_edge: int = 2) -> np.ndarray:
+    """Keep faces best-first while none of their edges would carry more than ``max_per_edge`` faces.
+
+    Parameters
+    ----------
+    faces : (F, 3) int
+    score : (F,) float, lower is better (e.g. :func:`fastmesh.support.support_distance`)
+    max_per_edge : int
+        2 makes every edge manifold: a triangle soup from dense cliques has interior and
+        overlapping faces sharing edges, an artist mesh has at most two faces per edge.
+
+    Returns
+    -------
+    (F', 3) int64 : the kept faces, in their original order.
+    """
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(faces) == 0:
+        return faces
+    edges = np.sort(np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1), axis=-1)  # (F, 3, 2)
+    _, edge_id = np.unique(edges.reshape(-1, 2), axis=0, return_inverse=True)
+    edge_id = edge_id.reshape(-1, 3)
+    used = np.zeros(edge_id.max() + 1, dtype=np.int64)
+    keep = np.zeros(len(faces), dtype=bool)
+    for fi in np.argsort(score, kind="stable"):
+        e = edge_id[fi]
+        if (used[e] < max_per_edge).all():
+            used[e] += 1
+            keep[fi] = True
+    return faces[keep]
+
+
 def orient_faces(vertices: np.ndarray, faces: np.ndarray, outward: bool = True) -> np.ndarray:
     """Consistent winding across edges shared by exactly two faces, then each part outward.
 
@@ -373,6 +408,9 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: FaceConfig | None = N
         f = drop_coplanar_diagonals(v, f, cfg.coplanar_tol)
     if cfg.support_tol is not None and points is not None:
         f = drop_unsupported(v, f, points, cfg.support_tol)
+    if cfg.max_faces_per_edge is not None:
+        score = support_distance(v, f, points) if points is not None else np.zeros(len(f))
+        f = limit_faces_per_edge(f, score, cfg.max_faces_per_edge)
     if cfg.orient:
         f = orient_faces(v, f)
     if cfg.remove_unreferenced:

@@ -37,7 +37,7 @@ class GenerateParams:
     max_vertices: int | None = None  # None: the vertex model's own limit
     enhancer: bool = True
     filtering: bool = True
-    candidates: int = 2  # meshes sampled (seeds seed, seed+1, ...); the one nearest the input is returned
+    candidates: int = 2  # meshes made (seeds seed, seed+1, ...); the one nearest the input is returned
 
     def validate(self, limit: int = 4000) -> None:
         """Raise ValueError naming the first bad field."""

@@ -171,10 +171,10 @@ class Pipeline:
                  should_cancel: Callable[[], bool] | None = None) -> GenerateResult:
         """Turn a shape into an artist-style mesh in the shape's own frame.
 
-        With ``params.candidates`` > 1 (and a temperature above 0) that many meshes are sampled
-        (decoder seeds ``seed``, ``seed + 1``, ...) and the one closest to the input surface is
-        returned: a sampled sequence sometimes leaves out a part or fills a flat region with
-        vertices, and the input tells which.
+        With ``params.candidates`` = K > 1 (and a temperature above 0) the meshes of seeds ``seed``
+        ... ``seed + K - 1`` are made and the one closest to the input surface is returned
+        (:func:`fastmesh.support.surface_fit`): a sampled mesh sometimes leaves out a part or fills
+        a flat region with vertices, and the input tells which.
 
         Parameters
         ----------
@@ -196,46 +196,29 @@ class Pipeline:
         params.validate(limit=self.max_vertices)
         report = progress or (lambda stage, fraction: None)
 
-        # Encode: normalise and sample the surface once; each network reads its share.
-        t = time.perf_counter()
-        report("encode", 0.0)
         norm = Normalization.fit(shape.vertices)
-        pts, nrm = sample_surface(shape, self._n_points(), seed=params.seed, vertices=norm.apply(shape.vertices))
-        pts_t = torch.from_numpy(pts).to(self.device)[None]
-        nrm_t = torch.from_numpy(nrm).to(self.device)[None]
-        n_vp = self.vertex.cfg.encoder.n_points
-        with torch.inference_mode():
-            prefix = self.vertex.condition(pts_t[:, :n_vp], nrm_t[:, :n_vp])
-            evidence = self.vertex.point_evidence(pts_t[:, :n_vp], nrm_t[:, :n_vp])
+        unit = norm.apply(shape.vertices)
         n_cand = params.candidates if params.temperature > 0 else 1  # greedy decoding: one answer
-        surface = None  # the input surface the faces must lie on and the candidates are scored against
-        if self.face_config.support_tol is not None or n_cand > 1:
-            surface = input_surface(shape, norm.apply(shape.vertices), self.face_config.support_points, params.seed)
-        timings = {"encode": time.perf_counter() - t, "vertices": 0.0, "enhancer": 0.0, "faces": 0.0,
-                   "filtering": 0.0}
-
+        timings = {"encode": 0.0, "vertices": 0.0, "enhancer": 0.0, "faces": 0.0, "filtering": 0.0}
+        # Candidate k is exactly what seed + k gives alone; all are scored against one sample of the input.
+        reference = input_surface(shape, unit, self.face_config.support_points, params.seed) if n_cand > 1 else None
         best, fits, errors = None, [], []
         for k in range(n_cand):
-            if should_cancel is not None and should_cancel():
-                raise Cancelled("generation cancelled")
             def share(stage, fraction, k=k):
-                """Candidate k reports its stages inside its share of everything after the encoder."""
-                e = _STAGE_SPAN["encode"][1]
-                report(stage, e + (k + (fraction - e) / (1 - e)) * (1 - e) / n_cand)
+                """Candidate k reports its stages inside the k-th of n_cand equal shares of 0..1."""
+                report(stage, (k + fraction) / n_cand)
 
-            seed = params.seed + k
             try:
-                cand = self._candidate(prefix, evidence, pts, nrm, surface, params, seed, share, should_cancel,
-                                       timings)
+                cand = self._candidate(shape, unit, params, params.seed + k, share, should_cancel, timings)
             except GenerationError as err:
                 errors.append(err)
                 continue
             t = time.perf_counter()
-            fit = surface_fit(cand["vertices"], cand["faces"], surface, seed) if n_cand > 1 else 0.0
+            fit = surface_fit(cand["vertices"], cand["faces"], reference, params.seed) if n_cand > 1 else 0.0
             timings["filtering"] += time.perf_counter() - t  # choosing among candidates: a filtering step
             fits.append(round(float(fit), 6))
             if best is None or fit < best["fit"]:
-                best = {**cand, "fit": fit, "seed": seed}
+                best = {**cand, "fit": fit, "seed": params.seed + k}
         if best is None:
             raise errors[0]
         report("filtering", 1.0)
@@ -246,13 +229,28 @@ class Pipeline:
         return GenerateResult(vertices=norm.invert(best["vertices"]), faces=best["faces"], tokens=best["tokens"],
                               timings=timings, info=info)
 
-    def _candidate(self, prefix, evidence, pts, nrm, surface, params: GenerateParams, seed: int,
+    def _candidate(self, shape: Shape, unit: np.ndarray, params: GenerateParams, seed: int,
                    report: Callable[[str, float], None], should_cancel, timings: dict) -> dict:
-        """One sampled mesh in the normalised frame; adds its stage times to ``timings``."""
+        """One mesh from ``seed``, in the normalised frame (``unit``: the shape's vertices there); adds its
+        stage times to ``timings``."""
 
         def check_cancel():
             if should_cancel is not None and should_cancel():
                 raise Cancelled("generation cancelled")
+
+        # Encode: sample the surface; each network reads its share.
+        check_cancel()
+        t = time.perf_counter()
+        report("encode", 0.0)
+        pts, nrm = sample_surface(shape, self._n_points(), seed=seed, vertices=unit)
+        pts_t = torch.from_numpy(pts).to(self.device)[None]
+        nrm_t = torch.from_numpy(nrm).to(self.device)[None]
+        n_vp = self.vertex.cfg.encoder.n_points
+        with torch.inference_mode():
+            prefix = self.vertex.condition(pts_t[:, :n_vp], nrm_t[:, :n_vp])
+            evidence = self.vertex.point_evidence(pts_t[:, :n_vp], nrm_t[:, :n_vp])
+        timings["encode"] += time.perf_counter() - t
+        check_cancel()
 
         # Stage I: vertex tokens.
         t = time.perf_counter()
@@ -308,6 +306,9 @@ class Pipeline:
             edges = edges_from_logits(timed(np.arange(len(q)), None), 0.5)
         total_face = time.perf_counter() - t
         t = time.perf_counter()
+        surface = None  # the input surface the faces must lie on
+        if self.face_config.support_tol is not None or self.face_config.max_faces_per_edge is not None:
+            surface = input_surface(shape, unit, self.face_config.support_points, seed)
         verts, faces = mesh_from_adjacency(positions, edges, self.face_config, points=surface)
         # The first pass and triangle extraction are the face stage; re-predictions are filtering.
         timings["faces"] += (calls[0] if calls else total_face) + time.perf_counter() - t

@@ -55,8 +55,8 @@ class ResultInfo(BaseModel):
     faces: int
     tokens: int = Field(description="Vertex tokens generated.")
     formats: list[str] = Field(description="Formats exported with the job; the others are converted on request.")
-    seed: int | None = Field(None, description="Decoder seed of the returned mesh, one of the candidates' "
-                                               "seed, seed+1, ... (the same parameters give the same mesh).")
+    seed: int | None = Field(None, description="Seed of the returned mesh, one of the candidates' seed, "
+                                               "seed+1, ...: that seed with candidates=1 gives this mesh alone.")
 
 
 class Timings(BaseModel):

@@ -172,3 +172,29 @@ def test_corpus_ground_truth_triangles_recovered(path):
     nonzero = f[fm.triangle_areas(x, f) > 1e-10]
     assert np.isin(key(nonzero), key(out)).all()
     assert len(out) <= len(tri)
+
+
+def test_limit_faces_per_edge_keeps_the_best_faces_and_makes_edges_manifold():
+    # Five faces around edge (0, 1): a fan of fins.  Best two (lowest score) stay.
+    faces = np.array([[0, 1, 2], [0, 1, 3], [1, 0, 4], [0, 1, 5], [0, 1, 6]])
+    score = np.array([0.5, 0.1, 0.3, 0.2, 0.9])
+    kept = fm.limit_faces_per_edge(faces, score, max_per_edge=2)
+    assert kept.tolist() == [[0, 1, 3], [0, 1, 5]]  # original order, best two by score
+    # A closed mesh is already manifold: nothing goes.
+    sphere = trimesh.creation.icosphere(1)
+    assert len(fm.limit_faces_per_edge(sphere.faces, np.zeros(len(sphere.faces)))) == len(sphere.faces)
+    # A face whose every edge is free stays even when it scores worst.
+    lone = np.concatenate([faces, [[7, 8, 9]]])
+    assert [7, 8, 9] in fm.limit_faces_per_edge(lone, np.append(score, 99.0)).tolist()
+
+
+def test_mesh_from_adjacency_limits_faces_per_edge_when_asked():
+    # K5 on a convex position: 10 triangles, every edge in 3 of them.
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(5, 3))
+    edges = np.array([(i, j) for i in range(5) for j in range(i + 1, 5)])
+    _, f_all = fm.mesh_from_adjacency(v, edges, fm.FaceConfig(orient=False))
+    _, f_lim = fm.mesh_from_adjacency(v, edges, fm.FaceConfig(orient=False, max_faces_per_edge=2))
+    assert len(f_all) == 10 and 0 < len(f_lim) < 10
+    e = np.sort(np.concatenate([f_lim[:, [0, 1]], f_lim[:, [1, 2]], f_lim[:, [2, 0]]]), axis=1)
+    assert np.unique(e, axis=0, return_counts=True)[1].max() <= 2

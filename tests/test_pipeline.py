@@ -64,21 +64,21 @@ def test_filtering_and_cleanup_settings_survive_save_load(tmp_path):
 
 
 def test_candidates_return_the_one_nearest_the_input(pipe):
-    """candidates=K samples K meshes (decoder seeds s, s+1, ...) and returns the best fit to the input;
-    candidate 0 is exactly what candidates=1 gives."""
+    """candidates=K makes the meshes of seeds s, s+1, ..., s+K-1 and returns the best fit to the input;
+    the chosen one is exactly what its seed gives alone."""
     shape = _sphere()
-    one = pipe.generate(shape, GenerateParams(seed=5, max_vertices=24, temperature=1.0, candidates=1))
     many = pipe.generate(shape, GenerateParams(seed=5, max_vertices=24, temperature=1.0, candidates=4))
-    assert one.info["candidates"] == 1 and one.info["chosen_seed"] == 5 and "fits" not in one.info
     fits = many.info["fits"]
     assert many.info["candidates"] == 4 and len(fits) == 4 and len(set(fits)) > 1  # they differ
-    assert many.info["chosen_seed"] == 5 + int(np.argmin(fits))
-    norm_scale = (shape.bounds[1] - shape.bounds[0]).max()
-    chosen = surface_fit(many.vertices / norm_scale, many.faces,
-                         sample_surface(shape, 16384, seed=5)[0] / norm_scale, seed=many.info["chosen_seed"])
-    assert chosen == pytest.approx(min(fits), rel=1e-3)  # fits are in the unit cube; scale-invariant otherwise
-    if many.info["chosen_seed"] == 5:
-        assert np.allclose(many.vertices, one.vertices) and np.array_equal(many.faces, one.faces)
+    chosen = many.info["chosen_seed"]
+    assert chosen == 5 + int(np.argmin(fits))
+    alone = pipe.generate(shape, GenerateParams(seed=chosen, max_vertices=24, temperature=1.0, candidates=1))
+    assert alone.info["candidates"] == 1 and alone.info["chosen_seed"] == chosen and "fits" not in alone.info
+    assert np.allclose(many.vertices, alone.vertices) and np.array_equal(many.faces, alone.faces)
+    # The fit is the Chamfer distance to the input's samples, in the unit cube.
+    scale = (shape.bounds[1] - shape.bounds[0]).max()
+    fit = surface_fit(many.vertices / scale, many.faces, sample_surface(shape, 16384, seed=5)[0] / scale, seed=5)
+    assert fit == pytest.approx(min(fits), rel=1e-3)
     # Greedy decoding has one answer: no candidates are drawn.
     greedy = pipe.generate(shape, GenerateParams(seed=5, max_vertices=24, temperature=0, candidates=4))
     assert greedy.info["candidates"] == 1

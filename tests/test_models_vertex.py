@@ -8,7 +8,7 @@ import torch
 
 from fastmesh.models.encoder import EncoderConfig, farthest_point_sample
 from fastmesh.models.evidence import GAIN, SPREAD_EDGES
-from fastmesh.models.generate import SamplingConfig, generate, generate_uncached
+from fastmesh.models.generate import SamplingConfig, filter_logits, generate, generate_uncached, token_probs
 from fastmesh.models.vertex import VertexConfig, VertexDecoder
 from fastmesh.tokenizer import vertex as vt
 
@@ -127,6 +127,18 @@ def test_corner_evidence_reads_the_spread_of_the_normals():
     assert torch.isclose(bias[offset(15, 15, 15)], tab[0] + ctab[0])  # no points near: state 0 at both scales
     with pytest.raises(ValueError, match="normals"):
         m.point_evidence(pts)
+
+
+@pytest.mark.parametrize("top_k,top_p", [(50, 0.95), (5, 1.0), (0, 0.9), (0, 1.0), (3, 0.5)])
+def test_fast_sampling_distribution_equals_filtering_the_whole_vocabulary(top_k, top_p):
+    g = torch.Generator().manual_seed(0)
+    logits = torch.randn(3, vt.VOCAB_SIZE, generator=g) * 3
+    logits[:, :100] = float("-inf")  # masked by the grammar
+    cfg = SamplingConfig(temperature=0.7, top_k=top_k, top_p=top_p)
+    probs, ids = token_probs(logits, cfg)
+    fast = torch.zeros_like(logits).scatter_add_(-1, ids, probs)
+    slow = filter_logits(logits / 0.7, top_k, top_p).softmax(-1)
+    assert torch.allclose(fast, slow, atol=1e-6)
 
 
 def test_farthest_point_sample_spreads_and_is_deterministic():

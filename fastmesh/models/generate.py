@@ -40,12 +40,25 @@ def filter_logits(logits: torch.Tensor, top_k: int, top_p: float) -> torch.Tenso
     return logits
 
 
+def token_probs(logits: torch.Tensor, cfg: SamplingConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, V) masked logits -> (B, n) probabilities of (B, n) token ids (temperature, top-k, top-p applied).
+
+    With top-k on, only the k best are kept (sorted, from ``topk``): top-p, softmax and the draw then
+    run over k values, not the whole vocabulary; the distribution is that of ``filter_logits``.
+    """
+    if 0 < cfg.top_k < logits.shape[-1]:
+        vals, ids = torch.topk(logits / cfg.temperature, cfg.top_k, dim=-1)
+        return filter_logits(vals, 0, cfg.top_p).softmax(-1), ids
+    ids = torch.arange(logits.shape[-1], device=logits.device).expand_as(logits)
+    return filter_logits(logits / cfg.temperature, 0, cfg.top_p).softmax(-1), ids
+
+
 def sample_next(logits: torch.Tensor, cfg: SamplingConfig, gen: torch.Generator | None) -> torch.Tensor:
     """(B, V) masked logits -> (B,) token ids."""
     if cfg.temperature == 0:
         return logits.argmax(-1)
-    logits = filter_logits(logits / cfg.temperature, cfg.top_k, cfg.top_p)
-    return torch.multinomial(logits.softmax(-1), 1, generator=gen).squeeze(-1)
+    probs, ids = token_probs(logits, cfg)
+    return ids.gather(-1, torch.multinomial(probs, 1, generator=gen)).squeeze(-1)
 
 
 @torch.inference_mode()

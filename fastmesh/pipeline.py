@@ -212,6 +212,7 @@ class Pipeline:
                 cand = self._candidate(shape, unit, params, params.seed + k, share, should_cancel, timings)
             except GenerationError as err:
                 errors.append(err)
+                fits.append(None)
                 continue
             t = time.perf_counter()
             fit = surface_fit(cand["vertices"], cand["faces"], reference, params.seed) if n_cand > 1 else 0.0
@@ -225,7 +226,7 @@ class Pipeline:
         info = {"generated_vertices": best["generated_vertices"], "edges": best["edges"], "candidates": n_cand,
                 "chosen_seed": best["seed"]}
         if n_cand > 1:
-            info["fits"] = fits  # mean surface distance of each candidate that produced a mesh (unit cube)
+            info["fits"] = fits  # per candidate: its surface_fit in the unit cube, None if it made no mesh
         return GenerateResult(vertices=norm.invert(best["vertices"]), faces=best["faces"], tokens=best["tokens"],
                               timings=timings, info=info)
 

@@ -9,8 +9,9 @@
    no implementation of this network can skip.  Backends: eager PyTorch and the ONNX
    Runtime decode step (``models.onnx_decode``), timed interleaved in the same run so
    a busy machine slows both alike.
-2. The real ``generate()`` loop (grammar mask + sampling per token) at temperature 0,
-   tokens/s, and its cost per token beyond the bare decode step.
+2. The real ``generate()`` loop (grammar mask, evidence bias, sampling at the shipped
+   settings) on the point clouds of validation meshes: ms per token, and its cost per token
+   beyond the bare decode steps of the same length.
 3. For validation meshes: the FastMesh sequence length and the BPT sequence length of
    the same quantised mesh, and the measured time of the same decoder producing
    sequences of each length (forced lengths; same cache, same code path).
@@ -30,11 +31,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fastmesh.data import load_dataset  # noqa: E402
+from fastmesh.io import sample_triangles  # noqa: E402
 from fastmesh.models.generate import generate  # noqa: E402
 from fastmesh.models.kv_cache import KVCache  # noqa: E402
-from fastmesh.params import SamplingConfig  # noqa: E402
+from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import Pipeline  # noqa: E402
-from fastmesh.tokenizer import bpt  # noqa: E402
+from fastmesh.tokenizer import bpt, dequantize  # noqa: E402
 from fastmesh.tokenizer import vertex as vt  # noqa: E402
 
 
@@ -75,11 +77,18 @@ def matvec_bound(model, repeats: int = 50) -> float:
     return (time.perf_counter() - t) / repeats
 
 
-def time_generate(model, prefix: torch.Tensor, max_vertices: int) -> tuple[int, float]:
-    """(tokens, seconds) of the real sampling loop, greedy, with the grammar mask."""
+def time_generate(pipe: Pipeline, dec, rec, seed: int = 0) -> tuple[int, float, torch.Tensor]:
+    """(tokens, seconds, prefix) of the real sampling loop on a validation mesh's point cloud."""
+    v = dequantize(rec.q) + rec.residual / 128
+    pts, nrm = sample_triangles(v, rec.faces, pipe.vertex.cfg.encoder.n_points, np.random.default_rng(seed))
+    pts_t, nrm_t = torch.from_numpy(pts)[None], torch.from_numpy(nrm)[None]
+    with torch.inference_mode():
+        prefix = pipe.vertex.condition(pts_t, nrm_t)
+        evidence = pipe.vertex.point_evidence(pts_t, nrm_t)
+    cfg = GenerateParams(seed=seed).sampling(pipe.max_vertices)
     t = time.perf_counter()
-    out = generate(model, prefix, SamplingConfig(temperature=0, max_vertices=max_vertices))
-    return len(out[0]), time.perf_counter() - t
+    out = generate(dec, prefix, cfg, evidence=evidence)
+    return len(out[0]), time.perf_counter() - t, prefix
 
 
 def main() -> int:
@@ -91,6 +100,7 @@ def main() -> int:
     ap.add_argument("--backend", choices=("torch", "onnx", "both"), default="both")
     ap.add_argument("--tokens", type=int, default=400, help="tokens per latency measurement")
     ap.add_argument("--rounds", type=int, default=5, help="interleaved repetitions (the median is reported)")
+    ap.add_argument("--gen-meshes", type=int, default=8, help="validation point clouds for the generate() loop")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     pipe = Pipeline.from_pretrained(args.weights, device="cpu")
@@ -112,7 +122,6 @@ def main() -> int:
         print(f"onnx export + session: {time.perf_counter() - t:.2f} s")
     n = args.tokens
     times: dict[str, list[float]] = {k: [] for k in backends}
-    gens: dict[str, list[tuple[int, float]]] = {k: [] for k in backends}
     for dec in backends.values():
         time_decode(dec, prefix, 32)  # warm up
     bounds = []
@@ -120,7 +129,6 @@ def main() -> int:
         bounds.append(matvec_bound(model))
         for name, dec in backends.items():
             times[name].append(time_decode(dec, prefix, n) / n)
-            gens[name].append(time_generate(dec, prefix, max_vertices=n))
     bound = statistics.median(bounds)
     print(f"decoder: {n_par / 1e6:.2f} M parameters (without the point encoder), threads={args.threads}")
     print(f"matrix-vector bound: {bound * 1e3:.2f} ms/token")
@@ -129,11 +137,17 @@ def main() -> int:
         per_tok[name] = statistics.median(times[name])
         print(f"{name:>5}: per-token latency (KV cache, {n} tokens, median of {args.rounds}): "
               f"{per_tok[name] * 1e3:.2f} ms  -> ratio {per_tok[name] / bound:.2f}x the bound")
-    for name in backends:
-        n_gen = gens[name][0][0]
-        t_gen = statistics.median(s / k for k, s in gens[name])
-        print(f"{name:>5}: generate() greedy, {n_gen} tokens: {1 / t_gen:.0f} tokens/s, {t_gen * 1e3:.2f} ms/token "
-              f"(grammar mask + sampling + loop: {(t_gen - per_tok[name]) * 1e3:+.2f} ms/token)")
+    if Path(args.data).exists():  # the real loop on validation point clouds
+        ds = load_dataset(args.data)
+        val = np.random.default_rng(1).choice(ds.indices("val"), size=args.gen_meshes, replace=False)
+        for name, dec in backends.items():
+            n_tok, t_gen, t_bare = 0, 0.0, 0.0
+            for i in val:
+                k, secs, prefix_i = time_generate(pipe, dec, ds[int(i)])
+                n_tok, t_gen, t_bare = n_tok + k, t_gen + secs, t_bare + time_decode(dec, prefix_i, k)
+            print(f"{name:>5}: generate() on {len(val)} validation point clouds (T={GenerateParams().temperature}, "
+                  f"top-k/top-p, evidence), {n_tok} tokens: {t_gen / n_tok * 1e3:.2f} ms/token, of which "
+                  f"{(t_gen - t_bare) / n_tok * 1e3:.2f} ms beyond the bare decode steps")
     if len(per_tok) == 2:
         print(f"onnx speed-up over torch: {per_tok['torch'] / per_tok['onnx']:.2f}x per token (same run)")
     model = backends["onnx" if "onnx" in backends else "torch"]

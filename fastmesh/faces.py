@@ -392,7 +392,8 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: FaceConfig | None = N
     config : FaceConfig
     points : (P, 3) float, optional
         Samples of the input surface in the frame of ``vertices``: with ``config.support_tol``,
-        faces that leave that surface are dropped.
+        faces that leave that surface are dropped, and ``config.max_faces_per_edge`` keeps the
+        best-supported faces first.
 
     Returns
     -------

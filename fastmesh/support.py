@@ -4,7 +4,8 @@ The face model connects vertices it believes share a triangle; when it is wrong,
 spans empty space (two nearby parts boxed together, a spike to a stray vertex).  The input shape
 tells those apart from real faces: a real face lies on the sampled surface, a wrong one leaves
 it.  :func:`support_distance` measures how far each face strays, :func:`drop_unsupported` removes
-the ones that stray too far.
+the ones that stray too far, and :func:`surface_fit` scores a whole mesh against the input (the
+pipeline keeps the best of several sampled candidates by it).
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .metrics import normalize_edges
-from .support import drop_unsupported, support_distance
+from .support import support_distance, supported
 
 # Wedges expanded per vectorised chunk: bounds memory at ~100 MB for any adjacency.
 _CHUNK = 2_000_000
@@ -48,7 +48,7 @@ class FaceConfig:
         Drop vertices no face uses (returned vertices are then a subset).
     support_tol : float or None
         With the input's surface samples given: drop faces that stray farther than this from
-        them (:func:`fastmesh.support.drop_unsupported`; relative to their longest side).
+        them (:func:`fastmesh.support.supported`; relative to their longest side).
     support_points : int
         How many samples of the input surface to check against (a point cloud with fewer points
         gives all of them).
@@ -407,11 +407,14 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: FaceConfig | None = N
         f = drop_degenerate(v, f, cfg.area_tol)
     if cfg.drop_coplanar_diagonals:
         f = drop_coplanar_diagonals(v, f, cfg.coplanar_tol)
-    if cfg.support_tol is not None and points is not None:
-        f = drop_unsupported(v, f, points, cfg.support_tol)
+    score = None  # how far each face strays from the input surface, when the input is given
+    if points is not None and (cfg.support_tol is not None or cfg.max_faces_per_edge is not None):
+        score = support_distance(v, f, points)
+    if cfg.support_tol is not None and score is not None:
+        keep = supported(v, f, points, cfg.support_tol, score)
+        f, score = f[keep], score[keep]
     if cfg.max_faces_per_edge is not None:
-        score = support_distance(v, f, points) if points is not None else np.zeros(len(f))
-        f = limit_faces_per_edge(f, score, cfg.max_faces_per_edge)
+        f = limit_faces_per_edge(f, score if score is not None else np.zeros(len(f)), cfg.max_faces_per_edge)
     if cfg.orient:
         f = orient_faces(v, f)
     if cfg.remove_unreferenced:

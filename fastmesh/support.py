@@ -61,7 +61,19 @@ def support_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
 
 
 def drop_unsupported(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, tol: float) -> np.ndarray:
-    """The faces that lie on the input surface.
+    """The faces that lie on the input surface: ``faces[supported(...)]``; see :func:`supported`.
+
+    Returns
+    -------
+    (F', 3) int64 : the kept faces, in their order.
+    """
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    return faces[supported(vertices, faces, points, tol)]
+
+
+def supported(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, tol: float,
+              score: np.ndarray | None = None) -> np.ndarray:
+    """Which faces lie on the input surface.
 
     A face is dropped when its :func:`support_distance` exceeds the limit: ``tol`` times the
     points' longest side, and at least ``SPACING_FACTOR`` median point spacings.  Except: a vertex
@@ -76,23 +88,26 @@ def drop_unsupported(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
         Dense samples of the input surface (a few thousand or more).
     tol : float
         Relative to the longest side of the points' bounding box.
+    score : (F,) float, optional
+        :func:`support_distance` of the faces, if already computed.
 
     Returns
     -------
-    (F', 3) int64 : the kept faces, in their order.
+    (F,) bool : True for the faces to keep.
     """
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     pts = np.asarray(points, dtype=np.float64)
     if len(faces) == 0 or len(pts) < 2:
-        return faces
+        return np.ones(len(faces), dtype=bool)
     tree = cKDTree(pts)
     # Between sparse samples a face on the surface is itself up to about half their spacing away.
     nn, _ = tree.query(pts, k=2)
     limit = max(tol * float((pts.max(0) - pts.min(0)).max()), SPACING_FACTOR * float(np.median(nn[:, 1])))
-    score = support_distance(vertices, faces, pts, tree)
+    if score is None:
+        score = support_distance(vertices, faces, pts, tree)
     bad = score > limit
     if not bad.any():
-        return faces
+        return ~bad
     # A vertex on the surface keeps its best-supported face: dropping all its faces would cut off
     # the thin part it ends (a spear tip, a leaf) instead of a wrong connection.
     dist_v, _ = tree.query(np.asarray(vertices, dtype=np.float64))
@@ -104,7 +119,7 @@ def drop_unsupported(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
         if any(not kept_v[v] and dist_v[v] <= limit for v in tri):
             bad[fi] = False
             kept_v[tri] = True
-    return faces[~bad]
+    return ~bad
 
 
 FIT_SAMPLES = 4096  # points sampled on a candidate mesh to score it against the input

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import fastmesh.pipeline as pipeline_module  # noqa: E402
 from fastmesh.eval import pair_inputs  # noqa: E402
-from fastmesh.faces import FaceConfig  # noqa: E402
 from fastmesh.filtering import FilterConfig, edges_from_logits  # noqa: E402
 from fastmesh.io import Normalization, load_shape  # noqa: E402
 from fastmesh.metrics import surface_distance  # noqa: E402
@@ -86,8 +86,7 @@ def main() -> int:
                 else:
                     edges = run_filter(seen["predict"], seen["n"], cfg).edges
                 for diag in (False, True):
-                    cfg_faces = FaceConfig(remove_unreferenced=True, drop_coplanar_diagonals=diag,
-                                           support_tol=pipe.face_config.support_tol)  # as shipped
+                    cfg_faces = replace(pipe.face_config, drop_coplanar_diagonals=diag)  # the rest as shipped
                     v, f = build_mesh(seen["positions"], edges, cfg_faces, points=seen["points"])
                     if len(f) == 0:
                         rows[k, diag].append([np.nan] * 6)

@@ -7,7 +7,8 @@
     c.download(job["id"], "chair.glb")
 
 Errors of the service raise :class:`ServiceError` with its ``status``, ``code`` and ``message``.
-Queue-full and rate-limit answers (429) are retried after their ``Retry-After``.
+Queue-full and rate-limit answers (429), and 409 with ``Retry-After`` (an upload with the same
+Idempotency-Key still being processed), are retried after their ``Retry-After``.
 """
 
 from __future__ import annotations
@@ -66,7 +67,8 @@ class Client:
                 r = self.http.request(method, path, **kw)
             except httpx.HTTPError as e:
                 raise ServiceError(0, "unreachable", f"cannot reach {self.http.base_url}: {e}") from None
-            if r.status_code == 429 and attempt < self.retries_429:
+            later = r.status_code == 429 or (r.status_code == 409 and "Retry-After" in r.headers)
+            if later and attempt < self.retries_429:
                 time.sleep(min(60.0, float(r.headers.get("Retry-After", "1"))))
                 continue
             if r.status_code >= 400:

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import httpx
 import pytest
 import redis
 import trimesh
@@ -110,3 +111,27 @@ def test_cli_submit_errors(served, sphere, tmp_path):
     assert r.returncode == 1 and "401" in r.stderr and "Traceback" not in r.stderr
     r = run_cli("submit", str(sphere), "--url", served.url, "--api-key", "sekrit", "--temperature", "-1", "-q")
     assert r.returncode == 1 and "temperature" in r.stderr
+
+
+def test_client_retries_409_with_retry_after_like_429():
+    """The service answers 409 conflict + Retry-After while an upload with the same Idempotency-Key is still
+    being processed (e.g. its API process died mid-request): the client waits and retries, as for 429.
+    A 409 without Retry-After (another file under the same key) is an error at once."""
+    answers = [httpx.Response(409, headers={"Retry-After": "0"},
+                              json={"error": {"code": "conflict", "message": "still being processed"}}),
+               httpx.Response(202, json={"id": "a" * 32, "status": "queued"})]
+    keys = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        keys.append(request.headers["Idempotency-Key"])
+        return answers.pop(0)
+
+    c = Client("http://fastmesh.test")
+    c.http = httpx.Client(base_url="http://fastmesh.test", transport=httpx.MockTransport(handler))
+    f = Path(__file__).with_name("conftest.py")  # any file: the mock does not parse it
+    assert c.submit(f)["id"] == "a" * 32
+    assert len(keys) == 2 and keys[0] == keys[1]  # the retry carries the same key
+    answers.append(httpx.Response(409, json={"error": {"code": "idempotency_conflict", "message": "other file"}}))
+    with pytest.raises(ServiceError) as e:
+        c.submit(f)
+    assert e.value.code == "idempotency_conflict"

@@ -119,3 +119,17 @@ def test_build_errors(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError):
         build_dataset([str(tmp_path / "empty")], tmp_path / "x.npz")
+
+
+def test_split_by_package_holds_out_whole_packages(mini_corpus, tmp_path):
+    out = tmp_path / "p.npz"
+    stats = build_dataset([str(mini_corpus)], out, val_packages=("megaglest-data",), workers=1)
+    ds = load_dataset(out)
+    package = ds.a["package"]
+    assert set(package) == {"ufoai-data", "megaglest-data"}
+    # Every megaglest mesh and pose (the poses live in megaglest-data-poses/) is in validation, nothing else.
+    assert np.array_equal(ds.a["split"] == 1, package == "megaglest-data")
+    assert stats["val_packages"] == {"megaglest-data": int((package == "megaglest-data").sum())}
+    assert ds[int(ds.indices("val")[0])].package == "megaglest-data"
+    with pytest.raises(ValueError, match="no-such-package"):
+        build_dataset([str(mini_corpus)], tmp_path / "x.npz", val_packages=("no-such-package",), workers=1)

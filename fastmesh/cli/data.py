@@ -6,6 +6,8 @@ import json
 import sys
 import time
 
+from fastmesh.data import VAL_PACKAGES
+
 
 def register(sub) -> None:
     p = sub.add_parser("data", help="build and inspect training-set caches")
@@ -16,7 +18,11 @@ def register(sub) -> None:
     b.add_argument("-o", "--out", required=True, metavar="FILE", help="cache file to write (.npz)")
     b.add_argument("--max-vertices", type=int, default=1000,
                    help="drop meshes with more vertices after the 7-bit merge")
-    b.add_argument("--val-fraction", type=float, default=0.05, help="share of groups held out for validation")
+    b.add_argument("--val-packages", default=",".join(VAL_PACKAGES), metavar="P1,P2,...",
+                   help="packages held out whole for validation (default: %(default)s); 'none' splits by group "
+                        "with --val-fraction instead")
+    b.add_argument("--val-fraction", type=float, default=0.05,
+                   help="with --val-packages none: share of groups held out (0: train on everything)")
     b.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     b.set_defaults(func=_build)
     s = dsub.add_parser("stats", help="print statistics of a cache file (JSON)")
@@ -30,6 +36,8 @@ def register(sub) -> None:
     e.add_argument("--split", choices=["val", "train", "all"], default="val")
     e.add_argument("--points", type=int, default=8192, help="samples per input point cloud")
     e.add_argument("--max-vertices", type=int, default=0, help="only meshes up to this many (7-bit) vertices")
+    e.add_argument("--per-package", type=int, default=0, metavar="N",
+                   help="only N meshes of each package, evenly spread (a small set that holds every package)")
     e.set_defaults(func=_eval_set)
 
 
@@ -40,9 +48,11 @@ def _build(args) -> int:
         raise ValueError("--max-vertices must be at least 3")
     if not 0 <= args.val_fraction < 1:
         raise ValueError("--val-fraction must be in [0, 1)")
+    packages = () if args.val_packages.strip().lower() in ("", "none") else tuple(
+        p.strip() for p in args.val_packages.split(",") if p.strip())
     t = time.perf_counter()
     stats = build_dataset(args.sources, args.out, max_vertices=args.max_vertices, val_fraction=args.val_fraction,
-                          workers=args.workers,
+                          val_packages=packages, workers=args.workers,
                           progress=lambda i, n: print(f"  {i}/{n} files", file=sys.stderr))
     stats["seconds"] = round(time.perf_counter() - t, 2)
     print(json.dumps(stats, indent=2))
@@ -61,6 +71,6 @@ def _eval_set(args) -> int:
     from fastmesh.eval import export_eval_set
 
     n = export_eval_set(load_dataset(args.file), args.source, args.out, split=args.split, n_points=args.points,
-                        max_vertices=args.max_vertices or None)
+                        max_vertices=args.max_vertices or None, per_package=args.per_package or None)
     print(f"wrote {n} input/reference pairs to {args.out}")
     return 0

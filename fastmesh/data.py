@@ -83,6 +83,15 @@ class MeshDataset:
                           residual=a["residual"][v0:v1].astype(np.float32), name=str(a["name"][i]),
                           group=str(a["group"][i]), category=str(a["category"][i]), package=str(a["package"][i]))
 
+    def cell_logits(self, i: int):
+        """(128^3,) float32 torch grid of mesh ``i``'s stored cell log-odds (a cache of ``build_cell_cache``)."""
+        from .models.cells import dense_grid_flat
+
+        if "c_off" not in self.a:
+            raise ValueError("this dataset holds no cell log-odds: build it with `fastmesh data cells`")
+        c0, c1 = self.a["c_off"][i], self.a["c_off"][i + 1]
+        return dense_grid_flat(self.a["cell_flat"][c0:c1], self.a["cell_logit"][c0:c1])
+
     def num_vertices(self) -> np.ndarray:
         return np.diff(self.a["v_off"])
 
@@ -94,6 +103,62 @@ class MeshDataset:
         if split == "all":
             return np.arange(len(self))
         return np.flatnonzero(self.a["split"] == (1 if split == "val" else 0))
+
+
+def subset_arrays(ds: MeshDataset, indices: np.ndarray) -> dict[str, np.ndarray]:
+    """The arrays of a dataset holding only the meshes at ``indices`` (in that order), ``meta`` included."""
+    a = ds.a
+    v = np.concatenate([np.arange(a["v_off"][i], a["v_off"][i + 1]) for i in indices])
+    f = np.concatenate([np.arange(a["f_off"][i], a["f_off"][i + 1]) for i in indices])
+    out = {"q": a["q"][v], "residual": a["residual"][v], "faces": a["faces"][f],
+           "v_off": np.concatenate([[0], np.cumsum(ds.num_vertices()[indices])]).astype(np.int64),
+           "f_off": np.concatenate([[0], np.cumsum(ds.num_faces()[indices])]).astype(np.int64)}
+    for k in ("name", "group", "category", "package", "split"):
+        out[k] = a[k][indices]
+    out["meta"] = np.array(json.dumps(ds.meta))
+    return out
+
+
+CELL_KEEP = -6.0  # cells scored below these log-odds are stored as models.cells.FLOOR
+
+
+def build_cell_cache(ds: MeshDataset, net, out: str | os.PathLike, per_split: dict[str, int], seed: int = 0,
+                     progress=None) -> int:
+    """A dataset of some meshes plus the cell evidence network's log-odds for each (unaugmented).
+
+    The vertex decoder reads these log-odds (``VertexConfig.evidence_cells``); scoring a mesh's
+    cells costs about a second on a CPU core, too slow to do per training batch, so they are
+    computed once per mesh, from ``net.cfg.n_points`` surface samples drawn with ``seed``.
+
+    Parameters
+    ----------
+    per_split : {"train": n, "val": m}: how many meshes of each split (a seeded random choice).
+
+    Returns the number of meshes written.  The cache holds ``cell_flat`` (int32 flat cell index),
+    ``cell_logit`` (float16) and ``c_off`` (offsets per mesh) beside the usual arrays.
+    """
+    from .io import sample_triangles
+    from .models.cells import flat_index
+
+    rng = np.random.default_rng(seed)
+    chosen = np.concatenate([rng.permutation(ds.indices(split))[:n] for split, n in per_split.items()])
+    flats, logits = [], []
+    for k, i in enumerate(chosen):
+        rec = ds[int(i)]
+        pts, nrm = sample_triangles(rec.continuous, rec.faces, net.cfg.n_points, np.random.default_rng([seed, int(i)]))
+        cells, lo = net.score(pts, nrm)
+        keep = lo >= CELL_KEEP
+        flats.append(flat_index(cells[keep]).numpy().astype(np.int32))
+        logits.append(lo[keep].numpy().astype(np.float16))
+        if progress:
+            progress(k + 1, len(chosen))
+    arrays = subset_arrays(ds, chosen)
+    arrays.update(cell_flat=np.concatenate(flats), cell_logit=np.concatenate(logits),
+                  c_off=np.concatenate([[0], np.cumsum([len(f) for f in flats])]).astype(np.int64))
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "wb") as fh:
+        np.savez(fh, **arrays)
+    return len(chosen)
 
 
 def load_dataset(path: str | os.PathLike) -> MeshDataset:

@@ -38,6 +38,7 @@ from .tokenizer import vertex as vt
 __all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "Pipeline", "default_weights_dir"]
 
 NETWORKS = ("vertex", "enhancer", "face")
+CELLS = "cells"  # the cell evidence network (models.cells), needed by a decoder trained with it
 # Share of the overall progress bar each stage covers (decoding dominates).
 _STAGE_SPAN = {"encode": (0.0, 0.03), "vertices": (0.03, 0.80), "enhancer": (0.80, 0.83), "faces": (0.83, 0.90),
                "filtering": (0.90, 1.0)}
@@ -90,8 +91,11 @@ class Pipeline:
 
     def __init__(self, vertex, enhancer, face, device: torch.device | str = "cpu",
                  filter_config: FilterConfig | None = None, face_config: FaceConfig | None = None,
-                 source: str = ""):
+                 source: str = "", cells=None):
         self.device = torch.device(device)
+        if vertex.cfg.evidence_cells and cells is None:
+            raise ValueError("this vertex decoder reads the cell evidence network: pass `cells`")
+        self.cells = cells.to(self.device).eval() if cells is not None else None
         self.vertex = vertex.to(self.device).eval()
         self.enhancer = enhancer.to(self.device).eval()
         self.face = face.to(self.device).eval()
@@ -116,12 +120,13 @@ class Pipeline:
                                     "(each needs model.safetensors + config.json)")
         dev = auto_device(device)
         nets = {n: load_model(root / n, device=dev)[0] for n in NETWORKS}
+        cells = load_model(root / CELLS, device=dev)[0] if (root / CELLS / "model.safetensors").exists() else None
         settings = root / "pipeline.json"
         extra = json.loads(settings.read_text()) if settings.exists() else {}
         fcfg = FilterConfig(**extra.get("filtering", {}))
         face_cfg = FaceConfig(**{"remove_unreferenced": True, **extra.get("faces", {})})
         return cls(nets["vertex"], nets["enhancer"], nets["face"], device=dev, filter_config=fcfg,
-                   face_config=face_cfg, source=str(root))
+                   face_config=face_cfg, source=str(root), cells=cells)
 
     @classmethod
     def random(cls, size: str = "tiny", seed: int = 0, device: str | None = None) -> Pipeline:
@@ -152,6 +157,8 @@ class Pipeline:
         root = Path(directory)
         for name, net in zip(NETWORKS, (self.vertex, self.enhancer, self.face), strict=True):
             save_model(net, name, root / name)
+        if self.cells is not None:
+            save_model(self.cells, CELLS, root / CELLS)
         settings = {"filtering": asdict(self.filter_config), "faces": asdict(self.face_config)}
         (root / "pipeline.json").write_text(json.dumps(settings, indent=2))
 
@@ -164,7 +171,8 @@ class Pipeline:
     # ------------------------------------------------------------------ generation
 
     def _n_points(self) -> int:
-        return max(net.cfg.encoder.n_points for net in (self.vertex, self.enhancer, self.face))
+        n = max(net.cfg.encoder.n_points for net in (self.vertex, self.enhancer, self.face))
+        return max(n, self.cells.cfg.n_points) if self.cells is not None else n
 
     def generate(self, shape: Shape, params: GenerateParams | None = None,
                  progress: Callable[[str, float], None] | None = None,
@@ -249,7 +257,9 @@ class Pipeline:
         n_vp = self.vertex.cfg.encoder.n_points
         with torch.inference_mode():
             prefix = self.vertex.condition(pts_t[:, :n_vp], nrm_t[:, :n_vp])
-            evidence = self.vertex.point_evidence(pts_t[:, :n_vp], nrm_t[:, :n_vp])
+            grid = None if not self.vertex.cfg.evidence_cells else self.cells.grid(pts[:self.cells.cfg.n_points],
+                                                                  nrm[:self.cells.cfg.n_points])[None].to(self.device)
+            evidence = self.vertex.point_evidence(pts_t[:, :n_vp], nrm_t[:, :n_vp], grid)
         timings["encode"] += time.perf_counter() - t
         check_cancel()
 

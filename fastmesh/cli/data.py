@@ -39,6 +39,15 @@ def register(sub) -> None:
     e.add_argument("--per-package", type=int, default=0, metavar="N",
                    help="only N meshes of each package, evenly spread (a small set that holds every package)")
     e.set_defaults(func=_eval_set)
+    c = dsub.add_parser("cells", help="some meshes of a cache plus the cell evidence network's log-odds of each "
+                                      "(training data of a decoder that reads them)")
+    c.add_argument("file", help="cache file")
+    c.add_argument("--weights", required=True, metavar="DIR", help="a trained cell evidence network")
+    c.add_argument("-o", "--out", required=True, metavar="FILE")
+    c.add_argument("--train", type=int, default=1000, metavar="N", help="training meshes to take")
+    c.add_argument("--val", type=int, default=64, metavar="N", help="validation meshes to take")
+    c.add_argument("--seed", type=int, default=0)
+    c.set_defaults(func=_cells)
 
 
 def _build(args) -> int:
@@ -63,6 +72,21 @@ def _stats(args) -> int:
     from fastmesh.data import dataset_stats, load_dataset
 
     print(json.dumps(dataset_stats(load_dataset(args.file)), indent=2))
+    return 0
+
+
+def _cells(args) -> int:
+    from fastmesh.data import build_cell_cache, load_dataset
+    from fastmesh.models.checkpoint import load_model
+
+    net = load_model(args.weights)[0]
+    if net.cfg.__class__.__name__ != "CellNetConfig":
+        raise ValueError(f"{args.weights} holds no cell evidence network")
+    t = time.perf_counter()
+    n = build_cell_cache(load_dataset(args.file), net, args.out, {"train": args.train, "val": args.val},
+                         seed=args.seed, progress=lambda i, n: i % 100 == 0 and print(f"  {i}/{n}", file=sys.stderr,
+                                                                                      flush=True))
+    print(f"wrote {n} meshes with cell log-odds to {args.out} in {time.perf_counter() - t:.0f} s")
     return 0
 
 

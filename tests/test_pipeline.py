@@ -135,6 +135,25 @@ def test_no_faces_is_a_generation_error(pipe):
     assert e.value.code == "no_faces"
 
 
+def test_pipeline_chooses_its_thread_count(monkeypatch):
+    """The Python API is as fast as the CLI without any set-up: 1 torch thread on CPU unless told otherwise."""
+    monkeypatch.delenv("FASTMESH_TORCH_THREADS", raising=False)
+    torch.set_num_threads(2)  # torch's own default on a 2-core machine, many times slower under load
+    try:
+        p = Pipeline.random(seed=0, device="cpu")
+        assert torch.get_num_threads() == 1 and p.info()["threads"] == 1
+        Pipeline.random(seed=0, device="cpu", threads=2)
+        assert torch.get_num_threads() == 2
+        monkeypatch.setenv("FASTMESH_TORCH_THREADS", "3")
+        assert Pipeline.random(seed=0, device="cpu").info()["threads"] == 3
+        assert Pipeline.random(seed=0, device="cpu", threads=1).info()["threads"] == 1  # the argument wins
+        monkeypatch.setenv("FASTMESH_TORCH_THREADS", "two")
+        with pytest.raises(ValueError, match="FASTMESH_TORCH_THREADS"):
+            Pipeline.random(seed=0, device="cpu")
+    finally:
+        torch.set_num_threads(1)
+
+
 def _cli(*args, check=True):
     return subprocess.run([sys.executable, "-m", "fastmesh.cli", *args], capture_output=True, text=True,
                           check=check, timeout=300)

@@ -63,14 +63,10 @@ STATE = _State()
 
 def load_pipeline(settings: Settings):
     """Build the pipeline from the configured weights (shipped ones when unset)."""
-    import torch
-
     from fastmesh.pipeline import Pipeline
 
-    if settings.torch_threads:
-        torch.set_num_threads(settings.torch_threads)
     t0 = time.perf_counter()
-    pipe = Pipeline.from_pretrained(settings.weights, device=settings.device)
+    pipe = Pipeline.from_pretrained(settings.weights, device=settings.device, threads=settings.torch_threads)
     log.info("pipeline loaded from %s in %.2f s", settings.weights or "shipped weights", time.perf_counter() - t0)
     return pipe
 

@@ -34,8 +34,9 @@ def add_sampling_args(p) -> None:
     p.add_argument("--no-filtering", action="store_true", help="one face pass, no prediction filtering")
     p.add_argument("--weights", metavar="DIR", help="weights folder (default: the shipped weights)")
     p.add_argument("--device", help="cpu, cuda, cuda:1 ... (default: cuda when present)")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch threads on CPU (1 is fastest for single-sequence decoding)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads (default: $FASTMESH_TORCH_THREADS, else 1 on CPU, the fastest for one mesh "
+                        "at a time)")
 
 
 def params_from_args(args):
@@ -47,13 +48,9 @@ def params_from_args(args):
 
 
 def load_pipeline(args):
-    import torch
-
     from fastmesh.pipeline import Pipeline
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    return Pipeline.from_pretrained(args.weights, device=args.device)
+    return Pipeline.from_pretrained(args.weights, device=args.device, threads=args.threads)
 
 
 def register(sub) -> None:

@@ -7,6 +7,7 @@ import io
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -184,8 +185,33 @@ def test_cli_generate_directory(tmp_path, weights):
              "--format", "obj", check=False)
     assert r.returncode == 1  # one input failed ...
     assert "broken.obj" in r.stderr
-    assert (out / "a.obj").exists() and (out / "b.obj").exists()  # ... the others were done
+    assert (out / "a.npy.obj").exists() and (out / "b.ply.obj").exists()  # ... the others were done
     assert r.stderr.count("[") >= 3  # one progress line per file
+
+
+def test_cli_generate_directory_same_stem_two_outputs(tmp_path, weights):
+    """Wuson.off and Wuson.ply are two inputs: two results, neither overwriting the other."""
+    src = tmp_path / "in"
+    src.mkdir()
+    big = trimesh.creation.icosphere(2)
+    trimesh.Trimesh(big.vertices * 5.0, big.faces).export(src / "Wuson.off")
+    trimesh.creation.box().export(src / "Wuson.ply")
+    out = tmp_path / "out"
+    r = _cli("generate", str(src), "-o", str(out), "--weights", weights, "--max-vertices", "12", "--json")
+    recs = [json.loads(line) for line in r.stdout.splitlines()]
+    assert sorted(Path(x["output"]).name for x in recs) == ["Wuson.off.glb", "Wuson.ply.glb"]
+    sizes = [np.ptp(trimesh.load(out / n, force="mesh").vertices, axis=0).max() for n in ("Wuson.off.glb",
+                                                                                           "Wuson.ply.glb")]
+    assert sizes[0] > 3 * sizes[1]  # each result in its own input's frame: the radius-5 sphere and the unit box
+
+
+def test_cli_generate_directory_refuses_to_overwrite_an_input(tmp_path, weights):
+    src = tmp_path / "in"
+    src.mkdir()
+    trimesh.creation.box().export(src / "a.glb")
+    trimesh.creation.box().export(src / "a.glb.glb")
+    r = _cli("generate", str(src), "-o", str(src), "--weights", weights, check=False)
+    assert r.returncode == 2 and "would overwrite an input" in r.stderr and "Traceback" not in r.stderr
 
 
 def test_cli_generate_missing_input_is_clear(tmp_path):

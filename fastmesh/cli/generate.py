@@ -1,8 +1,8 @@
 """``fastmesh generate INPUT -o OUTPUT``: point cloud or mesh in, artist mesh out.
 
 INPUT may be a folder: then OUTPUT is a folder and every readable shape in INPUT is
-done, one line of progress per file on stderr.  ``--json`` prints one JSON object
-per input on stdout.
+done, one line of progress per file on stderr; ``IN/a/chair.off`` becomes ``OUT/a/chair.off.glb``.
+``--json`` prints one JSON object per input on stdout.
 """
 
 from __future__ import annotations
@@ -70,7 +70,14 @@ def _jobs(args) -> list[tuple[Path, Path, str]]:
         files = sorted(f for f in src.rglob("*") if f.is_file() and f.suffix.lower().lstrip(".") in SUPPORTED_FORMATS)
         if not files:
             raise ValueError(f"no readable shapes in {src} (extensions: {', '.join(SUPPORTED_FORMATS)})")
-        return [(f, out / f.relative_to(src).with_suffix("." + fmt), fmt) for f in files]
+        # The source extension stays in the name (chair.off -> chair.off.glb): chair.off and chair.ply give
+        # two results, never one overwriting the other.
+        jobs = [(f, out / f.relative_to(src).with_name(f"{f.name}.{fmt}"), fmt) for f in files]
+        inputs = {f.resolve() for f in files}
+        clash = next((dst for _, dst, _ in jobs if dst.resolve() in inputs), None)
+        if clash is not None:
+            raise ValueError(f"output {clash} would overwrite an input; choose another output folder")
+        return jobs
     if not src.exists():
         raise FileNotFoundError(f"no such file: {src}")
     fmt = args.format or (out.suffix.lower().lstrip(".") if out.suffix.lower().lstrip(".") in EXPORT_FORMATS

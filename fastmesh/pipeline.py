@@ -31,6 +31,7 @@ from .models.encoder import EncoderConfig
 from .models.generate import Cancelled, generate
 from .models.onnx_decode import choose_decoder
 from .params import GenerateParams
+from .quality import mesh_quality
 from .support import surface_fit
 from .tokenizer import dequantize
 from .tokenizer import vertex as vt
@@ -70,6 +71,8 @@ class GenerateResult:
     faces : (F, 3) int64
     tokens : int, vertex tokens generated (BOS/EOS included)
     timings : dict, seconds per stage: encode, vertices, enhancer, faces, filtering
+    quality : dict, distance to the input and topology (:func:`fastmesh.quality.mesh_quality`): cd, hd (% of
+        the input's size), boundary_edges, non_manifold_edges, components, watertight
     """
 
     vertices: np.ndarray
@@ -77,6 +80,7 @@ class GenerateResult:
     tokens: int
     timings: dict[str, float] = field(default_factory=dict)
     info: dict = field(default_factory=dict)
+    quality: dict = field(default_factory=dict)
 
     def export(self, fmt: str) -> bytes:
         return export_mesh(self.vertices, self.faces, fmt)
@@ -260,8 +264,9 @@ class Pipeline:
                 "chosen_seed": best["seed"]}
         if n_cand > 1:
             info["fits"] = fits  # per candidate: its surface_fit in the unit cube, None if it made no mesh
-        return GenerateResult(vertices=norm.invert(best["vertices"]), faces=best["faces"], tokens=best["tokens"],
-                              timings=timings, info=info)
+        vertices = norm.invert(best["vertices"])
+        return GenerateResult(vertices=vertices, faces=best["faces"], tokens=best["tokens"], timings=timings,
+                              info=info, quality=mesh_quality(vertices, best["faces"], shape, params.seed))
 
     def _candidate(self, shape: Shape, unit: np.ndarray, params: GenerateParams, seed: int,
                    report: Callable[[str, float], None], should_cancel, timings: dict) -> dict:

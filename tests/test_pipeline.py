@@ -19,6 +19,7 @@ from fastmesh.filtering import FilterConfig
 from fastmesh.io import Shape, load_shape, sample_surface
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weights_dir
+from fastmesh.quality import mesh_quality
 from fastmesh.support import surface_fit
 
 torch.set_num_threads(1)
@@ -46,6 +47,9 @@ def test_generate_returns_mesh_in_input_frame(pipe):
     assert set(res.timings) == {"encode", "vertices", "enhancer", "faces", "filtering"}
     assert all(v >= 0 for v in res.timings.values())
     assert res.tokens >= 3 + len(res.vertices)  # BOS, >= 1 block token, offsets, EOS
+    # The Python API result carries the quality report of exactly this mesh against this input.
+    assert res.quality == mesh_quality(res.vertices, res.faces, shape, seed=1)
+    assert res.quality["cd"] > 0 and res.quality["components"] >= 1
 
 
 def test_same_seed_same_mesh_and_save_load_roundtrip(pipe, weights):
@@ -166,7 +170,8 @@ def test_cli_generate_file_json(tmp_path, weights):
     out = tmp_path / "out.glb"
     r = _cli("generate", str(src), "-o", str(out), "--weights", weights, "--max-vertices", "20", "--json")
     rec = json.loads(r.stdout.strip().splitlines()[-1])
-    assert set(rec) == {"input", "output", "vertices", "faces", "tokens", "timings"}
+    assert set(rec) == {"input", "output", "vertices", "faces", "tokens", "timings", "quality"}
+    assert set(rec["quality"]) == {"cd", "hd", "boundary_edges", "non_manifold_edges", "components", "watertight"}
     assert set(rec["timings"]) == {"load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total"}
     mesh = trimesh.load(out, force="mesh")
     assert len(mesh.faces) == rec["faces"] > 0

@@ -198,7 +198,7 @@ def _run(store: Store, job_id: str, attempt: int) -> None:
         store.put_result(job_id, fmt, data)
     timings.update({k: float(v) for k, v in result.timings.items()})
     info = {"vertices": int(len(result.vertices)), "faces": int(len(result.faces)), "tokens": int(result.tokens),
-            "formats": list(formats), "seed": result.info.get("chosen_seed")}
+            "formats": list(formats), "seed": result.info.get("chosen_seed"), "quality": result.quality}
     if not store.finish(job_id, attempt, "succeeded", result=info, timings=timings):
         # Cancelled (or taken over) during export: drop what we wrote unless another attempt owns it now.
         if (store.get(job_id) or {}).get("status") in (None, "cancelled", "failed"):

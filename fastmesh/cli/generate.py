@@ -114,9 +114,11 @@ def _run(args) -> int:
         timings["total"] = time.perf_counter() - t0
         rec = {"input": str(src), "output": str(dst), "vertices": int(len(res.vertices)),
                "faces": int(len(res.faces)), "tokens": res.tokens,
-               "timings": {k: round(timings.get(k, 0.0), 4) for k in TIMING_KEYS}}
+               "timings": {k: round(timings.get(k, 0.0), 4) for k in TIMING_KEYS}, "quality": res.quality}
         if args.json:
             print(json.dumps(rec), flush=True)
+        q = res.quality
         print(f"[{i}/{len(jobs)}] {src} -> {dst}: {rec['vertices']} vertices, {rec['faces']} faces, "
+              f"CD {q['cd']:.2f} % / HD {q['hd']:.2f} % of the input's size, {q['boundary_edges']} open edges, "
               f"{timings['total']:.2f} s", file=sys.stderr, flush=True)
     return 1 if failures else 0

@@ -1,4 +1,4 @@
-"""Quality metrics, exactly as ../shared/EVAL.md defines them.
+"""Quality metrics, exactly as the evaluation protocol (docs/method.md) defines them.
 
 Chamfer and Hausdorff distances: each shape is normalised on its own (bounding-box centre
 to the origin, longest side 1), 5,000 points are sampled on it (area-weighted, fixed seed),

@@ -59,8 +59,11 @@ class FaceConfig:
         ``"cliques"``: the 3-cycles of the predicted edges with the clean-up above.  ``"surface"``
         (needs the input's samples): restricted Delaunay triangles plus the 3-cycles that lie on
         the input surface, scored by the model, selected to stay a surface and holes filled
-        (:func:`fastmesh.surface_faces.surface_mesh`; of the options above it uses ``support_tol``,
-        ``support_points``, ``orient`` is implied, and ``remove_unreferenced``).
+        (:func:`fastmesh.surface_faces.surface_mesh`; of the options above it uses
+        ``support_points`` and ``remove_unreferenced``, and always orients).
+    surface_tol : float or None
+        ``"surface"``: the support limit relative to the points' longest side (None: only the
+        floor of ``support.SPACING_FACTOR`` point spacings, which measures best).
     fold_angle : float
         ``"surface"``: degrees; two faces on an edge closer than this around it overlap.
     fill_max_loop : int
@@ -70,8 +73,9 @@ class FaceConfig:
     model_weight : float
         ``"surface"``: weight of the mean log-probability of a triangle's edges in its score.
     model_triangles : bool
-        ``"surface"``: the 3-cycles of the predicted edges are candidates too (else only the
-        restricted Delaunay triangles, scored by the model).
+        ``"surface"``: the 3-cycles of the predicted edges that pass the support test are
+        candidates too (else only the restricted Delaunay triangles, scored by the model; on the
+        out-of-package validation meshes the extra triangles raise CD and HD).
     """
 
     drop_zero_area: bool = True
@@ -84,11 +88,12 @@ class FaceConfig:
     support_points: int = 16384
     max_faces_per_edge: int | None = None
     selection: str = "cliques"
+    surface_tol: float | None = None
     fold_angle: float = 30.0
     fill_max_loop: int = 64
     support_weight: float = 1.0
     model_weight: float = 1.0
-    model_triangles: bool = True
+    model_triangles: bool = False
 
     def __post_init__(self):
         if self.selection not in ("cliques", "surface"):

@@ -304,9 +304,26 @@ def boundary_loops(faces: np.ndarray) -> list[list[int]]:
                 break
             loop.append(succ)
             cur = succ
-        if succ == start and len(loop) >= 3:
-            loops.append(loop)
+        if succ == start:
+            loops.extend(x for x in _simple_loops(loop) if len(x) >= 3)
     return loops
+
+
+def _simple_loops(loop: list[int]) -> list[list[int]]:
+    """Split a closed vertex walk at repeated vertices (two holes touching at a vertex) into simple loops."""
+    out, stack, at = [], [], {}
+    for x in loop:
+        if x in at:  # the walk since x's last visit is a loop of its own
+            i = at[x]
+            out.append(stack[i:])
+            for y in stack[i + 1:]:
+                del at[y]
+            stack = stack[:i + 1]
+        else:
+            at[x] = len(stack)
+            stack.append(x)
+    out.append(stack)
+    return out
 
 
 def fill_holes(vertices: np.ndarray, faces: np.ndarray, book: _Selection, points: np.ndarray, limit: float,
@@ -366,7 +383,7 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
     edges : (E, 2) int, the model's predicted edges
     points : (P, 3) float, samples of the input surface in the frame of ``vertices``
     config : FaceConfig
-        ``support_tol`` (None = the spacing floor alone), ``fold_angle``, ``fill_max_loop``,
+        ``surface_tol``, ``fold_angle``, ``fill_max_loop``,
         ``support_weight``, ``model_weight``, ``model_triangles``.
     logits : (N, N) float, optional
         The model's edge logits: a triangle scores ``model_weight`` times the mean log-probability of
@@ -385,7 +402,7 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
         cand = np.concatenate([cand, triangles_from_adjacency(edges, len(v))])
     cand = np.unique(np.sort(cand, axis=1), axis=0) if len(cand) else cand.reshape(0, 3)
     tree = cKDTree(pts)
-    f, d, limit = on_surface(v, cand, pts, cfg.support_tol or 0.0, tree)
+    f, d, limit = on_surface(v, cand, pts, cfg.surface_tol or 0.0, tree)
     keep = facing(v, f, pts, tree) >= _MIN_FACING
     f, d = f[keep], d[keep]
     score = -cfg.support_weight * d / limit

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .faces import FaceConfig, mesh_from_adjacency
+from .faces import FaceConfig, mesh_from_adjacency, remove_unreferenced
 from .io import (
     SUPPORTED_FORMATS,
     Normalization,
@@ -209,16 +209,18 @@ def evaluate_gt_vertices(pipe, pairs: list[tuple[Path, Path]], filtering: bool =
                "precision": m["precision"], "recall": m["recall"], "f1": m["f1"]}
         for system, cfg in systems.items():
             t = time.perf_counter()
+            v = dequantize(q)
             if cfg is None:
-                v = dequantize(q)
                 f = restricted_delaunay_mesh(v, surface)
-            else:
-                v, f = mesh_from_adjacency(dequantize(q), edges, cfg, points=surface, logits=logits)
+            else:  # the reference's vertex indices, to compare edges
+                f = mesh_from_adjacency(v, edges, replace(cfg, remove_unreferenced=False), points=surface,
+                                        logits=logits)[1]
             seconds = time.perf_counter() - t + (0.0 if cfg is None else net_seconds)
             out = {"faces": int(len(f)), "seconds": round(seconds, 4)}
             if len(f):
-                d = surface_distance((norm.invert(v), f), (ref.vertices, ref.faces))
                 me = edge_metrics(edges_from_faces(f), true_edges)
+                v, f, _ = remove_unreferenced(v, f)  # the result's own bounding box normalises it
+                d = surface_distance((norm.invert(v), f), (ref.vertices, ref.faces))
                 out.update(cd=d.cd, hd=d.hd, edge_precision=me["precision"], edge_recall=me["recall"],
                            edge_f1=me["f1"], **_topology_row(v, f))
                 _save(save, system, inp.stem, norm.invert(v), f)

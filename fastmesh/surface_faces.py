@@ -38,7 +38,7 @@ PROB_FLOOR = 1e-4
 def delaunay_triangles(vertices: np.ndarray) -> np.ndarray:
     """(T, 3) int64 unique triangles (i < j < k) of the vertices' 3D Delaunay tetrahedralisation.
 
-    Vertices all on one plane (or fewer than 5) have no tetrahedra: their 2D Delaunay
+    Vertices all on one plane (or only three) have no tetrahedra: their 2D Delaunay
     triangulation in that plane is returned instead.
     """
     from scipy.spatial import Delaunay, QhullError
@@ -48,7 +48,7 @@ def delaunay_triangles(vertices: np.ndarray) -> np.ndarray:
         return np.zeros((0, 3), dtype=np.int64)
     centred = v - v.mean(0)
     _, s, vt = np.linalg.svd(centred, full_matrices=False)
-    flat = len(v) < 5 or s[2] <= 1e-9 * max(s[0], 1e-300)
+    flat = len(v) < 4 or s[2] <= 1e-9 * max(s[0], 1e-300)
     try:
         if flat:
             tri = Delaunay(centred @ vt[:2].T).simplices

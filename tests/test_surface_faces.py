@@ -145,6 +145,7 @@ def test_delaunay_triangles_of_flat_and_degenerate_inputs():
     flat = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0.5, 0.5, 0]])
     assert len(sf.delaunay_triangles(flat)) == 4
     assert len(sf.delaunay_triangles(np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0.0]]))) == 0
+    assert len(sf.delaunay_triangles(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]))) == 4
 
 
 def _eval_folders(tmp_path: Path) -> tuple[Path, Path]:

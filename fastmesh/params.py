@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 MAX_CANDIDATES = 16  # each candidate costs a full generation
+TARGET_FACES = (4, 8000)  # faces a user may ask for; the decoder's vertex limit still caps the result
 
 
 @dataclass
@@ -38,6 +39,7 @@ class GenerateParams:
     enhancer: bool = True
     filtering: bool = True
     candidates: int = 2  # meshes made (seeds seed, seed+1, ...); the one nearest the input is returned
+    target_faces: int | None = None  # faces asked for; None: the model chooses the count itself
 
     def validate(self, limit: int = 4000) -> None:
         """Raise ValueError naming the first bad field."""
@@ -45,6 +47,10 @@ class GenerateParams:
             raise ValueError(f"seed must be an integer in [0, 2^63 - {MAX_CANDIDATES})")
         if not isinstance(self.candidates, int) or not 1 <= self.candidates <= MAX_CANDIDATES:
             raise ValueError(f"candidates must be an integer in [1, {MAX_CANDIDATES}]")
+        lo, hi = TARGET_FACES
+        if self.target_faces is not None and (not isinstance(self.target_faces, int)
+                                              or not lo <= self.target_faces <= hi):
+            raise ValueError(f"target_faces must be an integer in [{lo}, {hi}]")
         if self.max_vertices is not None and not 3 <= self.max_vertices <= limit:
             raise ValueError(f"max_vertices must be in [3, {limit}]")
         self.sampling(limit).validate()

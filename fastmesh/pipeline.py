@@ -40,6 +40,7 @@ __all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "
 
 NETWORKS = ("vertex", "enhancer", "face")
 CELLS = "cells"  # the cell evidence network (models.cells), needed by a decoder trained with it
+CELL_SEED = 0  # of the input sample the cell evidence reads
 # Share of the overall progress bar each stage covers (decoding dominates).
 _STAGE_SPAN = {"encode": (0.0, 0.03), "vertices": (0.03, 0.80), "enhancer": (0.80, 0.83), "faces": (0.83, 0.90),
                "filtering": (0.90, 1.0)}
@@ -208,8 +209,7 @@ class Pipeline:
     # ------------------------------------------------------------------ generation
 
     def _n_points(self) -> int:
-        n = max(net.cfg.encoder.n_points for net in (self.vertex, self.enhancer, self.face))
-        return max(n, self.cells.cfg.n_points) if self.cells is not None else n
+        return max(net.cfg.encoder.n_points for net in (self.vertex, self.enhancer, self.face))
 
     def generate(self, shape: Shape, params: GenerateParams | None = None,
                  progress: Callable[[str, float], None] | None = None,
@@ -239,6 +239,7 @@ class Pipeline:
         """
         params = params or GenerateParams()
         params.validate(limit=self.max_vertices)
+        self._target(params)  # refuses a target_faces this decoder cannot read, before any work
         report = progress or (lambda stage, fraction: None)
 
         norm = Normalization.fit(shape.vertices)
@@ -247,6 +248,9 @@ class Pipeline:
         timings = {"encode": 0.0, "vertices": 0.0, "enhancer": 0.0, "faces": 0.0, "filtering": 0.0}
         # Candidate k is exactly what seed + k gives alone; all are scored against one sample of the input.
         reference = input_surface(shape, unit, self.face_config.support_points, params.seed) if n_cand > 1 else None
+        t = time.perf_counter()
+        cells = self._cell_grid(shape, unit)
+        timings["encode"] += time.perf_counter() - t
         best, fits, errors = None, [], []
         for k in range(n_cand):
             def share(stage, fraction, k=k):
@@ -254,7 +258,7 @@ class Pipeline:
                 report(stage, (k + fraction) / n_cand)
 
             try:
-                cand = self._candidate(shape, unit, params, params.seed + k, share, should_cancel, timings)
+                cand = self._candidate(shape, unit, params, params.seed + k, share, should_cancel, timings, cells)
             except GenerationError as err:
                 errors.append(err)
                 fits.append(None)
@@ -276,8 +280,28 @@ class Pipeline:
         return GenerateResult(vertices=vertices, faces=best["faces"], tokens=best["tokens"], timings=timings,
                               info=info, quality=mesh_quality(vertices, best["faces"], shape, params.seed))
 
+    def _target(self, params: GenerateParams) -> torch.Tensor | None:
+        """(1,) faces asked for, as the decoder's count token reads them (None: the model's choice)."""
+        if params.target_faces is None:
+            return None
+        if not self.vertex.cfg.count_condition:
+            raise ValueError("target_faces: this vertex decoder was not trained with a face-count condition")
+        return torch.tensor([params.target_faces], device=self.device)
+
+    def _cell_grid(self, shape: Shape, unit: np.ndarray) -> torch.Tensor | None:
+        """(1, 128^3) cell log-odds of the input for a decoder that reads them (``models.cells``), else None.
+
+        Evidence about the input, not a random choice: drawn from one sample of fixed seed, so every
+        candidate reads the same grid and candidate k stays exactly what seed + k gives alone.
+        """
+        if not self.vertex.cfg.evidence_cells:
+            return None
+        pts, nrm = sample_surface(shape, self.cells.cfg.n_points, seed=CELL_SEED, vertices=unit)
+        return self.cells.grid(pts, nrm)[None].to(self.device)
+
     def _candidate(self, shape: Shape, unit: np.ndarray, params: GenerateParams, seed: int,
-                   report: Callable[[str, float], None], should_cancel, timings: dict) -> dict:
+                   report: Callable[[str, float], None], should_cancel, timings: dict,
+                   cells: torch.Tensor | None = None) -> dict:
         """One mesh from ``seed``, in the normalised frame (``unit``: the shape's vertices there); adds its
         stage times to ``timings``."""
 
@@ -294,10 +318,8 @@ class Pipeline:
         nrm_t = torch.from_numpy(nrm).to(self.device)[None]
         n_vp = self.vertex.cfg.encoder.n_points
         with torch.inference_mode():
-            prefix = self.vertex.condition(pts_t[:, :n_vp], nrm_t[:, :n_vp])
-            grid = None if not self.vertex.cfg.evidence_cells else self.cells.grid(pts[:self.cells.cfg.n_points],
-                                                                  nrm[:self.cells.cfg.n_points])[None].to(self.device)
-            evidence = self.vertex.point_evidence(pts_t[:, :n_vp], nrm_t[:, :n_vp], grid)
+            prefix = self.vertex.condition(pts_t[:, :n_vp], nrm_t[:, :n_vp], self._target(params))
+            evidence = self.vertex.point_evidence(pts_t[:, :n_vp], nrm_t[:, :n_vp], cells)
         timings["encode"] += time.perf_counter() - t
         check_cancel()
 

@@ -5,6 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 MAX_CANDIDATES = 16  # each candidate costs a full generation
+# Smallest non-zero temperature: logits / temperature must stay finite in float32 (0 means greedy decoding).
+MIN_TEMPERATURE = 1e-3
+MAX_TEMPERATURE = 5.0
 
 
 @dataclass
@@ -16,8 +19,8 @@ class SamplingConfig:
     seed: int = 0
 
     def validate(self) -> None:
-        if not 0 <= self.temperature <= 5:
-            raise ValueError("temperature must be in [0, 5]")
+        if not (self.temperature == 0 or MIN_TEMPERATURE <= self.temperature <= MAX_TEMPERATURE):
+            raise ValueError(f"temperature must be 0 (greedy) or in [{MIN_TEMPERATURE:g}, {MAX_TEMPERATURE:g}]")
         if self.top_k < 0:
             raise ValueError("top_k must be >= 0 (0 disables it)")
         if not 0 < self.top_p <= 1:

@@ -283,7 +283,7 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
 
     # ------------------------------------------------------------------ ops
     @app.get("/healthz", tags=["ops"], response_model=Health, summary="The process is up")
-    def healthz() -> dict:
+    async def healthz() -> dict:  # async: answers from the event loop even when every worker thread is busy
         return {"status": "ok"}
 
     @app.get("/readyz", tags=["ops"], response_model=Ready, summary="Redis reachable and a worker alive",

@@ -18,12 +18,12 @@ Installed by ``create_app`` with ``app.include_router(preview_router(store, owne
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 from concurrent.futures import TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
+import anyio
 import numpy as np
 from fastapi import APIRouter, Depends, Path, Query
 from fastapi.responses import Response
@@ -95,7 +95,7 @@ class _Flight:
     """One render in progress; the requests that asked for the same one wait on ``done``."""
 
     def __init__(self):
-        self.done = threading.Event()
+        self.done = anyio.Event()
         self.png: bytes | None = None
         self.error: ApiError | None = None
         self.of = ""
@@ -125,36 +125,44 @@ def preview_router(store: Store, owner: Callable, job_of: Callable[[str, str], d
     """Routes for previews.  ``owner`` is the app's auth dependency, ``job_of(id, who)`` its job lookup,
     ``pool`` the render processes (``config.max_concurrent_renders`` of them)."""
     router = APIRouter(tags=["jobs"])
-    slots = threading.BoundedSemaphore(config.max_concurrent_renders)
+    # The route is async and its waiting is on the event loop: requests queued for a render hold no
+    # thread of the pool that every other route (and /healthz) runs in.  Event-loop state only.
     flights: dict[str, _Flight] = {}
-    guard = threading.Lock()
+    slots: list[anyio.Semaphore] = []  # made on first use, inside the event loop
     router.renders = 0  # renders started, for tests and the benchmark
 
     def busy(why: str) -> ApiError:
         return ApiError(503, "busy", f"{why}; retry shortly", {"Retry-After": "2"})
 
-    def lead(job: dict, field: str, size: int, wireframe: bool, flight: _Flight) -> None:
-        """Render ``field`` of ``job`` into ``flight`` (and the cache)."""
-        if not slots.acquire(timeout=config.render_wait_seconds):
-            raise busy("too many previews are being rendered")
+    def render_and_cache(job: dict, size: int, wireframe: bool) -> tuple[str, bytes]:
+        """(what, PNG) of ``job`` rendered by the pool, and cached.  Runs in a thread, holding a render slot."""
+        of, blob = preview_blob(store, job)  # read only now: waiting requests hold no input in memory
+        router.renders += 1
         try:
-            of, blob = preview_blob(store, job)  # read only now: waiting requests hold no input in memory
-            router.renders += 1
-            try:
-                png = pool.render(of, blob, size, wireframe, config.render_wait_seconds)
-            except ShapeError as e:
-                raise ApiError(422, e.code, f"cannot render a preview: {e.message}") from None
-            except (FutureTimeout, BrokenProcessPool):
-                raise busy("the preview could not be rendered in time") from None
-            del blob
-        finally:
-            slots.release()
+            png = pool.render(of, blob, size, wireframe, config.render_wait_seconds)
+        except ShapeError as e:
+            raise ApiError(422, e.code, f"cannot render a preview: {e.message}") from None
+        except (FutureTimeout, BrokenProcessPool):
+            raise busy("the preview could not be rendered in time") from None
+        del blob
         key = cache_key(store, job["id"])
         with store.r.pipeline() as tx:
             tx.hset(key, cache_field(of, size, wireframe), png)
             tx.expire(key, max(1, min(config.cache_seconds, store.ttl_of(job["id"]))))
             tx.execute()
-        flight.png, flight.of = png, of
+        return of, png
+
+    async def lead(job: dict, size: int, wireframe: bool, flight: _Flight) -> None:
+        if not slots:
+            slots.append(anyio.Semaphore(config.max_concurrent_renders))
+        with anyio.move_on_after(config.render_wait_seconds) as waited:
+            await slots[0].acquire()
+        if waited.cancelled_caught:
+            raise busy("too many previews are being rendered")
+        try:
+            flight.of, flight.png = await anyio.to_thread.run_sync(render_and_cache, job, size, wireframe)
+        finally:
+            slots[0].release()
 
     @router.get("/v1/jobs/{job_id}/preview.png", response_class=Response,
                 summary="PNG preview: the result mesh, or the input before the result exists",
@@ -166,41 +174,40 @@ def preview_router(store: Store, owner: Callable, job_of: Callable[[str, str], d
                                  "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
                                  "headers": {"X-Preview-Of": {"schema": {"type": "string",
                                                                          "enum": ["result", "input"]}}}}})
-    def preview(job_id: str = JOB_ID,
-                size: int = Query(config.default_size, ge=config.min_size, le=config.max_size,
-                                  description="Image side in pixels (snapped up to a rendered size).",
-                                  examples=[512]),
-                wireframe: bool = Query(False, description="Overlay the edges of the visible faces.",
-                                        examples=[True]),
-                who: str = Depends(owner)) -> Response:
-        job = job_of(job_id, who)
+    async def preview(job_id: str = JOB_ID,
+                      size: int = Query(config.default_size, ge=config.min_size, le=config.max_size,
+                                        description="Image side in pixels (snapped up to a rendered size).",
+                                        examples=[512]),
+                      wireframe: bool = Query(False, description="Overlay the edges of the visible faces.",
+                                              examples=[True]),
+                      who: str = Depends(owner)) -> Response:
+        job = await anyio.to_thread.run_sync(job_of, job_id, who)
         size = snap_size(size, config.sizes)
         of = "result" if job["status"] == "succeeded" else "input"
         field = cache_field(of, size, wireframe)
-        png = store.r.hget(cache_key(store, job_id), field)
+        png = await anyio.to_thread.run_sync(store.r.hget, cache_key(store, job_id), field)
         if png is None:
             name = f"{job_id}|{field}"
-            with guard:
-                flight = flights.get(name)
-                leader = flight is None
-                if leader:
-                    if len(flights) >= config.max_pending:
-                        raise busy(f"{len(flights)} previews are waiting to be rendered")
-                    flight = flights[name] = _Flight()
-            if leader:
+            flight = flights.get(name)
+            if flight is None:  # no await between the look-up and the claim: one leader per name
+                if len(flights) >= config.max_pending:
+                    raise busy(f"{len(flights)} previews are waiting to be rendered")
+                flight = flights[name] = _Flight()
                 try:
-                    lead(job, field, size, wireframe, flight)
+                    await lead(job, size, wireframe, flight)
                 except ApiError as e:
                     flight.error = e
                 except Exception:  # Redis trouble: the waiting requests get an answer too, the leader the error
                     flight.error = busy("the preview failed")
                     raise
                 finally:
-                    with guard:
-                        flights.pop(name, None)
+                    flights.pop(name, None)
                     flight.done.set()
-            elif not flight.done.wait(config.render_wait_seconds):
-                raise busy("the preview is still being rendered")
+            else:
+                with anyio.move_on_after(config.render_wait_seconds) as waited:
+                    await flight.done.wait()
+                if waited.cancelled_caught:
+                    raise busy("the preview is still being rendered")
             if flight.error is not None:
                 raise flight.error
             png, of = flight.png, flight.of

@@ -18,7 +18,6 @@ from pathlib import PurePath
 
 import anyio
 from fastapi import Depends, FastAPI, File, Form, Header, Path, Query, Request, Response, UploadFile
-from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
@@ -28,7 +27,7 @@ from fastmesh.params import MAX_CANDIDATES
 from . import errors
 from .errors import ApiError
 from .metrics import Metrics
-from .middleware import ApiKeyGate, BodyLimit, RequestMetrics
+from .middleware import ApiKeyGate, BodyLimit, JsonCORS, RequestMetrics
 from .params import build_params, generation_defaults, input_info, safe_filename
 from .preview import DEFAULT_PREVIEW, preview_router
 from .render_pool import RenderPool
@@ -308,14 +307,14 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     app.include_router(web_router(settings, defaults))  # the page at / (service/web)
 
     # Each add_middleware wraps the previous ones: CORS ends outermost, so 413s and 429s carry its headers too.
-    app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes, idle_seconds=settings.body_timeout_seconds)
     if keys:
         app.add_middleware(ApiKeyGate, known=lambda token: key_of(token) is not None,
                            fail_hit=lambda a: store.rate_hit("authfail", a, settings.auth_fail_limit_per_minute),
                            fail_wait=lambda a: store.rate_wait("authfail", a, settings.auth_fail_limit_per_minute))
     app.add_middleware(RequestMetrics, metrics=metrics)
     if settings.cors_origins:
-        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
+        app.add_middleware(JsonCORS, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST", "DELETE"],
                            allow_headers=["Authorization", "Idempotency-Key", "Content-Type"],
                            expose_headers=["Location", "Retry-After", "X-Queue-Position"])

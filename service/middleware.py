@@ -11,6 +11,9 @@ from collections.abc import Callable
 
 import anyio
 import redis
+from starlette.datastructures import Headers
+from starlette.middleware.cors import CORSMiddleware
+from starlette.responses import JSONResponse, Response
 
 from .metrics import Metrics
 
@@ -72,14 +75,16 @@ class ApiKeyGate:
 
 
 class BodyLimit:
-    """Answer 413 as soon as a request body exceeds ``max_bytes`` (+ multipart overhead).
+    """Answer 413 as soon as a request body exceeds ``max_bytes`` (+ multipart overhead), 408 when
+    ``idle_seconds`` pass without any of it arriving (a slow client holds a connection and a worker
+    thread otherwise).
 
     A declared Content-Length is checked before reading anything; a chunked body is counted as it
     arrives, and once over the limit the app sees a disconnect while the client gets the 413.
     """
 
-    def __init__(self, app, max_bytes: int):
-        self.app, self.limit = app, max_bytes + MULTIPART_OVERHEAD
+    def __init__(self, app, max_bytes: int, idle_seconds: float = 30.0):
+        self.app, self.limit, self.idle = app, max_bytes + MULTIPART_OVERHEAD, idle_seconds
         self.mib = max_bytes / (1024 * 1024)
 
     async def __call__(self, scope, receive, send):
@@ -101,7 +106,13 @@ class BodyLimit:
             nonlocal seen, answered
             if answered:
                 return {"type": "http.disconnect"}
-            message = await receive()
+            with anyio.move_on_after(self.idle) as waited:
+                message = await receive()
+            if waited.cancelled_caught:
+                answered = True
+                await _answer(send, 408, "timeout", f"no part of the request body arrived for {self.idle:g} s "
+                                                    "(body_timeout_seconds)")
+                return {"type": "http.disconnect"}
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
                 if seen > self.limit:
@@ -150,3 +161,17 @@ class RequestMetrics:
             path = getattr(route, "path", None) or "unmatched"
             method = scope["method"] if scope["method"] in METHODS else "other"
             self.metrics.observe_request(method, path, status, time.perf_counter() - t0)
+
+
+class JsonCORS(CORSMiddleware):
+    """Starlette's CORS layer, whose refused preflight is the JSON error shape like every other answer."""
+
+    def preflight_response(self, request_headers: Headers) -> Response:
+        response = super().preflight_response(request_headers)
+        if response.status_code < 400:
+            return response
+        headers = {k: v for k, v in response.headers.items() if k not in ("content-type", "content-length")}
+        refused = bytes(response.body).decode().removeprefix("Disallowed CORS ")
+        return JSONResponse({"error": {"code": "cors_refused", "message": f"this cross-origin request is not "
+                                                                         f"allowed: its {refused}"}},
+                            status_code=response.status_code, headers=headers)

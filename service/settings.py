@@ -47,6 +47,8 @@ class Settings(BaseSettings):
     max_queue_depth: int = Field(100, ge=1, description="Queued jobs above which submissions get 429.")
     default_formats: CommaList = Field(default_factory=lambda: ["glb"],
                                        description="Formats exported by the worker when a job names none.")
+    body_timeout_seconds: float = Field(30.0, gt=0, description="A request body with no bytes arriving for this "
+                                        "long is answered 408 (slow or stalled clients).")
     max_concurrent_parses: int = Field(2, ge=1, description="Uploads read and parsed at once by one API process; "
                                        "further ones wait up to parse_wait_seconds, then get 429 (busy).")
     parse_wait_seconds: float = Field(1.0, ge=0, description="Longest wait of an upload for a parsing slot.")

@@ -13,6 +13,7 @@ Layout (``P`` is ``Settings.redis_prefix``)::
     P:idem:<owner>:<sha>    "<job id> <request fingerprint>" for Idempotency-Key (+ " pending" until created)
     P:rate:<kind>:<owner>:<minute>   fixed-window request counters
     P:workers               zset worker name -> last heartbeat (unix seconds)
+    P:vertex_limit          max_vertices of the model the last heartbeating worker loaded
     P:worker:<name>         hash: pid host loads jobs weights started_at
     P:stats:jobs            hash: submitted succeeded failed cancelled retried
     P:stats:stage:<stage>   hash: count sum b:<le> (a histogram of stage durations)
@@ -459,15 +460,19 @@ class Store:
             if info:
                 pipe.hset(f"{self.p}:worker:{name}", mapping={k: json.dumps(v) for k, v in info.items()})
             pipe.expire(f"{self.p}:worker:{name}", ttl)
+            if info and isinstance(info.get("max_vertices"), int):  # outlives the worker: see vertex_limit
+                pipe.set(f"{self.p}:vertex_limit", info["max_vertices"], ex=self.settings.retention_seconds)
             # Forget workers silent for long (their own hash has expired by then too).
             pipe.zremrangebyscore(f"{self.p}:workers", "-inf", time.time() - ttl)
             pipe.execute()
 
     def vertex_limit(self) -> int | None:
-        """The smallest ``max_vertices`` the live workers' models accept (None if no worker said)."""
+        """The smallest ``max_vertices`` the live workers' models accept; with none alive, the limit the
+        last worker reported (a job queued meanwhile waits for that model); None if no worker ever said."""
         names = self.workers_alive()
         if not names:
-            return None
+            last = self.r.get(f"{self.p}:vertex_limit")
+            return int(last) if last is not None else None
         with self.r.pipeline() as pipe:
             for n in names:
                 pipe.hget(f"{self.p}:worker:{n}", "max_vertices")

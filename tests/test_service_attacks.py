@@ -134,6 +134,19 @@ def test_temperatures_the_sampler_cannot_use_are_422(open_api, temperature):
     assert post(open_api.url, "p.xyz", xyz_bytes(sphere_points(50)), temperature="0").status_code == 202
 
 
+def test_max_vertices_is_checked_against_the_last_workers_model_when_none_is_alive(open_api):
+    """With no worker up (restarting, scaled to zero), the limit the last one reported still applies:
+    4,000 for a 1,000-vertex model used to be accepted and fail later in the worker."""
+    store = Store(open_api.settings)
+    store.worker_beat("gone-worker", {"max_vertices": 1000})
+    store.worker_gone("gone-worker")
+    assert store.workers_alive() == []
+    err = assert_error(post(open_api.url, "p.xyz", xyz_bytes(sphere_points(50)), max_vertices=4000), 422,
+                       "invalid_parameter")
+    assert "max_vertices" in err["message"] and "1000" in err["message"]
+    assert post(open_api.url, "p.xyz", xyz_bytes(sphere_points(50)), max_vertices=1000).status_code == 202
+
+
 def test_an_extent_too_small_to_scale_is_422(open_api):
     pts = sphere_points(100, center=(0, 0, 0)) * 1e-310
     buf = io.BytesIO()

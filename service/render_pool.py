@@ -12,15 +12,27 @@ from __future__ import annotations
 import multiprocessing
 import os
 import threading
+import time
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 
 TASKS_PER_CHILD = 50  # a child is replaced after this many renders: what its allocator kept goes with it
+ORPHAN_CHECK_SECONDS = 1.0  # how often a render process checks that the API process still exists
 RENDER_NICENESS = 10  # renders yield the CPU to the API process, so status polls stay fast during a burst
 
 
 def _background() -> None:
+    """Initializer of a render process: low priority, and gone with the API process.  An API killed
+    without its shutdown (SIGKILL, a crash) cannot stop its children, so each watches its parent."""
     os.nice(RENDER_NICENESS)
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(ORPHAN_CHECK_SECONDS)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="fastmesh-render-orphan-watch", daemon=True).start()
 
 
 def render_blob(of: str, blob: bytes, size: int, wireframe: bool) -> bytes:
@@ -67,7 +79,8 @@ class RenderPool:
             raise
 
     def close(self) -> None:
+        """Stop the render processes (a render under way finishes first)."""
         with self._lock:
-            if self._pool is not None:
-                self._pool.shutdown(wait=False, cancel_futures=True)
-                self._pool = None
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)

@@ -340,3 +340,34 @@ def test_more_pending_renders_than_the_bound_are_refused_at_once(open_app):
     assert busy, codes
     assert all(r.json()["error"]["code"] == "busy" and int(r.headers["retry-after"]) > 0 for r in busy)
     assert all(r.elapsed.total_seconds() < 2 for r in busy)
+
+
+def test_render_processes_end_with_the_api_process_even_when_it_is_killed():
+    """An API stopped by SIGKILL runs no shutdown: its render processes must notice and exit on their own."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    code = ("import trimesh\nfrom service.render_pool import RenderPool\nfrom service.store import mesh_to_bytes\n"
+            "m = trimesh.creation.box()\npool = RenderPool(2)\n"
+            "print(len(pool.render('result', mesh_to_bytes(m.vertices, m.faces), 64, False, 60)), flush=True)\n"
+            "import time; time.sleep(120)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert int(proc.stdout.readline()) > 0
+        kids = [int(c) for t in Path(f"/proc/{proc.pid}/task").iterdir() for c in (t / "children").read_text().split()]
+        assert kids
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+
+    def running(pid: int) -> bool:
+        status = Path(f"/proc/{pid}/status")
+        return status.exists() and "State:\tZ" not in status.read_text()
+
+    deadline = time.monotonic() + 10
+    while any(running(k) for k in kids) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(running(k) for k in kids), kids

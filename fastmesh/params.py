@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 MAX_CANDIDATES = 16  # each candidate costs a full generation
 TARGET_FACES = (4, 8000)  # faces a user may ask for; the decoder's vertex limit still caps the result
+# Smallest non-zero temperature: logits / temperature must stay finite in float32 (0 means greedy decoding).
+MIN_TEMPERATURE = 1e-3
+MAX_TEMPERATURE = 5.0
 
 
 @dataclass
@@ -17,8 +20,8 @@ class SamplingConfig:
     seed: int = 0
 
     def validate(self) -> None:
-        if not 0 <= self.temperature <= 5:
-            raise ValueError("temperature must be in [0, 5]")
+        if not (self.temperature == 0 or MIN_TEMPERATURE <= self.temperature <= MAX_TEMPERATURE):
+            raise ValueError(f"temperature must be 0 (greedy) or in [{MIN_TEMPERATURE:g}, {MAX_TEMPERATURE:g}]")
         if self.top_k < 0:
             raise ValueError("top_k must be >= 0 (0 disables it)")
         if not 0 < self.top_p <= 1:

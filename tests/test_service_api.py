@@ -435,3 +435,7 @@ def test_cors(keyed):
     assert "retry-after" in r.headers.get("access-control-expose-headers", "").lower()
     other = httpx.get(f"{keyed.url}/healthz", headers={"Origin": "https://evil.example"})
     assert "access-control-allow-origin" not in other.headers
+    refused = httpx.options(f"{keyed.url}/v1/jobs", headers={"Origin": "https://evil.example",
+                                                            "Access-Control-Request-Method": "PUT"})
+    err = assert_error(refused, 400, "cors_refused")  # the JSON error shape, not Starlette's plain text
+    assert "origin" in err["message"] and "method" in err["message"]

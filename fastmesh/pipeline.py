@@ -181,7 +181,8 @@ class Pipeline:
             raise ValueError("only size='tiny' is defined")
         torch.manual_seed(seed)
         enc = EncoderConfig(n_points=256, n_latents=8, dim=32, depth=1, heads=2, n_freqs=4)
-        vertex = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, max_vertices=64, evidence=True))
+        vertex = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, max_vertices=64, evidence=True,
+                                            count_condition=True))
         enhancer = Enhancer(EnhancerConfig(dim=32, depth=1, heads=2, encoder=enc))
         face = FaceModel(FaceModelConfig(dim=32, depth=1, heads=2, edge_heads=4, edge_mlp_hidden=4, encoder=enc))
         with torch.no_grad():

@@ -22,7 +22,7 @@ from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from fastmesh.io import EXPORT_FORMATS, ShapeError, export_mesh, load_shape
-from fastmesh.params import MAX_CANDIDATES
+from fastmesh.params import MAX_CANDIDATES, TARGET_FACES
 
 from . import errors
 from .errors import ApiError
@@ -154,6 +154,9 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
                                                          "nearest the input is returned; 1 is fastest "
                                                          f"({d('candidates')}).",
                                              examples=[defaults.get("candidates")]),
+               target_faces: int | None = Form(None, ge=TARGET_FACES[0], le=TARGET_FACES[1],
+                                               description="Faces to aim for; unset = the model chooses the count "
+                                                           "from the shape.", examples=[300]),
                formats: str | None = Form(None, description="Comma list of glb, obj, ply exported with the job "
                                                             f"(default {','.join(settings.default_formats)}).",
                                           examples=["glb,obj"]),
@@ -166,7 +169,7 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
                                                 "per minute for this key", {"Retry-After": str(wait)})
         params = build_params({"seed": seed, "temperature": temperature, "top_k": top_k, "top_p": top_p,
                                "max_vertices": max_vertices, "enhancer": enhancer, "filtering": filtering,
-                               "candidates": candidates},
+                               "candidates": candidates, "target_faces": target_faces},
                               formats, settings.default_formats, store.vertex_limit())
         # Reading and parsing hold up to a few times the upload in memory: a fixed number at once keeps the
         # API's peak a known multiple of the limits; beyond it the client is told to come back.

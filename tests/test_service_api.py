@@ -228,6 +228,7 @@ def test_bad_uploads_are_clear_4xx(served, name, data, status, code):
     ({"temperature": "inf"}, "temperature"), ({"temperature": -1}, "temperature"), ({"top_p": 1.5}, "top_p"),
     ({"top_k": -1}, "top_k"), ({"max_vertices": 0}, "max_vertices"), ({"max_vertices": "x"}, "max_vertices"),
     ({"enhancer": "maybe"}, "enhancer"), ({"formats": "fbx"}, "formats"), ({"formats": "glb,../x"}, "formats"),
+    ({"target_faces": 2}, "target_faces"), ({"target_faces": 10 ** 6}, "target_faces"),
 ])
 def test_bad_parameters_are_422_naming_the_field(served, fields, word):
     app, _ = served

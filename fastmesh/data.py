@@ -229,22 +229,24 @@ def _process(args: tuple[str, str, str, str, int]):
 
 def build_dataset(sources: list[str], out: str | os.PathLike, max_vertices: int = 1000,
                   val_fraction: float = 0.05, val_packages: tuple[str, ...] | None = None,
-                  workers: int | None = None, progress=None) -> dict:
+                  missing_ok: bool = False, workers: int | None = None, progress=None) -> dict:
     """Build a cache from mesh files and write it to ``out``; return its statistics.
 
     Meshes that fail to load, exceed ``max_vertices`` after the 7-bit merge, or
     duplicate an earlier mesh exactly (same cells and faces) are dropped and counted.
     With ``val_packages`` (a non-empty tuple) the meshes of those packages are the
     validation split; with none (``()`` or None) a ``val_fraction`` of the groups is
-    (0 puts every mesh in training).
+    (0 puts every mesh in training).  A named package not among the sources is an error, or with
+    ``missing_ok`` skipped (and with none of them there, the split is by group).
     """
     packages = tuple(val_packages or ())
     files = _find_files(list(sources))
     workers = workers or min(os.cpu_count() or 1, 8)
     if packages:
         unknown = sorted(set(packages) - {f[3] for f in files})
-        if unknown:
+        if unknown and not missing_ok:
             raise ValueError(f"validation package(s) not found in the sources: {', '.join(unknown)}")
+        packages = tuple(p for p in packages if p not in unknown)
     jobs = [(p, g, c, pkg, max_vertices) for p, g, c, pkg in files]
     results = []
     if workers > 1 and len(jobs) > 50:

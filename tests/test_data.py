@@ -112,3 +112,18 @@ def test_split_by_package_holds_out_whole_packages(mini_corpus, tmp_path):
     assert ds[int(ds.indices("val")[0])].package == "megaglest-data"
     with pytest.raises(ValueError, match="no-such-package"):
         build_dataset([str(mini_corpus)], tmp_path / "x.npz", val_packages=("no-such-package",), workers=1)
+
+
+def test_cli_default_holds_out_the_validation_packages_present(mini_corpus, tmp_path, capsys):
+    from fastmesh.cli import main
+    from fastmesh.data import VAL_PACKAGES
+
+    assert not set(VAL_PACKAGES) & {"ufoai-data", "megaglest-data"}  # none present: a split by group
+    assert main(["data", "build", str(mini_corpus), "-o", str(tmp_path / "a.npz"), "--workers", "1"]) == 0
+    assert load_dataset(tmp_path / "a.npz").meta["val_packages"] == []
+    assert main(["data", "build", str(mini_corpus), "-o", str(tmp_path / "b.npz"), "--workers", "1",
+                 "--val-packages", "megaglest-data"]) == 0
+    ds = load_dataset(tmp_path / "b.npz")
+    assert np.array_equal(ds.a["split"] == 1, ds.a["package"] == "megaglest-data")
+    assert main(["data", "build", str(mini_corpus), "-o", str(tmp_path / "c.npz"), "--workers", "1",
+                 "--val-packages", "megaglest-data,nope"]) == 2

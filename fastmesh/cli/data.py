@@ -18,9 +18,10 @@ def register(sub) -> None:
     b.add_argument("-o", "--out", required=True, metavar="FILE", help="cache file to write (.npz)")
     b.add_argument("--max-vertices", type=int, default=1000,
                    help="drop meshes with more vertices after the 7-bit merge")
-    b.add_argument("--val-packages", default=",".join(VAL_PACKAGES), metavar="P1,P2,...",
-                   help="packages held out whole for validation (default: %(default)s); 'none' splits by group "
-                        "with --val-fraction instead")
+    b.add_argument("--val-packages", default=None, metavar="P1,P2,...",
+                   help="packages held out whole for validation (default: those of "
+                        f"{','.join(VAL_PACKAGES)} among the sources; with none of them, a split by group); "
+                        "'none' splits by group with --val-fraction")
     b.add_argument("--val-fraction", type=float, default=0.05,
                    help="with --val-packages none: share of groups held out (0: train on everything)")
     b.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
@@ -57,11 +58,16 @@ def _build(args) -> int:
         raise ValueError("--max-vertices must be at least 3")
     if not 0 <= args.val_fraction < 1:
         raise ValueError("--val-fraction must be in [0, 1)")
-    packages = () if args.val_packages.strip().lower() in ("", "none") else tuple(
-        p.strip() for p in args.val_packages.split(",") if p.strip())
+    given = args.val_packages
+    if given is None:
+        packages = VAL_PACKAGES
+    elif given.strip().lower() in ("", "none"):
+        packages = ()
+    else:
+        packages = tuple(p.strip() for p in given.split(",") if p.strip())
     t = time.perf_counter()
     stats = build_dataset(args.sources, args.out, max_vertices=args.max_vertices, val_fraction=args.val_fraction,
-                          val_packages=packages, workers=args.workers,
+                          val_packages=packages, missing_ok=given is None, workers=args.workers,
                           progress=lambda i, n: print(f"  {i}/{n} files", file=sys.stderr))
     stats["seconds"] = round(time.perf_counter() - t, 2)
     print(json.dumps(stats, indent=2))

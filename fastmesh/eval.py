@@ -10,6 +10,9 @@ Three systems can be scored on the same inputs in one run:
 ``gt_vertices`` mode scores the face stage alone: the reference's own 7-bit vertices go
 into the face model and the predicted edges are compared with the true ones.
 
+Every system's result is also scored at the vertex stage (:func:`fastmesh.metrics.vertex_metrics`,
+under ``vertex_metrics``): its vertices against the artist's, in cells of the 7-bit grid.
+
 A mesh that fails to generate is a failure, counted in ``failure_rate``, never dropped.
 """
 
@@ -23,7 +26,7 @@ import numpy as np
 
 from .faces import mesh_from_adjacency
 from .io import SUPPORTED_FORMATS, Normalization, Shape, ShapeError, input_surface, load_shape, sample_surface
-from .metrics import edge_metrics, edges_from_faces, surface_distance
+from .metrics import edge_metrics, edges_from_faces, surface_distance, vertex_metrics
 from .tokenizer import dequantize, quantize_mesh
 
 MESH_EXTS = ("ply", "obj", "glb", "gltf", "stl", "off")
@@ -66,9 +69,34 @@ def poisson(shape: Shape, target_faces: int, seed: int = 0) -> tuple[np.ndarray,
     return np.asarray(m.vertex_matrix()), np.asarray(m.face_matrix())
 
 
-def _score(result: tuple[np.ndarray, np.ndarray], ref: Shape) -> dict:
+def artist_vertices(ref: Shape, shape: Shape) -> dict:
+    """What a result's vertices are scored against, in the reference's normalised frame.
+
+    Returns
+    -------
+    dict with ``norm`` (the reference's :class:`Normalization`), ``reference`` (M, 3): the artist's
+    vertices as the vertex decoder is trained to emit them (``quantize_mesh``: merged per 7-bit cell,
+    at their mean position), and ``surface`` (vertices, faces): the input surface, i.e. the input's own
+    triangles, or for a point cloud the reference mesh it was sampled from (``export_eval_set``): the
+    distance to the nearest of 8,192 scattered points overstates the distance to the surface by
+    about a cell (``(None, None)`` when neither is a mesh: no ``on_surface`` then).
+    """
+    def is_mesh(s: Shape) -> bool:
+        return s.faces is not None and len(s.faces) > 0
+
+    norm = Normalization.fit(ref.vertices)
+    unit = norm.apply(ref.vertices)
+    artist = quantize_mesh(unit, ref.faces)[2] if is_mesh(ref) else np.unique(unit, axis=0)
+    surf = shape if is_mesh(shape) else ref if is_mesh(ref) else None
+    surface = (norm.apply(surf.vertices), surf.faces) if surf is not None else (None, None)
+    return {"norm": norm, "reference": artist, "surface": surface}
+
+
+def _score(result: tuple[np.ndarray, np.ndarray], ref: Shape, artist: dict) -> dict:
     d = surface_distance(result, (ref.vertices, ref.faces))
-    return {"cd": d.cd, "hd": d.hd, "vertices": int(len(result[0])), "faces": int(len(result[1]))}
+    vm = vertex_metrics(artist["norm"].apply(result[0]), artist["reference"], *artist["surface"])
+    return {"cd": d.cd, "hd": d.hd, "vertices": int(len(result[0])), "faces": int(len(result[1])),
+            "vertex_metrics": vm}
 
 
 def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("fastmesh",),
@@ -81,17 +109,18 @@ def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("
         ref = load_shape(ref_path)
         shape = load_shape(inp)
         row = {"name": inp.stem, "reference": {"vertices": int(len(ref.vertices)), "faces": int(len(ref.faces))}}
+        artist = artist_vertices(ref, shape)
         for system in systems:
             t = time.perf_counter()
             try:
                 if system == "fastmesh":
                     res = pipe.generate(shape, params)
-                    out = _score((res.vertices, res.faces), ref)
+                    out = _score((res.vertices, res.faces), ref, artist)
                     out.update(tokens=res.tokens, timings={k: round(v, 4) for k, v in res.timings.items()})
                 elif system == "convex_hull":
-                    out = _score(convex_hull(shape), ref)
+                    out = _score(convex_hull(shape), ref, artist)
                 elif system == "poisson":
-                    out = _score(poisson(shape, len(ref.faces), seed=params.seed), ref)
+                    out = _score(poisson(shape, len(ref.faces), seed=params.seed), ref, artist)
                 else:
                     raise ValueError(f"unknown system {system!r}")
                 out["seconds"] = round(time.perf_counter() - t, 4)
@@ -101,10 +130,24 @@ def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("
             row[system] = out
         rows.append(row)
         if log:
-            log(f"[{i}/{len(pairs)}] {inp.name}: " + ", ".join(
-                f"{s} " + ("failed" if row[s].get("failed") else f"CD {row[s]['cd']:.2f} HD {row[s]['hd']:.2f}")
-                for s in systems))
+            log(f"[{i}/{len(pairs)}] {inp.name}: " + ", ".join(f"{s} " + _line(row[s]) for s in systems))
     return {"meshes": rows, "summary": {s: summarise(rows, s) for s in systems}}
+
+
+def _line(out: dict) -> str:
+    if out.get("failed"):
+        return "failed"
+    vm = out["vertex_metrics"]
+    return (f"CD {out['cd']:.2f} HD {out['hd']:.2f} V {vm['generated']}/{vm['reference']} "
+            f"P1 {vm['precision_1']:.2f} R1 {vm['recall_1']:.2f} on-surface {vm.get('on_surface', float('nan')):.2f}")
+
+
+def summarise_vertex_metrics(per_mesh: list[dict]) -> dict:
+    """Means of :func:`fastmesh.metrics.vertex_metrics` over meshes, and the median count ratio."""
+    keys = ("precision_1", "precision_2", "recall_1", "recall_2", "on_surface", "count_ratio")
+    out = {f"mean_{k}": float(np.mean([m[k] for m in per_mesh if k in m] or [np.nan])) for k in keys}
+    out["median_count_ratio"] = float(np.median([m["count_ratio"] for m in per_mesh]))
+    return out
 
 
 def summarise(rows: list[dict], system: str) -> dict:
@@ -117,6 +160,7 @@ def summarise(rows: list[dict], system: str) -> dict:
         ratio = [r[system]["faces"] / max(1, r["reference"]["faces"]) for r in ok]
         out["mean_face_ratio"] = float(np.mean(ratio))
         out["over_1_5x_faces"] = int(sum(x > 1.5 for x in ratio))
+        out["vertex_metrics"] = summarise_vertex_metrics([r[system]["vertex_metrics"] for r in ok])
         if "timings" in ok[0][system]:
             out["mean_timings"] = {k: float(np.mean([r[system]["timings"][k] for r in ok]))
                                    for k in ok[0][system]["timings"]}

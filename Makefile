@@ -6,10 +6,22 @@ STAMP := $(VENV)/.installed
 
 .PHONY: run test lint install bench-tokens web chromium assimp
 
+# torch: PyPI's default Linux wheel is the CUDA build (about 2.7 GB with its nvidia-* packages).  On Linux
+# without an NVIDIA GPU we install the CPU build (about 200 MB) from PyTorch's CPU index instead; its own
+# dependencies then come from your usual index with the package.  Override: make install TORCH='torch==2.13.0'.
+TORCH_VERSION := 2.13.0
+TORCH_CPU_INDEX := https://download.pytorch.org/whl/cpu
+HAS_GPU := $(shell nvidia-smi -L >/dev/null 2>&1 && echo yes)
+ifeq ($(shell uname -s)-$(HAS_GPU),Linux-)
+TORCH ?= torch==$(TORCH_VERSION)+cpu --extra-index-url $(TORCH_CPU_INDEX)
+else
+TORCH ?= torch==$(TORCH_VERSION)
+endif
+
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q torch==2.13.0
+	$(BIN)/pip install -q --no-deps $(TORCH)
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $(STAMP)
 

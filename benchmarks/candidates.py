@@ -32,7 +32,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fastmesh.io import SUPPORTED_FORMATS, Normalization, load_shape, sample_surface  # noqa: E402
+from fastmesh.io import SUPPORTED_FORMATS, Normalization, load_shape  # noqa: E402
 from fastmesh.models.generate import StackedEvidence, generate  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
@@ -73,18 +73,13 @@ def _decode_times(pipe: Pipeline, prefix: list, evidence: list, rounds: int) -> 
 
 def time_decoding(pipe: Pipeline, inputs: list[Path], k: int, rounds: int) -> None:
     """Vertex decoding of k candidates per input: batched, sequential and the first alone (medians)."""
-    n_vp = pipe.vertex.cfg.encoder.n_points
     totals = {"batched": 0.0, "sequential": 0.0, "first alone": 0.0}
     for f in inputs:
         shape = load_shape(f)
         unit = Normalization.fit(shape.vertices).apply(shape.vertices)
-        prefix, evidence = [], []
-        for seed in range(k):  # candidate k's own surface sample, as Pipeline.generate draws it
-            sample = sample_surface(shape, pipe._n_points(), seed=seed, vertices=unit)
-            pts, nrm = (torch.from_numpy(a)[None, :n_vp] for a in sample)
-            with torch.inference_mode():
-                prefix.append(pipe.vertex.condition(pts, nrm))
-                evidence.append(pipe.vertex.point_evidence(pts, nrm))
+        # Candidate k's own surface sample and condition, as Pipeline.generate makes them.
+        encoded = [pipe._encode(shape, unit, seed) for seed in range(k)]
+        prefix, evidence = [e[2] for e in encoded], [e[3] for e in encoded]
         med, lengths = _decode_times(pipe, prefix, evidence, rounds)
         for name in totals:
             totals[name] += med[name]

@@ -210,22 +210,30 @@ def evaluate_gt_vertices(pipe, pairs: list[tuple[Path, Path]], filtering: bool =
 
 
 def export_eval_set(ds, source_root: str | Path, out: str | Path, split: str = "val", n_points: int = 8192,
-                    seed: int = 0, max_vertices: int | None = None) -> int:
+                    seed: int = 0, max_vertices: int | None = None, per_package: int | None = None) -> int:
     """Write ``inputs/<name>.npz`` (points + normals, the reference's frame) and ``reference/<name>.ply``.
 
     The input point cloud is sampled from the original reference mesh, as a user's scan
-    of it would be; returns the number of pairs written.
+    of it would be; returns the number of pairs written.  With ``per_package`` = n, only n
+    meshes of each package, evenly spaced in its list, so that a small set still holds every
+    package of the split.
     """
     import shutil
 
     out = Path(out)
     (out / "inputs").mkdir(parents=True, exist_ok=True)
     (out / "reference").mkdir(parents=True, exist_ok=True)
+    chosen = [i for i in ds.indices(split) if not (max_vertices and ds.num_vertices()[i] > max_vertices)]
+    if per_package:
+        package = ds.a["package"]
+        subsets = []
+        for p in sorted(set(package[chosen])):
+            mine = [i for i in chosen if package[i] == p]
+            subsets += [mine[j] for j in np.unique(np.linspace(0, len(mine) - 1, per_package).round().astype(int))]
+        chosen = sorted(subsets)
     count = 0
-    for i in ds.indices(split):
+    for i in chosen:
         name = str(ds.a["name"][i])
-        if max_vertices and ds.num_vertices()[i] > max_vertices:
-            continue
         src = Path(source_root) / name
         ref = load_shape(src)
         pts, nrm = sample_surface(ref, n_points, seed=seed)

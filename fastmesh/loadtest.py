@@ -303,6 +303,10 @@ def summarize(records: list[dict], wall: float, http: Counter, errors: Counter, 
     }
 
 
+NAME_WIDTH = 22  # the first column of the text report
+STAGE_LABELS = {"total": "total incl. queue"}
+
+
 def format_report(rep: dict) -> str:
     """The report as a few aligned lines for a terminal."""
     j = rep["jobs"]
@@ -312,19 +316,20 @@ def format_report(rep: dict) -> str:
              + (f", {j['not_submitted']} not submitted" if j["not_submitted"] else "")
              + (f", {j['download_failed']} download failed" if j["download_failed"] else ""),
              f"throughput: {rep['jobs_per_minute']:.1f} jobs/minute", "",
-             f"{'seconds':<14}{'p50':>9}{'p95':>9}{'p99':>9}{'mean':>9}{'n':>6}"]
+             f"{'seconds':<{NAME_WIDTH}}{'p50':>9}{'p95':>9}{'p99':>9}{'mean':>9}{'n':>6}"]
 
     def f(x: float | None) -> str:
         return f"{x:9.3f}" if x is not None else f"{'-':>9}"
 
     def row(name: str, p: dict) -> str:
-        return f"{name:<14}{f(p['p50'])}{f(p['p95'])}{f(p['p99'])}{f(p['mean'])}{p['n']:>6}"
+        return f"{name:<{NAME_WIDTH}}{f(p['p50'])}{f(p['p95'])}{f(p['p99'])}{f(p['mean'])}{p['n']:>6}"
 
     lines.append(row("end-to-end", rep["end_to_end_s"]))
     lines.append(row("queue wait", rep["queue_wait_s"]))
-    for k, p in rep["stages_s"].items():
-        if k != "queue":
-            lines.append(row(f"  {k}", p))
+    # The job's own "total" runs from upload to finish, queue wait included: last, and named so.
+    stages = sorted((k for k in rep["stages_s"] if k != "queue"), key=lambda k: k == "total")
+    for k in stages:
+        lines.append(row(f"  {STAGE_LABELS.get(k, k)}", rep["stages_s"][k]))
     if rep["http_errors"]:
         lines.append("http errors: " + ", ".join(f"{k}: {v}" for k, v in rep["http_errors"].items()))
     if rep["job_errors"]:

@@ -1,4 +1,4 @@
-"""Quality metrics, exactly as ../shared/EVAL.md defines them.
+"""Quality metrics, exactly as the evaluation protocol (docs/method.md) defines them.
 
 Chamfer and Hausdorff distances: each shape is normalised on its own (bounding-box centre
 to the origin, longest side 1), 5,000 points are sampled on it (area-weighted, fixed seed),
@@ -48,8 +48,8 @@ class SurfaceDistance:
 
 
 def normalized_samples(vertices: np.ndarray, faces: np.ndarray | None, n: int = N_SAMPLES,
-                       seed: int = SEED) -> np.ndarray:
-    """Points on a shape after the EVAL normalisation.
+                       seed: int = SEED, frame: Normalization | None = None) -> np.ndarray:
+    """Points on a shape after the EVAL normalisation (or ``frame``'s).
 
     Parameters
     ----------
@@ -61,12 +61,15 @@ def normalized_samples(vertices: np.ndarray, faces: np.ndarray | None, n: int = 
         Number of samples.
     seed : int
         Seed of the sampler; the same seed gives the same points.
+    frame : Normalization, optional
+        Normalise with this one instead of the shape's own (to measure a shape in another's frame).
 
     Returns
     -------
     (n, 3) float64 points (fewer for a small point cloud), unit-longest-side frame.
     """
-    v = Normalization.fit(np.asarray(vertices, dtype=np.float64)).apply(vertices)
+    frame = frame or Normalization.fit(np.asarray(vertices, dtype=np.float64))
+    v = frame.apply(vertices)
     rng = np.random.default_rng(seed)
     if faces is None or len(faces) == 0:
         if len(v) <= n:
@@ -86,13 +89,15 @@ def nearest_distances(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def surface_distance(a: tuple[np.ndarray, np.ndarray | None], b: tuple[np.ndarray, np.ndarray | None],
-                     n: int = N_SAMPLES, seed: int = SEED) -> SurfaceDistance:
+                     n: int = N_SAMPLES, seed: int = SEED, frame: Normalization | None = None) -> SurfaceDistance:
     """Chamfer and Hausdorff distance between two shapes given as ``(vertices, faces)`` pairs.
 
-    Both shapes are sampled with the same ``seed``; faces may be None for a point cloud.
+    Both shapes are sampled with the same ``seed``; faces may be None for a point cloud.  Each is
+    normalised on its own (EVAL.md), or both with ``frame`` when given: then a shift or a wrong scale
+    between them counts too.
     """
-    pa = normalized_samples(*a, n=n, seed=seed)
-    pb = normalized_samples(*b, n=n, seed=seed)
+    pa = normalized_samples(*a, n=n, seed=seed, frame=frame)
+    pb = normalized_samples(*b, n=n, seed=seed, frame=frame)
     d_ab, d_ba = nearest_distances(pa, pb)
     cd = 100.0 * (d_ab.mean() + d_ba.mean()) / 2.0
     hd = 100.0 * max(d_ab.max(), d_ba.max())

@@ -31,6 +31,7 @@ from .models.encoder import EncoderConfig
 from .models.generate import Cancelled, StackedEvidence, generate
 from .models.onnx_decode import choose_decoder
 from .params import GenerateParams
+from .quality import mesh_quality
 from .support import surface_fit
 from .tokenizer import dequantize
 from .tokenizer import vertex as vt
@@ -38,10 +39,14 @@ from .tokenizer import vertex as vt
 __all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "Pipeline", "default_weights_dir"]
 
 NETWORKS = ("vertex", "enhancer", "face")
+CELLS = "cells"  # the cell evidence network (models.cells), needed by a decoder trained with it
 # Share of the overall progress bar each stage covers (decoding dominates).  The candidates are
 # encoded and decoded together; each then has its share of the stages from the enhancer on.
 _STAGE_SPAN = {"encode": (0.0, 0.03), "vertices": (0.03, 0.80), "enhancer": (0.80, 0.83), "faces": (0.83, 0.90),
                "filtering": (0.90, 1.0)}
+# torch CPU threads when neither the caller nor $FASTMESH_TORCH_THREADS says: decoding one sequence is a chain of
+# small matrix-vector products, and on our 2-core machine a second thread made generation slower, not faster.
+CPU_THREADS = 1
 
 
 def default_weights_dir() -> Path:
@@ -68,6 +73,8 @@ class GenerateResult:
     faces : (F, 3) int64
     tokens : int, vertex tokens generated (BOS/EOS included)
     timings : dict, seconds per stage: encode, vertices, enhancer, faces, filtering
+    quality : dict, distance to the input and topology (:func:`fastmesh.quality.mesh_quality`): cd, hd (% of
+        the input's size), boundary_edges, non_manifold_edges, components, watertight
     """
 
     vertices: np.ndarray
@@ -75,9 +82,27 @@ class GenerateResult:
     tokens: int
     timings: dict[str, float] = field(default_factory=dict)
     info: dict = field(default_factory=dict)
+    quality: dict = field(default_factory=dict)
 
     def export(self, fmt: str) -> bytes:
         return export_mesh(self.vertices, self.faces, fmt)
+
+
+def choose_threads(device: torch.device, threads: int | None = None) -> int | None:
+    """torch's thread count for generation: ``threads``, else ``$FASTMESH_TORCH_THREADS``, else
+    :data:`CPU_THREADS` on a CPU device; None (torch's default) on a GPU."""
+    if threads is None:
+        env = os.environ.get("FASTMESH_TORCH_THREADS", "").strip()
+        if env:
+            try:
+                threads = int(env)
+            except ValueError:
+                raise ValueError(f"FASTMESH_TORCH_THREADS must be a whole number, got {env!r}") from None
+    if threads is None and device.type == "cpu":
+        threads = CPU_THREADS
+    if threads is not None and threads < 1:
+        raise ValueError(f"torch threads must be at least 1, got {threads}")
+    return threads
 
 
 def auto_device(device: str | None = None) -> torch.device:
@@ -91,8 +116,16 @@ class Pipeline:
 
     def __init__(self, vertex, enhancer, face, device: torch.device | str = "cpu",
                  filter_config: FilterConfig | None = None, face_config: FaceConfig | None = None,
-                 source: str = ""):
+                 source: str = "", threads: int | None = None, cells=None):
         self.device = torch.device(device)
+        # Process-wide (torch has one thread pool), and before the decoder is built: its ONNX session
+        # takes torch's count.  See choose_threads.
+        self.threads = choose_threads(self.device, threads)
+        if self.threads is not None:
+            torch.set_num_threads(self.threads)
+        if vertex.cfg.evidence_cells and cells is None:
+            raise ValueError("this vertex decoder reads the cell evidence network: pass `cells`")
+        self.cells = cells.to(self.device).eval() if cells is not None else None
         self.vertex = vertex.to(self.device).eval()
         self.enhancer = enhancer.to(self.device).eval()
         self.face = face.to(self.device).eval()
@@ -108,8 +141,13 @@ class Pipeline:
     # ------------------------------------------------------------------ construction
 
     @classmethod
-    def from_pretrained(cls, weights: str | os.PathLike | None = None, device: str | None = None) -> Pipeline:
-        """Load ``vertex/``, ``enhancer/`` and ``face/`` from ``weights`` (default: the shipped ones)."""
+    def from_pretrained(cls, weights: str | os.PathLike | None = None, device: str | None = None,
+                        threads: int | None = None) -> Pipeline:
+        """Load ``vertex/``, ``enhancer/`` and ``face/`` from ``weights`` (default: the shipped ones).
+
+        ``threads``: torch CPU threads (default ``$FASTMESH_TORCH_THREADS``, else 1 on CPU: the fastest
+        measured for generating one mesh at a time); it applies to the whole process.
+        """
         root = Path(weights) if weights else default_weights_dir()
         missing = [n for n in NETWORKS if not (root / n / "model.safetensors").exists()]
         if missing:
@@ -117,15 +155,17 @@ class Pipeline:
                                     "(each needs model.safetensors + config.json)")
         dev = auto_device(device)
         nets = {n: load_model(root / n, device=dev)[0] for n in NETWORKS}
+        cells = load_model(root / CELLS, device=dev)[0] if (root / CELLS / "model.safetensors").exists() else None
         settings = root / "pipeline.json"
         extra = json.loads(settings.read_text()) if settings.exists() else {}
         fcfg = FilterConfig(**extra.get("filtering", {}))
         face_cfg = FaceConfig(**{"remove_unreferenced": True, **extra.get("faces", {})})
         return cls(nets["vertex"], nets["enhancer"], nets["face"], device=dev, filter_config=fcfg,
-                   face_config=face_cfg, source=str(root))
+                   face_config=face_cfg, source=str(root), threads=threads, cells=cells)
 
     @classmethod
-    def random(cls, size: str = "tiny", seed: int = 0, device: str | None = None) -> Pipeline:
+    def random(cls, size: str = "tiny", seed: int = 0, device: str | None = None,
+               threads: int | None = None) -> Pipeline:
         """Randomly initialised networks, for tests and benchmarks of the machinery.
 
         ``tiny`` networks are a few thousand parameters.  A random face model would
@@ -146,18 +186,22 @@ class Pipeline:
         face = FaceModel(FaceModelConfig(dim=32, depth=1, heads=2, edge_heads=4, edge_mlp_hidden=4, encoder=enc))
         with torch.no_grad():
             face.edge_out.bias.fill_(8.0)
-        return cls(vertex, enhancer, face, device=auto_device(device), source=f"random:{size}:{seed}")
+        return cls(vertex, enhancer, face, device=auto_device(device), source=f"random:{size}:{seed}",
+                   threads=threads)
 
     def save(self, directory: str | os.PathLike) -> None:
         """Write the three networks (and the filtering and clean-up settings) so ``from_pretrained`` can load them."""
         root = Path(directory)
         for name, net in zip(NETWORKS, (self.vertex, self.enhancer, self.face), strict=True):
             save_model(net, name, root / name)
+        if self.cells is not None:
+            save_model(self.cells, CELLS, root / CELLS)
         settings = {"filtering": asdict(self.filter_config), "faces": asdict(self.face_config)}
         (root / "pipeline.json").write_text(json.dumps(settings, indent=2))
 
     def info(self) -> dict:
-        return {"source": self.source, "device": str(self.device), "max_vertices": self.max_vertices,
+        return {"source": self.source, "device": str(self.device), "threads": torch.get_num_threads(),
+                "max_vertices": self.max_vertices,
                 "decoder": getattr(self.decoder, "backend", "torch"),
                 "parameters": {n: sum(p.numel() for p in net.parameters())
                                for n, net in zip(NETWORKS, (self.vertex, self.enhancer, self.face), strict=True)}}
@@ -165,7 +209,8 @@ class Pipeline:
     # ------------------------------------------------------------------ generation
 
     def _n_points(self) -> int:
-        return max(net.cfg.encoder.n_points for net in (self.vertex, self.enhancer, self.face))
+        n = max(net.cfg.encoder.n_points for net in (self.vertex, self.enhancer, self.face))
+        return max(n, self.cells.cfg.n_points) if self.cells is not None else n
 
     def generate(self, shape: Shape, params: GenerateParams | None = None,
                  progress: Callable[[str, float], None] | None = None,
@@ -232,8 +277,23 @@ class Pipeline:
                 "chosen_seed": best["seed"]}
         if n_cand > 1:
             info["fits"] = fits  # per candidate: its surface_fit in the unit cube, None if it made no mesh
-        return GenerateResult(vertices=norm.invert(best["vertices"]), faces=best["faces"], tokens=best["tokens"],
-                              timings=timings, info=info)
+        vertices = norm.invert(best["vertices"])
+        return GenerateResult(vertices=vertices, faces=best["faces"], tokens=best["tokens"], timings=timings,
+                              info=info, quality=mesh_quality(vertices, best["faces"], shape, params.seed))
+
+    def _encode(self, shape: Shape, unit: np.ndarray, seed: int) -> tuple:
+        """The surface sample of ``seed`` (points, normals: (n, 3) float32 in the normalised frame ``unit``)
+        and the vertex decoder's condition on it: (points, normals, prefix (1, M, dim), evidence)."""
+        pts, nrm = sample_surface(shape, self._n_points(), seed=seed, vertices=unit)
+        n_vp = self.vertex.cfg.encoder.n_points
+        pts_t = torch.from_numpy(pts).to(self.device)[None, :n_vp]
+        nrm_t = torch.from_numpy(nrm).to(self.device)[None, :n_vp]
+        with torch.inference_mode():
+            prefix = self.vertex.condition(pts_t, nrm_t)
+            grid = None if not self.vertex.cfg.evidence_cells else self.cells.grid(pts[:self.cells.cfg.n_points],
+                                                                  nrm[:self.cells.cfg.n_points])[None].to(self.device)
+            evidence = self.vertex.point_evidence(pts_t, nrm_t, grid)
+        return pts, nrm, prefix, evidence
 
     def _decode(self, shape: Shape, unit: np.ndarray, params: GenerateParams, n_cand: int,
                 report: Callable[[str, float], None], should_cancel, timings: dict) -> list[tuple]:
@@ -248,16 +308,12 @@ class Pipeline:
         # Encode: sample the surface; each network reads its share.
         t = time.perf_counter()
         report("encode", 0.0)
-        n_vp = self.vertex.cfg.encoder.n_points
         samples, prefixes, evidence = [], [], []
         for k in range(n_cand):
-            pts, nrm = sample_surface(shape, self._n_points(), seed=params.seed + k, vertices=unit)
-            pts_t = torch.from_numpy(pts).to(self.device)[None, :n_vp]
-            nrm_t = torch.from_numpy(nrm).to(self.device)[None, :n_vp]
-            with torch.inference_mode():
-                prefixes.append(self.vertex.condition(pts_t, nrm_t))
-                evidence.append(self.vertex.point_evidence(pts_t, nrm_t))
+            pts, nrm, prefix, ev = self._encode(shape, unit, params.seed + k)
             samples.append((pts, nrm))
+            prefixes.append(prefix)
+            evidence.append(ev)
         timings["encode"] += time.perf_counter() - t
         if should_cancel is not None and should_cancel():
             raise Cancelled("generation cancelled")

@@ -12,7 +12,7 @@ import logging
 from prometheus_client import CollectorRegistry, Counter, Histogram, disable_created_metrics, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
 
-from .store import STAGE_BUCKETS, Store
+from .store import DISTANCE_BUCKETS, STAGE_BUCKETS, Store
 
 log = logging.getLogger("fastmesh.service")
 disable_created_metrics()  # the *_created series only add noise to every scrape
@@ -29,6 +29,7 @@ class _RedisCollector:
             running = self.store.running_count()
             workers = len(self.store.workers_alive())
             stages = self.store.stage_stats()
+            distances = self.store.distance_stats()
         except Exception as e:  # a scrape must not fail because Redis blinked; report it instead
             log.warning("metrics: redis unreachable: %s", e)
             up = GaugeMetricFamily("fastmesh_redis_up", "1 when Redis answered this scrape")
@@ -53,13 +54,22 @@ class _RedisCollector:
         w = GaugeMetricFamily("fastmesh_workers_alive", "Workers with a recent heartbeat")
         w.add_metric([], workers)
         yield w
-        h = HistogramMetricFamily("fastmesh_stage_seconds", "Duration of each stage of succeeded jobs",
-                                  labels=["stage"])
-        for stage, s in sorted(stages.items()):
-            buckets = [(str(le), s.get(f"b:{le}", 0.0)) for le in STAGE_BUCKETS]
-            buckets.append(("+Inf", s.get("count", 0.0)))
-            h.add_metric([stage], buckets, s.get("sum", 0.0))
-        yield h
+        yield _histogram("fastmesh_stage_seconds", "Duration of each stage of succeeded jobs", "stage", stages,
+                         STAGE_BUCKETS)
+        yield _histogram("fastmesh_result_distance_percent", "Distance of each succeeded job's result to its input "
+                         "(Chamfer cd, Hausdorff hd) in % of the input's size", "metric", distances,
+                         DISTANCE_BUCKETS)
+
+
+def _histogram(name: str, doc: str, label: str, stats: dict[str, dict[str, float]],
+               bounds: tuple[float, ...]) -> HistogramMetricFamily:
+    """A histogram family from the count/sum/b:<le> hashes that ``Store.finish`` keeps in Redis."""
+    h = HistogramMetricFamily(name, doc, labels=[label])
+    for value, s in sorted(stats.items()):
+        buckets = [(str(le), s.get(f"b:{le}", 0.0)) for le in bounds]
+        buckets.append(("+Inf", s.get("count", 0.0)))
+        h.add_metric([value], buckets, s.get("sum", 0.0))
+    return h
 
 
 class Metrics:

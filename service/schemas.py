@@ -18,7 +18,9 @@ JOB_EXAMPLE = {
     "params": {"seed": 0, "temperature": 0.3, "top_k": 10, "top_p": 0.95, "max_vertices": 1000,
                "enhancer": True, "filtering": True, "candidates": 2, "formats": ["glb"]},
     "input": {"filename": "chair.ply", "kind": "points", "points": 20000, "vertices": None, "faces": None},
-    "result": {"vertices": 412, "faces": 806, "tokens": 412, "formats": ["glb"], "seed": 1},
+    "result": {"vertices": 412, "faces": 806, "tokens": 412, "formats": ["glb"], "seed": 1,
+               "quality": {"cd": 2.61, "hd": 11.4, "boundary_edges": 18, "non_manifold_edges": 0, "components": 3,
+                           "watertight": False}},
     "timings": {"queue": 0.21, "load": 0.05, "encode": 0.12, "vertices": 3.1, "enhancer": 0.2, "faces": 0.9,
                 "filtering": 0.05, "export": 0.02, "total": 4.87},
     "error": None,
@@ -50,6 +52,17 @@ class InputInfo(BaseModel):
     faces: int | None = Field(description="Faces of a mesh input (null for a point cloud).")
 
 
+class Quality(BaseModel):
+    """How far the result lies from the input and what its topology is (fastmesh.quality)."""
+
+    cd: float = Field(description="Chamfer distance between result and input, % of the input's longest side.")
+    hd: float = Field(description="Hausdorff distance between result and input, % of the input's longest side.")
+    boundary_edges: int = Field(description="Edges with one face: the rims of holes and open borders.")
+    non_manifold_edges: int = Field(description="Edges with three or more faces.")
+    components: int = Field(description="Pieces of the mesh (faces connected through shared vertices).")
+    watertight: bool = Field(description="Every edge in exactly two faces.")
+
+
 class ResultInfo(BaseModel):
     vertices: int
     faces: int
@@ -57,6 +70,7 @@ class ResultInfo(BaseModel):
     formats: list[str] = Field(description="Formats exported with the job; the others are converted on request.")
     seed: int | None = Field(None, description="Seed of the returned mesh, one of the candidates' seed, "
                                                "seed+1, ...: that seed with candidates=1 gives this mesh alone.")
+    quality: Quality | None = None
 
 
 class Timings(BaseModel):

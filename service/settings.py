@@ -59,7 +59,8 @@ class Settings(BaseSettings):
     device: str | None = Field(None, description="Torch device for the workers (cpu, cuda); unset = best available.")
     debug_step_delay: float = Field(0.0, ge=0, description="Testing only: a worker sleeps this long in every "
                                     "progress callback, so fault and cancellation tests can catch a job mid-run.")
-    torch_threads: int | None = Field(None, ge=1, description="torch.set_num_threads in a worker; unset = default.")
+    torch_threads: int | None = Field(None, ge=1, description="torch threads in a worker; unset = the pipeline's "
+                                     "choice (1 on CPU, the fastest measured for one job at a time).")
 
     @field_validator("api_keys", "cors_origins", "default_formats", mode="before")
     @classmethod

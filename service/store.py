@@ -16,6 +16,7 @@ Layout (``P`` is ``Settings.redis_prefix``)::
     P:worker:<name>         hash: pid host loads jobs weights started_at
     P:stats:jobs            hash: submitted succeeded failed cancelled retried
     P:stats:stage:<stage>   hash: count sum b:<le> (a histogram of stage durations)
+    P:stats:distance:<cd|hd>  hash: count sum b:<le> (a histogram of result-to-input distances)
 
 Every status change is a compare-and-set on (status, attempt) in one Lua script, so a late
 write from a worker that was presumed dead, or that lost a race with a DELETE, changes nothing.
@@ -44,6 +45,8 @@ STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")
 FINAL = ("succeeded", "failed", "cancelled")
 TIMING_KEYS = ("queue", "load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total")
 STAGE_BUCKETS = (0.01, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0)
+# Result-to-input distance (% of the input's size): validation meshes sit at CD 2-5, HD 8-25.
+DISTANCE_BUCKETS = (0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 7.5, 10.0, 15.0, 20.0, 30.0, 50.0)
 TASK = "worker.tasks.run_job"  # by name: the API never imports the worker (or torch)
 RQ_GRACE = 30  # RQ's hard timeout backs up our cooperative one by this many seconds
 PENDING_TTL = 10  # seconds an Idempotency-Key stays claimed by a request that has not created its job yet
@@ -322,23 +325,35 @@ class Store:
                 if status == "succeeded":
                     for k, v in t.items():
                         if v is not None:
-                            self._observe(pipe, k, v)
+                            self._observe(pipe, f"stage:{k}", v, STAGE_BUCKETS)
+                    quality = (result or {}).get("quality") or {}
+                    for k in ("cd", "hd"):
+                        if quality.get(k) is not None:
+                            self._observe(pipe, f"distance:{k}", quality[k], DISTANCE_BUCKETS)
                 pipe.execute()
         return ok
 
-    def _observe(self, pipe, stage: str, seconds: float) -> None:
-        key = f"{self.p}:stats:stage:{stage}"
+    def _observe(self, pipe, name: str, value: float, buckets: tuple[float, ...]) -> None:
+        key = f"{self.p}:stats:{name}"
         pipe.hincrby(key, "count", 1)
-        pipe.hincrbyfloat(key, "sum", float(seconds))
-        for le in STAGE_BUCKETS:
-            if seconds <= le:
+        pipe.hincrbyfloat(key, "sum", float(value))
+        for le in buckets:
+            if value <= le:
                 pipe.hincrby(key, f"b:{le}", 1)
 
     def stage_stats(self) -> dict[str, dict[str, float]]:
+        """Per stage of succeeded jobs: count, sum and b:<le> of its duration in seconds."""
+        return self._histograms("stage")
+
+    def distance_stats(self) -> dict[str, dict[str, float]]:
+        """Per distance (cd, hd) of succeeded jobs' results to their inputs: count, sum and b:<le>."""
+        return self._histograms("distance")
+
+    def _histograms(self, kind: str) -> dict[str, dict[str, float]]:
         out = {}
-        for key in self.r.scan_iter(f"{self.p}:stats:stage:*"):
-            stage = key.decode().rsplit(":", 1)[1]
-            out[stage] = {k.decode(): float(v) for k, v in self.r.hgetall(key).items()}
+        for key in self.r.scan_iter(f"{self.p}:stats:{kind}:*"):
+            name = key.decode().rsplit(":", 1)[1]
+            out[name] = {k.decode(): float(v) for k, v in self.r.hgetall(key).items()}
         return out
 
     def job_counters(self) -> dict[str, int]:

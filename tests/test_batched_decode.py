@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from test_cells import _cell_grids
 
 from fastmesh.io import Normalization, input_surface
 from fastmesh.models.encoder import EncoderConfig
@@ -22,27 +23,32 @@ torch.set_num_threads(1)
 B = 4
 
 
-def _model(seed: int = 0) -> VertexDecoder:
+def _model(seed: int = 0, cells: bool = False) -> VertexDecoder:
     torch.manual_seed(seed)
     enc = EncoderConfig(n_points=64, n_latents=4, dim=32, depth=1, heads=2, n_freqs=4, anchors=8)
-    m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, evidence=True, evidence_normals=True))
+    m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, evidence=True, evidence_normals=True,
+                                   evidence_cells=cells))
     with torch.no_grad():  # spread the logits and make the evidence matter, as if trained
         m.head.weight.normal_(0, 1.0)
         m.tok_emb.weight.normal_(0, 0.5)
-        for t in (m.evidence.table, m.evidence.block_table, m.evidence.skip_table, m.evidence.eos_table,
-                  m.evidence.corner_table):
+        tables = (m.evidence.cell_block_table, m.evidence.cell_skip_table, m.evidence.cell_eos_table) if cells else (
+            m.evidence.table, m.evidence.block_table, m.evidence.skip_table, m.evidence.eos_table,
+            m.evidence.corner_table)
+        for t in tables:
             t.weight.normal_(0, 3.0 / GAIN)
     return m.eval()
 
 
 def _inputs(m: VertexDecoder, seed: int = 0):
-    """B different shapes' prefixes and evidences, each computed alone."""
+    """B different shapes' prefixes and evidences (with their own cell log-odds if the decoder reads them),
+    each computed alone."""
     g = torch.Generator().manual_seed(seed)
     pts = torch.rand(B, 64, 3, generator=g) - 0.5
     nrm = torch.nn.functional.normalize(torch.randn(B, 64, 3, generator=g), dim=-1)
+    grids = _cell_grids(B, seed)[:, None] if m.cfg.evidence_cells else [None] * B
     with torch.inference_mode():
         prefix = [m.condition(pts[i:i + 1], nrm[i:i + 1]) for i in range(B)]
-        evidence = [m.point_evidence(pts[i:i + 1], nrm[i:i + 1]) for i in range(B)]
+        evidence = [m.point_evidence(pts[i:i + 1], nrm[i:i + 1], grids[i]) for i in range(B)]
     return prefix, evidence
 
 
@@ -63,9 +69,9 @@ class _Spy:
 
 
 @pytest.mark.parametrize("backend", ["torch", "onnx"])
-@pytest.mark.parametrize("temperature,top_k", [(1.0, 0), (0.7, 20)])
-def test_batch_rows_equal_each_seed_decoded_alone(backend, temperature, top_k):
-    m = _model(1)
+@pytest.mark.parametrize("temperature,top_k,cells", [(1.0, 0, False), (0.7, 20, False), (1.0, 0, True)])
+def test_batch_rows_equal_each_seed_decoded_alone(backend, temperature, top_k, cells):
+    m = _model(1, cells)
     dec = _Spy(OrtDecoder(m) if backend == "onnx" else m)
     prefix, evidence = _inputs(m, 1)
     cfg = SamplingConfig(temperature=temperature, top_k=top_k, top_p=0.95, max_vertices=12, seed=7)

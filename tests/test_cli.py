@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from testdata import committed_meshes
 
 from fastmesh.cli import main
 
-CORPUS = Path(__file__).resolve().parents[2] / "shared" / "corpus"
-SMALL = sorted((CORPUS / "torcs-data").glob("*.ply"))[:2]
+SMALL = committed_meshes()[:2]
 
 
 def _run(capsys, *argv) -> tuple[int, str, str]:

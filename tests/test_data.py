@@ -2,48 +2,27 @@
 
 from __future__ import annotations
 
-import csv
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
+from testdata import TEST_CORPUS, manifest
 
 from fastmesh.data import build_dataset, dataset_stats, in_validation, load_dataset
 from fastmesh.io import Normalization, load_shape
 from fastmesh.tokenizer import quantize_mesh
 
-CORPUS = Path(__file__).resolve().parents[2] / "shared" / "corpus"
-# Small base meshes that have animation poses in the corpus (a pose shares its base's group).
-POSED = [
-    "ufoai-data/base__0models.pk3__models__aliens__hovernet__body01.md2.ply",
-    "megaglest-data/techs__megapack__factions__egypt__units__chicken__models__chicken_dying.g3d.ply",
-    "megaglest-data/techs__megapack__factions__egypt__units__obelisk__models__obelisk_dying.g3d.ply",
-    "megaglest-data/techs__megapack__factions__egypt__units__snake__models__snake_attacking.g3d.ply",
-]
-
-
-def _manifest() -> list[dict]:
-    with open(CORPUS / "manifest.csv", newline="") as fh:
-        return list(csv.DictReader(fh))
+# The committed base meshes with animation poses (a pose shares its base's group).
+POSED = sorted({r["group"] for r in manifest() if r["kind"] == "pose"})
 
 
 @pytest.fixture(scope="module")
 def mini_corpus(tmp_path_factory) -> Path:
-    """A corpus-shaped folder: 4 posed groups (base + poses), 6 plain small meshes, and a manifest."""
-    rows = _manifest()
-    plain = [r for r in rows if r["kind"] == "mesh" and int(r["vertices"]) < 60 and r["group"] not in POSED][:6]
-    keep = [r for r in rows if r["group"] in POSED] + plain
+    """A corpus-shaped folder: 2 posed groups (base + 4 poses each), 6 plain small meshes, and a manifest."""
     root = tmp_path_factory.mktemp("mini") / "corpus"
-    for r in keep:
-        dst = root / r["file"]
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(CORPUS / r["file"], dst)
-    with open(root / "manifest.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(keep[0].keys()))
-        w.writeheader()
-        w.writerows(keep)
+    shutil.copytree(TEST_CORPUS, root)
     return root
 
 
@@ -53,7 +32,7 @@ def test_build_from_corpus_folder(mini_corpus, tmp_path):
     ds = load_dataset(out)
     n_files = len(list(mini_corpus.rglob("*.ply")))
     assert stats["meshes"] == len(ds) == n_files
-    assert stats["groups"] == 4 + 6
+    assert len(POSED) == 2 and stats["groups"] == 2 + 6
     groups = ds.a["group"]
     split = ds.a["split"]
     # Poses are never split from their base: one split per group.
@@ -64,7 +43,7 @@ def test_build_from_corpus_folder(mini_corpus, tmp_path):
         assert bool(split[i]) == in_validation(str(groups[i]), 0.5)
     # Posed groups hold the base and its poses together.
     sizes = {g: int((groups == g).sum()) for g in np.unique(groups)}
-    assert sorted(sizes.values())[-4:] == [5, 5, 5, 5]
+    assert sorted(sizes.values())[-3:] == [1, 5, 5]
 
 
 def test_split_is_deterministic(mini_corpus, tmp_path):
@@ -107,7 +86,7 @@ def test_build_from_files_and_tmp_folder(tmp_path):
     assert sum(dropped.values()) == 3  # + the broken STL (trimesh reads it as empty)
     ds = load_dataset(tmp_path / "d.npz")
     assert ds[0].name == "box.obj" and len(ds[0].q) == 8
-    files = [str(CORPUS / p) for p in POSED[:2]]
+    files = [str(TEST_CORPUS / p) for p in POSED]
     stats = build_dataset(files, tmp_path / "e.npz", workers=1)
     assert stats["meshes"] == 2 and stats["groups"] == 2
     assert set(dataset_stats(load_dataset(tmp_path / "e.npz"))) >= {"vertices", "faces", "fastmesh_tokens", "train"}
@@ -119,3 +98,17 @@ def test_build_errors(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError):
         build_dataset([str(tmp_path / "empty")], tmp_path / "x.npz")
+
+
+def test_split_by_package_holds_out_whole_packages(mini_corpus, tmp_path):
+    out = tmp_path / "p.npz"
+    stats = build_dataset([str(mini_corpus)], out, val_packages=("megaglest-data",), workers=1)
+    ds = load_dataset(out)
+    package = ds.a["package"]
+    assert set(package) == {"ufoai-data", "megaglest-data"}
+    # Every megaglest mesh and pose (the poses live in megaglest-data-poses/) is in validation, nothing else.
+    assert np.array_equal(ds.a["split"] == 1, package == "megaglest-data")
+    assert stats["val_packages"] == {"megaglest-data": int((package == "megaglest-data").sum())}
+    assert ds[int(ds.indices("val")[0])].package == "megaglest-data"
+    with pytest.raises(ValueError, match="no-such-package"):
+        build_dataset([str(mini_corpus)], tmp_path / "x.npz", val_packages=("no-such-package",), workers=1)

@@ -3,19 +3,17 @@
 from __future__ import annotations
 
 import itertools
-from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
 import trimesh
+from testdata import committed_meshes, shared_corpus_sample
 
 from fastmesh import faces as fm
 from fastmesh.io import Normalization, load_shape
 from fastmesh.metrics import edges_from_faces
 from fastmesh.tokenizer import dequantize, quantize_mesh
-
-CORPUS = Path(__file__).resolve().parents[2] / "shared" / "corpus"
 
 
 def _brute_triangles(adj: np.ndarray) -> np.ndarray:
@@ -147,13 +145,7 @@ def test_remove_unreferenced():
     assert kept.tolist() == [1, 3, 4] and nf.tolist() == [[2, 0, 1]] and np.array_equal(nv, v[[1, 3, 4]])
 
 
-def _corpus_files(k: int = 12) -> list[Path]:
-    files = sorted(CORPUS.glob("*/*.ply"))
-    assert files, f"corpus not found at {CORPUS}"
-    return files[:: max(1, len(files) // k)][:k]
-
-
-@pytest.mark.parametrize("path", _corpus_files(), ids=lambda p: p.name[:40])
+@pytest.mark.parametrize("path", committed_meshes() + shared_corpus_sample(12), ids=lambda p: p.name[:40])
 def test_corpus_ground_truth_triangles_recovered(path):
     shape = load_shape(path)
     q, f, _ = quantize_mesh(Normalization.fit(shape.vertices).apply(shape.vertices), shape.faces)

@@ -5,12 +5,13 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections import Counter
 
 import httpx
 import pytest
 from stack import make_settings, wp, write_inputs
 
-from fastmesh.loadtest import LoadConfig, format_report, percentiles, run
+from fastmesh.loadtest import LoadConfig, format_report, percentiles, run, summarize
 from service.testing import ServedApp, free_port
 
 
@@ -97,3 +98,12 @@ def test_percentiles():
     p = percentiles([1.0, 2.0, 3.0, 4.0, 100.0])
     assert p["p50"] == 3.0 and p["n"] == 5 and p["p50"] <= p["p95"] <= p["p99"] <= 100
     assert percentiles([]) == {"p50": None, "p95": None, "p99": None, "mean": None, "n": 0}
+
+
+def test_text_report_names_the_total_as_including_the_queue():
+    """The job's "total" (upload to finish) contains the queue wait; the table says so and puts it last."""
+    rec = {"outcome": "succeeded", "id": "a", "end_to_end_s": 5.2, "error": None,
+           "timings": {"queue": 2.0, "load": 0.1, "vertices": 2.5, "total": 5.0}}
+    rep = summarize([rec], 10.0, Counter(), Counter(), 0, LoadConfig(url="http://x", inputs=[]), [])
+    rows = [line.split()[0:3] for line in format_report(rep).splitlines() if line.startswith("  ")]
+    assert rows == [["load", "0.100", "0.100"], ["vertices", "2.500", "2.500"], ["total", "incl.", "queue"]]

@@ -7,6 +7,7 @@ import io
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from fastmesh.filtering import FilterConfig
 from fastmesh.io import Shape, load_shape, sample_surface
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weights_dir
+from fastmesh.quality import mesh_quality
 from fastmesh.support import surface_fit
 
 torch.set_num_threads(1)
@@ -45,6 +47,9 @@ def test_generate_returns_mesh_in_input_frame(pipe):
     assert set(res.timings) == {"encode", "vertices", "enhancer", "faces", "filtering"}
     assert all(v >= 0 for v in res.timings.values())
     assert res.tokens >= 3 + len(res.vertices)  # BOS, >= 1 block token, offsets, EOS
+    # The Python API result carries the quality report of exactly this mesh against this input.
+    assert res.quality == mesh_quality(res.vertices, res.faces, shape, seed=1)
+    assert res.quality["cd"] > 0 and res.quality["components"] >= 1
 
 
 def test_same_seed_same_mesh_and_save_load_roundtrip(pipe, weights):
@@ -135,6 +140,25 @@ def test_no_faces_is_a_generation_error(pipe):
     assert e.value.code == "no_faces"
 
 
+def test_pipeline_chooses_its_thread_count(monkeypatch):
+    """The Python API is as fast as the CLI without any set-up: 1 torch thread on CPU unless told otherwise."""
+    monkeypatch.delenv("FASTMESH_TORCH_THREADS", raising=False)
+    torch.set_num_threads(2)  # torch's own default on a 2-core machine, many times slower under load
+    try:
+        p = Pipeline.random(seed=0, device="cpu")
+        assert torch.get_num_threads() == 1 and p.info()["threads"] == 1
+        Pipeline.random(seed=0, device="cpu", threads=2)
+        assert torch.get_num_threads() == 2
+        monkeypatch.setenv("FASTMESH_TORCH_THREADS", "3")
+        assert Pipeline.random(seed=0, device="cpu").info()["threads"] == 3
+        assert Pipeline.random(seed=0, device="cpu", threads=1).info()["threads"] == 1  # the argument wins
+        monkeypatch.setenv("FASTMESH_TORCH_THREADS", "two")
+        with pytest.raises(ValueError, match="FASTMESH_TORCH_THREADS"):
+            Pipeline.random(seed=0, device="cpu")
+    finally:
+        torch.set_num_threads(1)
+
+
 def _cli(*args, check=True):
     return subprocess.run([sys.executable, "-m", "fastmesh.cli", *args], capture_output=True, text=True,
                           check=check, timeout=300)
@@ -146,7 +170,8 @@ def test_cli_generate_file_json(tmp_path, weights):
     out = tmp_path / "out.glb"
     r = _cli("generate", str(src), "-o", str(out), "--weights", weights, "--max-vertices", "20", "--json")
     rec = json.loads(r.stdout.strip().splitlines()[-1])
-    assert set(rec) == {"input", "output", "vertices", "faces", "tokens", "timings"}
+    assert set(rec) == {"input", "output", "vertices", "faces", "tokens", "timings", "quality"}
+    assert set(rec["quality"]) == {"cd", "hd", "boundary_edges", "non_manifold_edges", "components", "watertight"}
     assert set(rec["timings"]) == {"load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total"}
     mesh = trimesh.load(out, force="mesh")
     assert len(mesh.faces) == rec["faces"] > 0
@@ -165,8 +190,33 @@ def test_cli_generate_directory(tmp_path, weights):
              "--format", "obj", check=False)
     assert r.returncode == 1  # one input failed ...
     assert "broken.obj" in r.stderr
-    assert (out / "a.obj").exists() and (out / "b.obj").exists()  # ... the others were done
+    assert (out / "a.npy.obj").exists() and (out / "b.ply.obj").exists()  # ... the others were done
     assert r.stderr.count("[") >= 3  # one progress line per file
+
+
+def test_cli_generate_directory_same_stem_two_outputs(tmp_path, weights):
+    """Wuson.off and Wuson.ply are two inputs: two results, neither overwriting the other."""
+    src = tmp_path / "in"
+    src.mkdir()
+    big = trimesh.creation.icosphere(2)
+    trimesh.Trimesh(big.vertices * 5.0, big.faces).export(src / "Wuson.off")
+    trimesh.creation.box().export(src / "Wuson.ply")
+    out = tmp_path / "out"
+    r = _cli("generate", str(src), "-o", str(out), "--weights", weights, "--max-vertices", "12", "--json")
+    recs = [json.loads(line) for line in r.stdout.splitlines()]
+    assert sorted(Path(x["output"]).name for x in recs) == ["Wuson.off.glb", "Wuson.ply.glb"]
+    sizes = [np.ptp(trimesh.load(out / n, force="mesh").vertices, axis=0).max() for n in ("Wuson.off.glb",
+                                                                                           "Wuson.ply.glb")]
+    assert sizes[0] > 3 * sizes[1]  # each result in its own input's frame: the radius-5 sphere and the unit box
+
+
+def test_cli_generate_directory_refuses_to_overwrite_an_input(tmp_path, weights):
+    src = tmp_path / "in"
+    src.mkdir()
+    trimesh.creation.box().export(src / "a.glb")
+    trimesh.creation.box().export(src / "a.glb.glb")
+    r = _cli("generate", str(src), "-o", str(src), "--weights", weights, check=False)
+    assert r.returncode == 2 and "would overwrite an input" in r.stderr and "Traceback" not in r.stderr
 
 
 def test_cli_generate_missing_input_is_clear(tmp_path):

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import redis
 import trimesh
+from scipy.spatial import cKDTree
 from stack import flushed_redis
 
 from service import store as store_module
@@ -132,6 +133,20 @@ def test_upload_poll_download_glb(served):
     assert 'filename="sphere.glb"' in glb.headers["content-disposition"]
     mesh = trimesh.load(io.BytesIO(glb.content), file_type="glb", force="mesh", process=False)
     assert len(mesh.vertices) == res["vertices"] and len(mesh.faces) == res["faces"]
+    # The quality block describes this mesh: its topology as trimesh counts it, its distance to the input.
+    q = res["quality"]
+    uses = np.array([len(g) for g in trimesh.grouping.group_rows(mesh.edges_sorted, require_count=None)])
+    parts = trimesh.graph.connected_components(mesh.edges_unique, nodes=np.unique(mesh.faces), min_len=1)
+    assert q["boundary_edges"] == int((uses == 1).sum()) and q["non_manifold_edges"] == int((uses > 2).sum())
+    assert q["components"] == len(parts) and q["watertight"] == bool(mesh.is_watertight)
+    pts = np.loadtxt(io.BytesIO(sphere_xyz()))
+    lo, hi = pts.min(0), pts.max(0)
+    scale = 100.0 / (hi - lo).max()  # distances in % of the input's longest side
+    samples = mesh.sample(5000, seed=1)  # the protocol's count, another sampler and seed
+    d_in = cKDTree(samples).query(pts)[0] * scale   # input points -> result surface
+    d_out = cKDTree(pts).query(samples)[0] * scale  # result surface -> input points
+    assert q["cd"] == pytest.approx((d_in.mean() + d_out.mean()) / 2, rel=0.15)
+    assert 0 < q["cd"] <= q["hd"]
     # In the input's frame (a radius-2 sphere centred at (10, -3, 5)), not the unit cube.
     assert np.allclose(mesh.bounds.mean(0), [10, -3, 5], atol=1.5), mesh.bounds
     # ply was not exported with the job: converted on request, same mesh.
@@ -165,6 +180,8 @@ def test_metrics_and_readyz(served):
     text = httpx.get(f"{app.url}/metrics").text
     assert 'fastmesh_jobs_total{status="succeeded"}' in text
     assert 'fastmesh_stage_seconds_bucket{le="+Inf",stage="vertices"}' in text
+    for metric in ("cd", "hd"):
+        assert f'fastmesh_result_distance_percent_bucket{{le="+Inf",metric="{metric}"}}' in text
     assert "fastmesh_queue_depth" in text and "fastmesh_workers_alive 1.0" in text
     assert 'fastmesh_http_requests_total{method="POST",route="/v1/jobs",status="202"}' in text
 

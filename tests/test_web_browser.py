@@ -181,6 +181,13 @@ def test_from_a_point_cloud_to_a_downloaded_glb(stack, page, tmp_path, shots):
     assert page.text_content("#c-vertices") == str(job["result"]["vertices"])
     assert page.text_content("#c-faces") == str(job["result"]["faces"])
     assert page.text_content("#c-input") == "1500 points"
+    # The quality report beside the counts, as the API gives it.
+    q = job["result"]["quality"]
+    assert page.text_content("#c-distance") == f"{q['cd']:.2f} % / {q['hd']:.2f} %"
+    assert page.text_content("#c-boundary") == str(q["boundary_edges"])
+    assert page.text_content("#c-non-manifold") == str(q["non_manifold_edges"])
+    assert page.text_content("#c-components") == str(q["components"])
+    assert page.text_content("#c-watertight") == ("yes" if q["watertight"] else "no")
     assert page.locator("#timings tbody tr").count() >= 5
     page.wait_for_function("document.querySelector('#viewer').dataset.faces !== undefined")
     assert page.get_attribute("#viewer", "data-faces") == str(job["result"]["faces"])
@@ -231,6 +238,24 @@ def test_from_a_point_cloud_to_a_downloaded_glb(stack, page, tmp_path, shots):
     page.wait_for_selector("#status.succeeded", timeout=JOB_TIMEOUT_MS)
     assert page.text_content("#c-faces") == str(job["result"]["faces"])
     assert page.locator("#recent li").count() == 1
+
+    # A refused submission next: the error stands alone, the previous mesh, badge and counts are gone.
+    page.wait_for_function("document.querySelector('#viewer').dataset.faces !== undefined")
+    choose(page, tmp_path, "broken.ply", b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n")
+    page.click("#submit")
+    page.wait_for_selector("#error:not([hidden])")
+    assert page.text_content("#error").startswith("Invalid input: ")
+    assert page.get_attribute("#status", "class") == "badge idle" and page.text_content("#status") == "idle"
+    for cell in ("#c-vertices", "#c-faces", "#c-distance", "#c-watertight"):
+        assert page.text_content(cell) == "-", cell
+    assert page.get_attribute("#viewer", "data-faces") is None and page.evaluate("fastmesh.viewer.mesh") is None
+    assert page.evaluate(CANVAS_STATS)["covered"] < 0.001  # nothing drawn: neither mesh nor input points
+    assert "refused" in page.text_content("#viewer-note") and page.evaluate("location.hash") == ""
+    assert page.locator("#timings tbody tr").count() == 0 and page.is_disabled("#dl-glb")
+    shots(page, "error-after-result")
+    page.click("#recent li a")  # the earlier job is still one click away
+    page.wait_for_selector("#status.succeeded", timeout=JOB_TIMEOUT_MS)
+    assert page.text_content("#c-faces") == str(job["result"]["faces"])
 
 
 def test_a_corrupt_file_shows_the_servers_message(stack, page, tmp_path, shots):
@@ -291,6 +316,7 @@ def test_keys_queue_position_queue_full_and_drop(redis_url, page, tmp_path, shot
         page.reload()  # the key stays in this browser
         page.wait_for_selector("body[data-ready='1']")
         assert page.input_value("#api-key") == "sesame"
+        page.click("#recent li a")  # the refused submissions closed the queued job's view; it is remembered
         page.wait_for_selector("#status.queued")
         page.click("#cancel")
         page.wait_for_selector("#status.cancelled")

@@ -63,14 +63,10 @@ STATE = _State()
 
 def load_pipeline(settings: Settings):
     """Build the pipeline from the configured weights (shipped ones when unset)."""
-    import torch
-
     from fastmesh.pipeline import Pipeline
 
-    if settings.torch_threads:
-        torch.set_num_threads(settings.torch_threads)
     t0 = time.perf_counter()
-    pipe = Pipeline.from_pretrained(settings.weights, device=settings.device)
+    pipe = Pipeline.from_pretrained(settings.weights, device=settings.device, threads=settings.torch_threads)
     log.info("pipeline loaded from %s in %.2f s", settings.weights or "shipped weights", time.perf_counter() - t0)
     return pipe
 
@@ -202,7 +198,7 @@ def _run(store: Store, job_id: str, attempt: int) -> None:
         store.put_result(job_id, fmt, data)
     timings.update({k: float(v) for k, v in result.timings.items()})
     info = {"vertices": int(len(result.vertices)), "faces": int(len(result.faces)), "tokens": int(result.tokens),
-            "formats": list(formats), "seed": result.info.get("chosen_seed")}
+            "formats": list(formats), "seed": result.info.get("chosen_seed"), "quality": result.quality}
     if not store.finish(job_id, attempt, "succeeded", result=info, timings=timings):
         # Cancelled (or taken over) during export: drop what we wrote unless another attempt owns it now.
         if (store.get(job_id) or {}).get("status") in (None, "cancelled", "failed"):

@@ -6,6 +6,8 @@ import json
 import sys
 import time
 
+from fastmesh.data import VAL_PACKAGES
+
 
 def register(sub) -> None:
     p = sub.add_parser("data", help="build and inspect training-set caches")
@@ -16,7 +18,11 @@ def register(sub) -> None:
     b.add_argument("-o", "--out", required=True, metavar="FILE", help="cache file to write (.npz)")
     b.add_argument("--max-vertices", type=int, default=1000,
                    help="drop meshes with more vertices after the 7-bit merge")
-    b.add_argument("--val-fraction", type=float, default=0.05, help="share of groups held out for validation")
+    b.add_argument("--val-packages", default=",".join(VAL_PACKAGES), metavar="P1,P2,...",
+                   help="packages held out whole for validation (default: %(default)s); 'none' splits by group "
+                        "with --val-fraction instead")
+    b.add_argument("--val-fraction", type=float, default=0.05,
+                   help="with --val-packages none: share of groups held out (0: train on everything)")
     b.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     b.set_defaults(func=_build)
     s = dsub.add_parser("stats", help="print statistics of a cache file (JSON)")
@@ -30,7 +36,18 @@ def register(sub) -> None:
     e.add_argument("--split", choices=["val", "train", "all"], default="val")
     e.add_argument("--points", type=int, default=8192, help="samples per input point cloud")
     e.add_argument("--max-vertices", type=int, default=0, help="only meshes up to this many (7-bit) vertices")
+    e.add_argument("--per-package", type=int, default=0, metavar="N",
+                   help="only N meshes of each package, evenly spread (a small set that holds every package)")
     e.set_defaults(func=_eval_set)
+    c = dsub.add_parser("cells", help="some meshes of a cache plus the cell evidence network's log-odds of each "
+                                      "(training data of a decoder that reads them)")
+    c.add_argument("file", help="cache file")
+    c.add_argument("--weights", required=True, metavar="DIR", help="a trained cell evidence network")
+    c.add_argument("-o", "--out", required=True, metavar="FILE")
+    c.add_argument("--train", type=int, default=1000, metavar="N", help="training meshes to take")
+    c.add_argument("--val", type=int, default=64, metavar="N", help="validation meshes to take")
+    c.add_argument("--seed", type=int, default=0)
+    c.set_defaults(func=_cells)
 
 
 def _build(args) -> int:
@@ -40,9 +57,11 @@ def _build(args) -> int:
         raise ValueError("--max-vertices must be at least 3")
     if not 0 <= args.val_fraction < 1:
         raise ValueError("--val-fraction must be in [0, 1)")
+    packages = () if args.val_packages.strip().lower() in ("", "none") else tuple(
+        p.strip() for p in args.val_packages.split(",") if p.strip())
     t = time.perf_counter()
     stats = build_dataset(args.sources, args.out, max_vertices=args.max_vertices, val_fraction=args.val_fraction,
-                          workers=args.workers,
+                          val_packages=packages, workers=args.workers,
                           progress=lambda i, n: print(f"  {i}/{n} files", file=sys.stderr))
     stats["seconds"] = round(time.perf_counter() - t, 2)
     print(json.dumps(stats, indent=2))
@@ -56,11 +75,26 @@ def _stats(args) -> int:
     return 0
 
 
+def _cells(args) -> int:
+    from fastmesh.data import build_cell_cache, load_dataset
+    from fastmesh.models.checkpoint import load_model
+
+    net = load_model(args.weights)[0]
+    if net.cfg.__class__.__name__ != "CellNetConfig":
+        raise ValueError(f"{args.weights} holds no cell evidence network")
+    t = time.perf_counter()
+    n = build_cell_cache(load_dataset(args.file), net, args.out, {"train": args.train, "val": args.val},
+                         seed=args.seed, progress=lambda i, n: i % 100 == 0 and print(f"  {i}/{n}", file=sys.stderr,
+                                                                                      flush=True))
+    print(f"wrote {n} meshes with cell log-odds to {args.out} in {time.perf_counter() - t:.0f} s")
+    return 0
+
+
 def _eval_set(args) -> int:
     from fastmesh.data import load_dataset
     from fastmesh.eval import export_eval_set
 
     n = export_eval_set(load_dataset(args.file), args.source, args.out, split=args.split, n_points=args.points,
-                        max_vertices=args.max_vertices or None)
+                        max_vertices=args.max_vertices or None, per_package=args.per_package or None)
     print(f"wrote {n} input/reference pairs to {args.out}")
     return 0

@@ -1,8 +1,8 @@
 """``fastmesh generate INPUT -o OUTPUT``: point cloud or mesh in, artist mesh out.
 
 INPUT may be a folder: then OUTPUT is a folder and every readable shape in INPUT is
-done, one line of progress per file on stderr.  ``--json`` prints one JSON object
-per input on stdout.
+done, one line of progress per file on stderr; ``IN/a/chair.off`` becomes ``OUT/a/chair.off.glb``.
+``--json`` prints one JSON object per input on stdout.
 """
 
 from __future__ import annotations
@@ -34,8 +34,9 @@ def add_sampling_args(p) -> None:
     p.add_argument("--no-filtering", action="store_true", help="one face pass, no prediction filtering")
     p.add_argument("--weights", metavar="DIR", help="weights folder (default: the shipped weights)")
     p.add_argument("--device", help="cpu, cuda, cuda:1 ... (default: cuda when present)")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch threads on CPU (1 is fastest for single-sequence decoding)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads (default: $FASTMESH_TORCH_THREADS, else 1 on CPU, the fastest for one mesh "
+                        "at a time)")
 
 
 def params_from_args(args):
@@ -47,13 +48,9 @@ def params_from_args(args):
 
 
 def load_pipeline(args):
-    import torch
-
     from fastmesh.pipeline import Pipeline
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    return Pipeline.from_pretrained(args.weights, device=args.device)
+    return Pipeline.from_pretrained(args.weights, device=args.device, threads=args.threads)
 
 
 def register(sub) -> None:
@@ -73,7 +70,14 @@ def _jobs(args) -> list[tuple[Path, Path, str]]:
         files = sorted(f for f in src.rglob("*") if f.is_file() and f.suffix.lower().lstrip(".") in SUPPORTED_FORMATS)
         if not files:
             raise ValueError(f"no readable shapes in {src} (extensions: {', '.join(SUPPORTED_FORMATS)})")
-        return [(f, out / f.relative_to(src).with_suffix("." + fmt), fmt) for f in files]
+        # The source extension stays in the name (chair.off -> chair.off.glb): chair.off and chair.ply give
+        # two results, never one overwriting the other.
+        jobs = [(f, out / f.relative_to(src).with_name(f"{f.name}.{fmt}"), fmt) for f in files]
+        inputs = {f.resolve() for f in files}
+        clash = next((dst for _, dst, _ in jobs if dst.resolve() in inputs), None)
+        if clash is not None:
+            raise ValueError(f"output {clash} would overwrite an input; choose another output folder")
+        return jobs
     if not src.exists():
         raise FileNotFoundError(f"no such file: {src}")
     fmt = args.format or (out.suffix.lower().lstrip(".") if out.suffix.lower().lstrip(".") in EXPORT_FORMATS
@@ -110,9 +114,11 @@ def _run(args) -> int:
         timings["total"] = time.perf_counter() - t0
         rec = {"input": str(src), "output": str(dst), "vertices": int(len(res.vertices)),
                "faces": int(len(res.faces)), "tokens": res.tokens,
-               "timings": {k: round(timings.get(k, 0.0), 4) for k in TIMING_KEYS}}
+               "timings": {k: round(timings.get(k, 0.0), 4) for k in TIMING_KEYS}, "quality": res.quality}
         if args.json:
             print(json.dumps(rec), flush=True)
+        q = res.quality
         print(f"[{i}/{len(jobs)}] {src} -> {dst}: {rec['vertices']} vertices, {rec['faces']} faces, "
+              f"CD {q['cd']:.2f} % / HD {q['hd']:.2f} % of the input's size, {q['boundary_edges']} open edges, "
               f"{timings['total']:.2f} s", file=sys.stderr, flush=True)
     return 1 if failures else 0

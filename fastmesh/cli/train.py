@@ -1,4 +1,4 @@
-"""``fastmesh train {vertex,enhancer,face} --data FILE --out DIR [--config FILE] [--resume]``.
+"""``fastmesh train {vertex,enhancer,face,cells} --data FILE --out DIR [--config FILE] [--resume]``.
 
 Multi-process: ``torchrun --nproc_per_node 2 -m fastmesh.cli train vertex ...`` (DDP; gloo on
 CPU, nccl on GPUs).
@@ -13,7 +13,7 @@ import sys
 
 def register(sub) -> None:
     p = sub.add_parser("train", help="train one of the three networks on a dataset cache")
-    p.add_argument("network", choices=["vertex", "enhancer", "face"])
+    p.add_argument("network", choices=["vertex", "enhancer", "face", "cells"])
     p.add_argument("--data", required=True, metavar="FILE", help="cache from `fastmesh data build`")
     p.add_argument("--out", required=True, metavar="DIR", help="checkpoint folder")
     p.add_argument("--config", metavar="FILE", help="JSON TrainConfig (model overrides under \"model\")")

@@ -1,6 +1,6 @@
 """Saving and loading networks as ``model.safetensors`` + ``config.json``.
 
-``config.json`` holds ``{"kind": "vertex" | "enhancer" | "face", "config": {...}}``
+``config.json`` holds ``{"kind": "vertex" | "enhancer" | "face" | "cells", "config": {...}}``
 where ``config`` is the network's config dataclass as a dict, so a directory is
 self-describing and safe to load (safetensors never unpickles).
 """
@@ -32,6 +32,10 @@ def registry(kind: str) -> tuple[type, type]:
         from .face import FaceModel, FaceModelConfig
 
         return FaceModel, FaceModelConfig
+    if kind == "cells":
+        from .cells import CellNet, CellNetConfig
+
+        return CellNet, CellNetConfig
     raise ValueError(f"unknown network kind {kind!r}")
 
 

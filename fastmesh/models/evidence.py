@@ -39,6 +39,18 @@ with hundreds of vertices).  Per cube of side 2^s cells, the spread of the norma
 
 is 0 on a plane and grows with the bend; it is cut into SPREAD_EDGES levels (and one for "no points"),
 and an offset token gets  corner_table[state_1, state_2]  from its cubes of side 2 and 4 cells.
+
+With ``PointEvidence(cells=True)`` the decoder also reads the *cell log-odds* of ``models.cells``
+(a network that scores every cell near the surface for "an artist vertex lies here" from its
+local geometry), given as a dense (B, 128^3) grid:
+
+    offset token (cell c):      cell_gain * logodds(c)
+    block token b:              cell_block_table[level(expected vertices in b)]
+                                + cell_skip_table[level(expected vertices in the blocks it skips)]
+    EOS:                        cell_eos_table[level(expected vertices in the blocks still ahead)]
+
+where a block's expected vertex count is the sum of sigmoid(logodds) over its cells: the decoder
+stops when what the cells say is left is covered, and decides which of the likely cells to emit.
 """
 
 from __future__ import annotations
@@ -61,6 +73,7 @@ SPREAD_STATES = len(SPREAD_EDGES) + 2
 # would need thousands of steps to reach a bias of a few nats.  Scaling its output lets it get
 # there in about a hundred, at the learning rate the transformer needs.
 GAIN = 32.0
+CELL_LEVELS = 10  # expected vertices: 0, 1, 2-3, ..., 256+
 
 
 def _level(count: torch.Tensor, levels: int) -> torch.Tensor:
@@ -70,13 +83,14 @@ def _level(count: torch.Tensor, levels: int) -> torch.Tensor:
 class Evidence:
     """Point counts of one batch of shapes; turns the current block into a logit bias."""
 
-    def __init__(self, module: PointEvidence, points: torch.Tensor, normals: torch.Tensor | None = None):
+    def __init__(self, module: PointEvidence, points: torch.Tensor, normals: torch.Tensor | None = None,
+                 cells: torch.Tensor | None = None):
         self.m = module
         b = points.shape[0]
-        cells = ((points.detach().float() + 0.5) * CELLS).floor().clamp(0, CELLS - 1).long()  # (B, P, 3)
+        point_cells = ((points.detach().float() + 0.5) * CELLS).floor().clamp(0, CELLS - 1).long()  # (B, P, 3)
         self.levels = []  # per shift: (B, res^3) count level of every coarse cube
         for s, n_levels in [(s, LEVELS) for s in SHIFTS] + [(BLOCK_SHIFT, BLOCK_LEVELS)]:
-            flat = _flat(cells >> s, CELLS >> s)
+            flat = _flat(point_cells >> s, CELLS >> s)
             grid = torch.zeros(b, (CELLS >> s) ** 3, device=points.device)
             grid.scatter_add_(1, flat, torch.ones_like(flat, dtype=grid.dtype))
             self.levels.append(_level(grid, n_levels))
@@ -92,8 +106,20 @@ class Evidence:
         if module.corner_table is not None:
             if normals is None:
                 raise ValueError("this decoder's evidence reads the input normals: pass them")
-            self.spread = [_spread_states(cells >> s, normals.detach().float(), CELLS >> s) for s in NORMAL_SHIFTS]
+            self.spread = [_spread_states(point_cells >> s, normals.detach().float(), CELLS >> s)
+                           for s in NORMAL_SHIFTS]
             self.spread_parts = [_flat(oxyz >> s, CELLS >> s) for s in NORMAL_SHIFTS]
+        self.cells = None  # (B, 128^3) cell log-odds
+        if module.cell_gain is not None:
+            if cells is None:
+                raise ValueError("this decoder's evidence reads the cell log-odds of models.cells: pass them")
+            self.cells = cells.float().reshape(b, -1)
+            self.cell_part = _flat(oxyz, CELLS)
+            # Expected vertices per block, in block id order (the block of cell (x, y, z) is its top 3 bits).
+            expected = torch.sigmoid(self.cells).reshape(b, 8, 16, 8, 16, 8, 16).sum((2, 4, 6)).reshape(b, -1)
+            self.cell_expected = expected
+            self.cell_incl = expected.cumsum(1)
+            self.cell_excl = self.cell_incl - expected
 
     def logit_bias(self, block: torch.Tensor) -> torch.Tensor:
         """(B, T) current block ids (-1: none yet) -> (B, T, VOCAB) bias (0 on PAD and BOS)."""
@@ -115,6 +141,13 @@ class Evidence:
             + self.m.skip_table(_level(skipped, SEQ_LEVELS)).squeeze(-1)
         special = block_bias.new_zeros(len(rows), vt.N_SPECIAL)
         special[:, vt.EOS] = self.m.eos_table(_level(remaining, SEQ_LEVELS)).squeeze(-1)
+        if self.cells is not None:  # the same reading of the sequence, in expected vertices
+            done = self.cell_incl[rows, block.clamp(min=0)] * (block >= 0)
+            ahead = self.cell_incl[rows, -1] - done
+            skipped = (self.cell_excl[rows] - done[:, None]).clamp(min=0)
+            block_bias = block_bias + (self.m.cell_block_table(_level(self.cell_expected[rows], CELL_LEVELS))
+                                       + self.m.cell_skip_table(_level(skipped, CELL_LEVELS))).squeeze(-1)
+            special[:, vt.EOS] += self.m.cell_eos_table(_level(ahead, CELL_LEVELS)).squeeze(-1)
         return [GAIN * special, GAIN * block_bias]
 
     def _offset_rows(self, rows: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
@@ -132,7 +165,11 @@ class Evidence:
                 sv = st[rows[:, None], _flat(bxyz * (16 >> s), CELLS >> s)[:, None] + part]
                 idx = sv if idx is None else idx * SPREAD_STATES + sv
             bias = bias + self.m.corner_table(idx).squeeze(-1)
-        return GAIN * bias * (block >= 0)[:, None]  # no block yet: no evidence
+        bias = GAIN * bias
+        if self.cells is not None:
+            cell = _flat(bxyz * 16, CELLS)[:, None] + self.cell_part  # (U, 4096) flat cells of the offsets
+            bias = bias + self.m.cell_gain * self.cells[rows[:, None], cell]
+        return bias * (block >= 0)[:, None]  # no block yet: no evidence
 
 
 def _flat(c: torch.Tensor, res: int) -> torch.Tensor:
@@ -157,20 +194,28 @@ def _spread_states(coarse: torch.Tensor, normals: torch.Tensor, res: int) -> tor
 
 
 class PointEvidence(nn.Module):
-    """The learned tables of :class:`Evidence` (LEVELS^3 + BLOCK_LEVELS + 2 * SEQ_LEVELS scalars, and
-    SPREAD_STATES^2 with ``normals``)."""
+    """The learned tables of :class:`Evidence` (LEVELS^3 + BLOCK_LEVELS + 2 * SEQ_LEVELS scalars,
+    SPREAD_STATES^2 with ``normals``, 1 + 3 * CELL_LEVELS with ``cells``)."""
 
-    def __init__(self, normals: bool = False):
+    def __init__(self, normals: bool = False, cells: bool = False):
         super().__init__()
         self.table = nn.Embedding(LEVELS ** len(SHIFTS), 1)
         self.block_table = nn.Embedding(BLOCK_LEVELS, 1)
         self.skip_table = nn.Embedding(SEQ_LEVELS, 1)
         self.eos_table = nn.Embedding(SEQ_LEVELS, 1)
         self.corner_table = nn.Embedding(SPREAD_STATES ** len(NORMAL_SHIFTS), 1) if normals else None
-        for t in (self.table, self.block_table, self.skip_table, self.eos_table, self.corner_table):
+        # The cell log-odds are calibrated: added at full weight from the start (a product of experts).
+        self.cell_gain = nn.Parameter(torch.ones(())) if cells else None
+        self.cell_block_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
+        self.cell_skip_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
+        self.cell_eos_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
+        for t in (self.table, self.block_table, self.skip_table, self.eos_table, self.corner_table,
+                  self.cell_block_table, self.cell_skip_table, self.cell_eos_table):
             if t is not None:
                 nn.init.zeros_(t.weight)
 
-    def forward(self, points: torch.Tensor, normals: torch.Tensor | None = None) -> Evidence:
-        """(B, P, 3) points in the unit cube (and their normals) -> their :class:`Evidence`."""
-        return Evidence(self, points, normals)
+    def forward(self, points: torch.Tensor, normals: torch.Tensor | None = None,
+                cells: torch.Tensor | None = None) -> Evidence:
+        """(B, P, 3) points in the unit cube (and their normals, and (B, 128^3) cell log-odds) -> their
+        :class:`Evidence`."""
+        return Evidence(self, points, normals, cells)

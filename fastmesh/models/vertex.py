@@ -36,6 +36,7 @@ class VertexConfig:
     max_vertices: int = 1000  # the data variant it was trained on (1000 or 4000)
     evidence: bool = False  # add the learned point-evidence logit bias (models.evidence)
     evidence_normals: bool = False  # ... and its normal-spread ("corner") table
+    evidence_cells: bool = False  # ... and the cell log-odds of models.cells
 
     @property
     def head_dim(self) -> int:
@@ -91,7 +92,7 @@ class VertexDecoder(nn.Module):
         self.head = nn.Linear(cfg.dim, vt.VOCAB_SIZE, bias=False)
         init_weights(self)
         # after init_weights: its tables start at zero (no bias until training finds the evidence useful)
-        self.evidence = PointEvidence(normals=cfg.evidence_normals) if cfg.evidence else None
+        self.evidence = PointEvidence(normals=cfg.evidence_normals, cells=cfg.evidence_cells) if cfg.evidence else None
 
     # ------------------------------------------------------------------ pieces
 
@@ -109,10 +110,11 @@ class VertexDecoder(nn.Module):
             prefix = prefix + self.cell_emb(cells)
         return prefix
 
-    def point_evidence(self, points: torch.Tensor, normals: torch.Tensor | None = None) -> Evidence | None:
-        """(B, P, 3) points (and normals) -> the :class:`Evidence` whose logit bias ``forward``/``generate``
-        add (None if off)."""
-        return None if self.evidence is None else self.evidence(points, normals)
+    def point_evidence(self, points: torch.Tensor, normals: torch.Tensor | None = None,
+                       cells: torch.Tensor | None = None) -> Evidence | None:
+        """(B, P, 3) points (and normals, and (B, 128^3) cell log-odds from ``models.cells``) -> the
+        :class:`Evidence` whose logit bias ``forward``/``generate`` add (None if off)."""
+        return None if self.evidence is None else self.evidence(points, normals, cells)
 
     def embed(self, tokens: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
         """(B, T) tokens and their current block (from ``grammar_state``) -> (B, T, dim)."""
@@ -136,16 +138,16 @@ class VertexDecoder(nn.Module):
 
     def forward(self, tokens: torch.Tensor, prefix: torch.Tensor | None = None,
                 points: torch.Tensor | None = None, normals: torch.Tensor | None = None,
-                evidence: Evidence | None = None) -> torch.Tensor:
+                evidence: Evidence | None = None, cells: torch.Tensor | None = None) -> torch.Tensor:
         """Uncached pass: tokens (B, T) -> logits (B, T, VOCAB) for the *next* token.
 
         The condition is ``prefix`` (B, M, dim) and ``evidence``, or both computed from
-        ``points``/``normals`` (B, P, 3) (the training path, so DDP sees one forward).
+        ``points``/``normals`` (B, P, 3) and ``cells`` (B, 128^3) (the training path, so DDP sees one forward).
         Grammar masking is applied here too, so training and decoding see the same distribution.
         """
         if prefix is None:
             prefix = self.condition(points, normals)
-            evidence = self.point_evidence(points, normals)
+            evidence = self.point_evidence(points, normals, cells)
         block, offset = grammar_state(tokens)
         x = torch.cat([prefix.to(self.tok_emb.weight.dtype), self.embed(tokens, block)], dim=1)
         logits = self._run(x, 0)[:, prefix.shape[1]:].float()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from ..filtering import adjacency_bandwidth, band_mask, edges_from_logits, neighbour_radius, rcm_order
 from ..metrics import edge_metrics, edges_from_faces
@@ -37,19 +38,29 @@ class VertexTask:
                          for a, b in zip(ds.a["v_off"][:-1], ds.a["v_off"][1:], strict=True)])
 
     def make_batch(self, ds, indices, rng: np.random.Generator, cfg, train: bool) -> dict[str, torch.Tensor]:
+        """Tokens, condition points and (for a decoder that reads them) the stored cell log-odds.
+
+        The log-odds in a cell cache (``fastmesh data cells``) are those of the unaugmented mesh,
+        so a decoder that reads them trains on unaugmented meshes.
+        """
         n_points = _n_points(cfg)
+        reads_cells = bool(cfg.model.get("evidence_cells"))
+        augment = cfg.augment if train and not reads_cells else None
         samples = []
         for i in indices:
             rec = ds[int(i)]
-            samples.append(prepare_sample(rec.continuous, rec.faces, n_points, cfg.augment if train else None, rng))
+            samples.append(prepare_sample(rec.continuous, rec.faces, n_points, augment, rng))
         seqs = [vt.encode(s[0]) for s in samples]
         tokens = np.full((len(seqs), max(map(len, seqs))), vt.PAD, dtype=np.int64)
         for r, s in enumerate(seqs):
             tokens[r, : len(s)] = s
-        return {"tokens": torch.from_numpy(tokens), **_points_tensors(samples)}
+        batch = {"tokens": torch.from_numpy(tokens), **_points_tensors(samples)}
+        if reads_cells:
+            batch["cells"] = torch.stack([ds.cell_logits(int(i)) for i in indices])
+        return batch
 
     def loss(self, model, batch):
-        loss = model.loss(batch["tokens"], points=batch["points"], normals=batch["normals"])
+        loss = model.loss(batch["tokens"], points=batch["points"], normals=batch["normals"], cells=batch.get("cells"))
         return loss, int((batch["tokens"][:, 1:] != vt.PAD).sum())
 
     @torch.no_grad()
@@ -64,7 +75,7 @@ class VertexTask:
             return {}
         b = {k: v.to(device) for k, v in self.make_batch(ds, idx, np.random.default_rng(0), cfg, train=False).items()}
         own = float(self.loss(model, b)[0])
-        other = float(self.loss(model, {**b, "points": b["points"].roll(1, 0), "normals": b["normals"].roll(1, 0)})[0])
+        other = float(self.loss(model, {k: v.roll(1, 0) if k != "tokens" else v for k, v in b.items()})[0])
         return {"cond_gain": round(other - own, 5)}
 
 
@@ -246,4 +257,74 @@ class FaceTask(_SetTask):
         return {k: round(float(np.mean([s[k] for s in scores])), 4) for k in ("precision", "recall", "f1")}
 
 
-TASKS = {"vertex": VertexTask, "enhancer": EnhancerTask, "face": FaceTask}
+class CellTask:
+    """The cell evidence network: every candidate cell of each mesh, labelled "an artist vertex's cell".
+
+    A mesh has ~10^5 candidate cells and a few hundred vertices: all positives are kept and a
+    ``CELL_NEGATIVES`` share of the negatives, weighted back up, so the log-odds stay calibrated.
+    """
+
+    kind = "cells"
+
+    def build_model(self, overrides: dict):
+        cls, cfg_cls = registry(self.kind)
+        return cls(config_from_dict(cfg_cls, overrides))
+
+    def costs(self, ds) -> np.ndarray:
+        return np.ones(len(ds), dtype=np.int64)  # batch_cost = meshes per batch
+
+    def make_batch(self, ds, indices, rng: np.random.Generator, cfg, train: bool) -> dict[str, torch.Tensor]:
+        from ..models.cells import candidate_cells, cell_features, flat_index
+
+        feats, labels, weights = [], [], []
+        for i in indices:
+            rec = ds[int(i)]
+            q, _, _, pts, nrm = prepare_sample(rec.continuous, rec.faces, int(cfg.model.get("n_points", 8192)),
+                                               cfg.augment if train else None, rng)
+            cells, nearest = candidate_cells(torch.from_numpy(pts))
+            label = np.isin(flat_index(cells).numpy(), flat_index(torch.from_numpy(q)).numpy())
+            keep = label | (rng.random(len(label)) < CELL_NEGATIVES)
+            feats.append(cell_features(torch.from_numpy(pts), torch.from_numpy(nrm), cells[keep], nearest[keep]))
+            labels.append(torch.from_numpy(label[keep]))
+            weights.append(torch.from_numpy(np.where(label[keep], 1.0, 1.0 / CELL_NEGATIVES)).float())
+        return {"features": torch.cat(feats), "label": torch.cat(labels).float(), "weight": torch.cat(weights)}
+
+    def loss(self, model, batch):
+        logits = model(batch["features"]).float()
+        bce = F.binary_cross_entropy_with_logits(logits, batch["label"], reduction="none")
+        return (bce * batch["weight"]).sum() / batch["weight"].sum(), int(batch["label"].sum())
+
+    def evaluate(self, model, ds, val_idx, cfg, device) -> dict:
+        """Precision and recall within one cell of the top cells (one-cell suppression) at the true count."""
+        from ..models.cells import select_cells
+
+        net = _unwrap(model)
+        idx = np.sort(val_idx)[:: max(1, len(val_idx) // CELL_EVAL_MESHES)][:CELL_EVAL_MESHES]
+        rng = np.random.default_rng(0)
+        p1, r1 = [], []
+        for i in idx:
+            rec = ds[int(i)]
+            q, _, _, pts, nrm = prepare_sample(rec.continuous, rec.faces, net.cfg.n_points, None, rng)
+            cells, logits = net.score(pts, nrm)
+            got = select_cells(cells, logits, count=len(q))
+            p, r = cell_precision_recall(got, q)
+            p1.append(p)
+            r1.append(r)
+        return {"precision_1": round(float(np.mean(p1)), 4), "recall_1": round(float(np.mean(r1)), 4)}
+
+
+def cell_precision_recall(cells: np.ndarray, q: np.ndarray, within: float = 1.0) -> tuple[float, float]:
+    """Share of ``cells`` within ``within`` cells (between centres) of a vertex cell of ``q``, and the reverse."""
+    from scipy.spatial import cKDTree
+
+    if len(cells) == 0 or len(q) == 0:
+        return 0.0, 0.0
+    d_gen, _ = cKDTree(q).query(cells)
+    d_ref, _ = cKDTree(cells).query(q)
+    return float((d_gen <= within).mean()), float((d_ref <= within).mean())
+
+
+CELL_NEGATIVES = 0.05
+CELL_EVAL_MESHES = 24
+
+TASKS = {"vertex": VertexTask, "enhancer": EnhancerTask, "face": FaceTask, "cells": CellTask}

@@ -11,6 +11,7 @@ const PARAMS = ['seed', 'temperature', 'top_k', 'top_p', 'max_vertices', 'candid
 const FLAGS = ['enhancer', 'filtering'];
 const TIMINGS = ['queue', 'load', 'encode', 'vertices', 'enhancer', 'faces', 'filtering', 'export', 'total'];
 const FINAL = ['succeeded', 'failed', 'cancelled'];
+const COUNTS = ['c-vertices', 'c-faces', 'c-tokens', 'c-boundary', 'c-non-manifold', 'c-components', 'c-watertight'];
 
 const state = {
   config: null,
@@ -189,11 +190,11 @@ function formatBytes(n) {
 async function submit() {
   showError('');
   const file = state.file;
-  if (!file) { showError('Choose a file first (a point cloud or a mesh).'); return; }
+  if (!file) { failSubmit('Choose a file first (a point cloud or a mesh).'); return; }
   const limit = state.config.max_upload_bytes;
   if (file.size > limit) {
     // Spare the upload: the server would answer 413 after receiving it all.
-    showError(`File too large: ${file.name} is ${formatBytes(file.size)}; this server accepts at most `
+    failSubmit(`File too large: ${file.name} is ${formatBytes(file.size)}; this server accepts at most `
       + `${formatBytes(limit)} per upload.`);
     return;
   }
@@ -217,11 +218,17 @@ async function submit() {
     rememberJob(job);
     openJob(job.id, job, res.headers.get('X-Queue-Position'));
   } catch (e) {
-    showError(e.message);
+    failSubmit(e.message);
   } finally {
     button.disabled = false;
     button.textContent = 'Generate mesh';
   }
+}
+
+// A refused submission: the error stands alone, not beside the previous job's mesh and "succeeded" badge.
+function failSubmit(message) {
+  closeJob('No result: the last submission was refused (see the message on the left).');
+  showError(message);
 }
 
 // ------------------------------------------------------------------ watching a job
@@ -266,10 +273,25 @@ function setStatus(status, detail) {
   $('#status-detail').textContent = detail || '';
 }
 
+// Stop showing a job (deleted, or a new submission failed): empty panel and view, nothing highlighted.
+function closeJob(note) {
+  clearTimeout(state.pollTimer);
+  state.jobId = null;
+  state.shown = {};
+  state.viewer?.clear();
+  resetJobPanel();
+  setViewerNote(note);
+  $('#delete').disabled = true;
+  delete $('#viewer').dataset.faces;
+  delete $('#viewer').dataset.vertices;
+  if (location.hash) history.replaceState(null, '', location.pathname);
+  renderRecent();
+}
+
 function resetJobPanel() {
   setStatus('idle', '');
   $('#progress-bar').style.width = '0';
-  for (const id of ['c-input', 'c-vertices', 'c-faces', 'c-tokens']) $(`#${id}`).textContent = '-';
+  for (const id of [...COUNTS, 'c-input', 'c-distance']) $(`#${id}`).textContent = '-';
   $('#timings tbody').replaceChildren();
   for (const id of ['dl-glb', 'dl-obj', 'dl-png']) $(`#${id}`).disabled = true;
   $('#delete').disabled = false;
@@ -304,11 +326,7 @@ function showJob(job, position) {
   const inp = job.input || {};
   state.stem = (inp.filename || '').replace(/\.[^.]*$/, '');
   $('#c-input').textContent = inp.kind === 'points' ? `${inp.points} points` : `${inp.vertices} vertices, ${inp.faces} faces`;
-  if (job.result) {
-    $('#c-vertices').textContent = job.result.vertices;
-    $('#c-faces').textContent = job.result.faces;
-    $('#c-tokens').textContent = job.result.tokens;
-  }
+  if (job.result) showResultFacts(job.result);
   const tbody = $('#timings tbody');
   tbody.replaceChildren();
   for (const k of TIMINGS) {
@@ -324,6 +342,18 @@ function showJob(job, position) {
 
   loadIntoViewer(job);
   if (!FINAL.includes(status)) state.pollTimer = setTimeout(poll, POLL_MS);
+}
+
+// The counts and the quality report (result.quality) of a finished job, beside each other.
+function showResultFacts(result) {
+  const q = result.quality || {};
+  const facts = {
+    'c-vertices': result.vertices, 'c-faces': result.faces, 'c-tokens': result.tokens,
+    'c-boundary': q.boundary_edges, 'c-non-manifold': q.non_manifold_edges, 'c-components': q.components,
+    'c-watertight': q.watertight == null ? null : q.watertight ? 'yes' : 'no',
+  };
+  for (const [id, v] of Object.entries(facts)) $(`#${id}`).textContent = v ?? '-';
+  $('#c-distance').textContent = q.cd == null ? '-' : `${q.cd.toFixed(2)} % / ${q.hd.toFixed(2)} %`;
 }
 
 function fmtSeconds(s) {
@@ -433,12 +463,7 @@ function wireActions() {
     try {
       await api(`/v1/jobs/${id}`, { method: 'DELETE' });
       forgetJob(id);
-      state.jobId = null;
-      state.viewer?.clear();
-      resetJobPanel();
-      setViewerNote('Job deleted.');
-      $('#delete').disabled = true;
-      history.replaceState(null, '', location.pathname);
+      closeJob('Job deleted.');
     } catch (e) { showError(e.message); }
   });
   window.addEventListener('hashchange', openFromHash);

@@ -1,0 +1,237 @@
+"""Local vertex evidence: how likely an artist vertex lies in each 7-bit cell near the input surface.
+
+Artist vertices sit where the local geometry says so: corners, crease ends, tips, rims, the
+rings of a cylinder.  Those look alike in every game, so a *local* score of each cell carries
+across packages in a way a whole-shape decoder trained on a few thousand meshes does not.
+
+For every candidate cell (a cell within ``CANDIDATE_RADIUS`` cells of an input point) the
+features describe the input points and normals in cubes around it at several scales
+(``SHIFTS``: cubes of 3 x 2^s cells, the 3 x 3 x 3 coarse cells of side 2^s around the cell's
+own):
+
+- how many points (log), and where their centroid lies relative to the cell centre (in units of
+  the scale): its distance, and its Mahalanobis distance under the points' covariance (large when
+  the cell lies off the fitted plane or line; unlike "the distance along the normal" it does not
+  depend on a choice of eigenvectors where eigenvalues tie, as they do for one or two points);
+- the square roots of the eigenvalues of the points' covariance (spread along the surface and
+  across it: a plane has one near zero, a crease or corner two);
+- the eigenvalues of the normals' second moment (1, 0, 0 on a plane, 1/2, 1/2, 0 along a crease,
+  about 1/3 each at a corner; the sign of a normal does not matter);
+- the distance from the cell centre to the nearest point.
+
+All of them are invariant to translation and rotation.  A small MLP turns them into the log-odds
+that an artist vertex's cell is this cell (:class:`CellNet`), trained on every candidate cell of
+the training meshes.  Moments are summed per coarse cell over each point's 3 x 3 x 3 coarse
+neighbourhood (27 scatters a point per scale), so the cost is O(points + candidates).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..tokenizer.quantize import LEVELS as CELLS
+
+SHIFTS = (1, 2, 3, 4)  # coarse cells of 2, 4, 8, 16 cells: neighbourhoods 6 to 48 cells wide
+CANDIDATE_RADIUS = 2  # cells within this Chebyshev distance of a point's cell are candidates
+PER_SCALE = 10
+N_FEATURES = PER_SCALE * len(SHIFTS) + 1
+_NEIGHBOURS = torch.tensor([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
+
+
+def _key(c: torch.Tensor, res: int) -> torch.Tensor:
+    return (c[..., 0] * res + c[..., 1]) * res + c[..., 2]
+
+
+def flat_index(cells: torch.Tensor) -> torch.Tensor:
+    """(…, 3) int cells -> (…) flat index in the 128^3 grid (x major), as ``dense_grid`` lays it out."""
+    return _key(cells.long(), CELLS)
+
+
+def candidate_cells(points: torch.Tensor, radius: int = CANDIDATE_RADIUS) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cells within ``radius`` cells (Chebyshev, between cells) of an input point's cell.
+
+    Parameters
+    ----------
+    points : (P, 3) float, unit cube
+
+    Returns
+    -------
+    cells : (C, 3) int64, sorted by flat index
+    nearest : (C,) float64, distance from each cell's centre to the nearest point, in cells
+    """
+    u = (points.double() + 0.5) * CELLS
+    own = u.floor().clamp(0, CELLS - 1).long()
+    r = torch.arange(-radius, radius + 1)
+    offs = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    around = (own[:, None] + offs[None]).reshape(-1, 3)
+    dist = (u[:, None] - (around.reshape(len(u), -1, 3) + 0.5)).norm(dim=-1).reshape(-1)
+    ok = ((around >= 0) & (around < CELLS)).all(-1)
+    flat, inv = torch.unique(_key(around[ok], CELLS), return_inverse=True)
+    nearest = torch.full((len(flat),), float("inf"), dtype=dist.dtype).scatter_reduce(0, inv, dist[ok], "amin")
+    return torch.stack([flat // (CELLS * CELLS), (flat // CELLS) % CELLS, flat % CELLS], -1), nearest
+
+
+def cell_features(points: torch.Tensor, normals: torch.Tensor, cells: torch.Tensor,
+                  nearest: torch.Tensor) -> torch.Tensor:
+    """Features of candidate cells from the input points around them.
+
+    Parameters
+    ----------
+    points : (P, 3) float, unit cube
+    normals : (P, 3) float, unit (sign free)
+    cells : (C, 3) int64
+    nearest : (C,) float, distance to the nearest point (both from :func:`candidate_cells`)
+
+    Returns
+    -------
+    (C, N_FEATURES) float32
+    """
+    u = (points.double() + 0.5) * CELLS  # positions in cell units
+    n = normals.double()
+    centre = cells.double() + 0.5
+    # Per point: 1, u, upper(u u^T), upper(n n^T).
+    iu, ju = torch.triu_indices(3, 3)
+    mom = torch.cat([torch.ones(len(u), 1, dtype=u.dtype), u, (u[:, iu] * u[:, ju]), (n[:, iu] * n[:, ju])], 1)
+    feats = []
+    for s in SHIFTS:
+        res = CELLS >> s
+        coarse = u.floor().long().clamp(0, CELLS - 1) >> s
+        around = (coarse[:, None] + _NEIGHBOURS[None]).reshape(-1, 3)  # (P*27, 3)
+        ok = ((around >= 0) & (around < res)).all(-1)
+        keys, inv = torch.unique(_key(around[ok], res), return_inverse=True)
+        sums = torch.zeros(len(keys), mom.shape[1], dtype=u.dtype)
+        sums.index_add_(0, inv, mom.repeat_interleave(27, 0)[ok])
+        shape = _key_features(sums)  # per coarse key: what does not depend on the cell
+        ck = _key(cells >> s, res)
+        pos = torch.searchsorted(keys, ck).clamp(max=len(keys) - 1)
+        hit = keys[pos] == ck
+        feats.append(_cell_features(shape, pos, hit, centre, float(1 << s)))
+    feats.append(torch.log1p(nearest.double())[:, None])
+    return torch.cat(feats, 1).float()
+
+
+def _upper_to_sym(x: torch.Tensor) -> torch.Tensor:
+    """(C, 6) upper-triangle entries (00, 01, 02, 11, 12, 22) -> (C, 3, 3)."""
+    i = torch.tensor([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
+    return x[:, i]
+
+
+def _key_features(m: torch.Tensor) -> dict[str, torch.Tensor]:
+    """(K, 16) moments summed per coarse key -> count, centroid, covariance eigen-decomposition, normal spread."""
+    count = m[:, 0]
+    c = count.clamp(min=1)[:, None]
+    mu = m[:, 1:4] / c
+    cov = _upper_to_sym(m[:, 4:10] / c) - mu[:, :, None] * mu[:, None, :]
+    evals, evecs = torch.linalg.eigh(cov + 1e-9 * torch.eye(3, dtype=cov.dtype))  # ascending
+    return {"count": count, "mu": mu, "spread": evals.clamp(min=0).sqrt().flip(-1), "axes": evecs,
+            "nvals": torch.linalg.eigvalsh(_upper_to_sym(m[:, 10:16] / c)).flip(-1)}
+
+
+def _cell_features(key: dict[str, torch.Tensor], pos: torch.Tensor, hit: torch.Tensor, centre: torch.Tensor,
+                   scale: float) -> torch.Tensor:
+    """Features of cells at one scale: their coarse key's (at ``pos``; ``hit`` False: no points) and where the
+    cell centre lies relative to its points (C, PER_SCALE)."""
+    count = key["count"][pos]
+    d = (key["mu"][pos] - centre) / scale
+    # Mahalanobis distance of the cell centre from the points, regularised by a quarter cell.
+    proj = (d[:, None, :] @ key["axes"][pos]).squeeze(1)  # (C, 3) along the eigenvectors, in scale units
+    var = (key["spread"][pos].flip(-1) / scale) ** 2 + (0.25 / scale) ** 2
+    off_plane = (proj ** 2 / var).sum(-1).sqrt()
+    out = torch.cat([torch.log1p(count)[:, None], d.norm(dim=-1, keepdim=True), torch.log1p(off_plane)[:, None],
+                     key["spread"][pos] / scale, key["nvals"][pos], torch.ones_like(count)[:, None]], 1)
+    return out * hit[:, None]
+
+
+@dataclass
+class CellNetConfig:
+    hidden: int = 128
+    depth: int = 3
+    n_points: int = 8192  # input surface samples the features are computed from
+
+
+class CellNet(nn.Module):
+    """Cell features -> log-odds that an artist vertex lies in the cell."""
+
+    def __init__(self, cfg: CellNetConfig | None = None):
+        super().__init__()
+        self.cfg = cfg or CellNetConfig()
+        layers, d = [], N_FEATURES
+        for _ in range(self.cfg.depth):
+            layers += [nn.Linear(d, self.cfg.hidden), nn.GELU()]
+            d = self.cfg.hidden
+        self.norm = nn.BatchNorm1d(N_FEATURES, affine=False)
+        self.mlp = nn.Sequential(*layers, nn.Linear(d, 1))
+
+    def forward(self, feats: torch.Tensor) -> torch.Tensor:
+        return self.mlp(self.norm(feats)).squeeze(-1)
+
+    @torch.no_grad()
+    def score(self, points: np.ndarray | torch.Tensor, normals: np.ndarray | torch.Tensor,
+              chunk: int = 65536) -> tuple[torch.Tensor, torch.Tensor]:
+        """(P, 3) points and normals in the unit cube -> candidate cells (C, 3) and their log-odds (C,)."""
+        p = torch.as_tensor(np.asarray(points), dtype=torch.float32).cpu()
+        nrm = torch.as_tensor(np.asarray(normals), dtype=torch.float32).cpu()
+        cells, nearest = candidate_cells(p)
+        feats = cell_features(p, nrm, cells, nearest)
+        was = self.training
+        self.eval()
+        dev = self.norm.running_mean.device
+        logits = torch.cat([self(feats[i:i + chunk].to(dev)).float().cpu() for i in range(0, len(feats), chunk)])
+        self.train(was)
+        return cells, logits
+
+    def grid(self, points: np.ndarray | torch.Tensor, normals: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """(P, 3) points and normals -> (128^3,) float32 log-odds of every cell (``FLOOR`` off the surface)."""
+        return dense_grid(*self.score(points, normals))
+
+
+FLOOR = -12.0  # log-odds of a cell that is no candidate (farther than CANDIDATE_RADIUS from every point)
+
+
+def dense_grid(cells: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
+    """Candidate cells (C, 3) and their log-odds (C,) -> (128^3,) float32 grid, ``FLOOR`` elsewhere."""
+    return dense_grid_flat(flat_index(cells), logits)
+
+
+def dense_grid_flat(flat, logits) -> torch.Tensor:
+    """(C,) flat cell indices and their log-odds -> (128^3,) float32 grid, ``FLOOR`` elsewhere."""
+    grid = torch.full((CELLS ** 3,), FLOOR)
+    grid[torch.as_tensor(np.asarray(flat), dtype=torch.long)] = torch.as_tensor(
+        np.asarray(logits, dtype=np.float32)).clamp(min=FLOOR)
+    return grid
+
+
+def select_cells(cells: torch.Tensor | np.ndarray, logits: torch.Tensor | np.ndarray, count: int | None = None,
+                 threshold: float = 0.0) -> np.ndarray:
+    """The evidence alone as a vertex set: best cells first, each suppressing its 26 neighbours.
+
+    Parameters
+    ----------
+    cells : (C, 3) int
+    logits : (C,) float
+    count : int, optional
+        Take this many (the decoder's count, or the reference's); else every cell above ``threshold``.
+
+    Returns
+    -------
+    (K, 3) int64 chosen cells, best first.
+    """
+    cells, logits = np.asarray(cells, dtype=np.int64), np.asarray(logits, dtype=np.float64)
+    order = np.argsort(-logits, kind="stable")
+    if count is None:
+        order = order[logits[order] >= threshold]
+    taken = np.zeros((CELLS + 2,) * 3, dtype=bool)  # padded by one so neighbours of border cells index safely
+    out = []
+    for i in order:
+        x, y, z = cells[i] + 1
+        if taken[x, y, z]:
+            continue
+        out.append(i)
+        taken[x - 1:x + 2, y - 1:y + 2, z - 1:z + 2] = True
+        if count is not None and len(out) >= count:
+            break
+    return cells[np.array(out, dtype=np.int64)]

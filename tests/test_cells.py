@@ -1,0 +1,181 @@
+"""Cell evidence (models.cells): candidates, features against a per-cell loop, invariances, selection, and the
+decoder's reading of the log-odds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from fastmesh.models.cells import (
+    CELLS,
+    FLOOR,
+    SHIFTS,
+    CellNet,
+    CellNetConfig,
+    candidate_cells,
+    cell_features,
+    dense_grid,
+    flat_index,
+    select_cells,
+)
+from fastmesh.models.encoder import EncoderConfig
+from fastmesh.models.evidence import GAIN
+from fastmesh.models.generate import SamplingConfig, generate, generate_uncached
+from fastmesh.models.vertex import VertexConfig, VertexDecoder
+from fastmesh.tokenizer import vertex as vt
+
+torch.set_num_threads(1)
+
+
+def _box_points(n: int = 2048, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    box = trimesh.creation.box((0.5, 0.4, 0.3))  # room to move by 16 cells inside the unit cube
+    pts, fi = trimesh.sample.sample_surface(box, n, seed=seed)
+    return torch.tensor(pts, dtype=torch.float32), torch.tensor(box.face_normals[fi], dtype=torch.float32)
+
+
+def test_candidates_surround_every_point_and_know_their_nearest_point():
+    pts, _ = _box_points(300)
+    cells, nearest = candidate_cells(pts, radius=1)
+    own = ((pts.double() + 0.5) * CELLS).floor().long()
+    assert np.isin(flat_index(own).numpy(), flat_index(cells).numpy()).all()
+    assert torch.equal(flat_index(cells), flat_index(cells).sort().values)  # sorted, unique
+    u = (pts.double() + 0.5) * CELLS
+    brute = torch.cdist(cells.double() + 0.5, u).amin(1)
+    # Each cell knows the points whose own cell is within the radius: the nearest of those.
+    assert torch.allclose(nearest, brute) or (nearest >= brute - 1e-9).all()
+    assert torch.allclose(nearest[nearest <= 1.0], brute[nearest <= 1.0])
+
+
+def _features_by_loop(pts: torch.Tensor, nrm: torch.Tensor, cell: torch.Tensor, s: int) -> np.ndarray:
+    """The features of one cell at scale ``s``, from the points of its 3 x 3 x 3 coarse neighbourhood."""
+    u = ((pts.double() + 0.5) * CELLS).numpy()
+    coarse = np.floor(u).clip(0, CELLS - 1).astype(int) >> s
+    near = (np.abs(coarse - (cell.numpy() >> s)) <= 1).all(1)
+    if not near.any():
+        return np.zeros(10)
+    p, n = u[near], nrm.double().numpy()[near]
+    mu = p.mean(0)
+    evals = np.linalg.eigvalsh(np.cov(p.T, bias=True) + 1e-9 * np.eye(3))
+    d = (mu - (cell.numpy() + 0.5)) / 2 ** s
+    cov = np.cov(p.T, bias=True) / 4 ** s + (0.25 / 2 ** s) ** 2 * np.eye(3)
+    maha = np.sqrt(d @ np.linalg.solve(cov, d))
+    nvals = np.linalg.eigvalsh(n.T @ n / len(n))[::-1]
+    return np.r_[np.log1p(len(p)), np.linalg.norm(d), np.log1p(maha), np.sqrt(evals.clip(0))[::-1] / 2 ** s,
+                 nvals, 1.0]
+
+
+def test_features_equal_a_loop_over_each_cells_neighbourhood():
+    pts, nrm = _box_points(500)
+    cells, nearest = candidate_cells(pts)
+    feats = cell_features(pts, nrm, cells, nearest).double().numpy()
+    rng = np.random.default_rng(0)
+    for c in rng.choice(len(cells), 12, replace=False):
+        for k, s in enumerate(SHIFTS):
+            want = _features_by_loop(pts, nrm, cells[c], s)
+            got = feats[c, 10 * k:10 * (k + 1)]
+            assert np.allclose(got, want, atol=1e-4), (c, s)
+    assert np.allclose(feats[:, -1], np.log1p(nearest.numpy()), atol=1e-6)
+
+
+def test_features_do_not_change_when_the_input_moves_by_whole_coarse_cells_or_turns_by_90_degrees():
+    pts, nrm = _box_points(800)
+    cells, nearest = candidate_cells(pts)
+    base = cell_features(pts, nrm, cells, nearest)
+    step = (1 << max(SHIFTS)) / CELLS  # a whole coarse cell of the largest scale: every grid stays aligned
+    moved = pts + torch.tensor([step, -step, 0.0])
+    cm, nm = candidate_cells(moved)
+    assert torch.equal(cm, cells + torch.tensor([1 << max(SHIFTS), -(1 << max(SHIFTS)), 0]))
+    assert torch.allclose(cell_features(moved, nrm, cm, nm), base, atol=1e-4)
+    # x -> y, y -> -x about the centre of the grid, which maps cells onto cells.
+    turn = lambda p: torch.stack([-p[:, 1], p[:, 0], p[:, 2]], 1)  # noqa: E731
+    t_pts, t_nrm = turn(pts), torch.stack([-nrm[:, 1], nrm[:, 0], nrm[:, 2]], 1)
+    tc, tn = candidate_cells(t_pts)
+    mapped = torch.stack([CELLS - 1 - cells[:, 1], cells[:, 0], cells[:, 2]], 1)
+    order = torch.argsort(flat_index(mapped))
+    assert torch.equal(tc, mapped[order])
+    assert torch.allclose(cell_features(t_pts, t_nrm, tc, tn), base[order], atol=1e-4)
+
+
+def test_selection_takes_the_best_cells_and_never_two_neighbours():
+    cells = torch.tensor([[5, 5, 5], [5, 5, 6], [6, 6, 6], [9, 9, 9], [20, 1, 1]])
+    logits = torch.tensor([3.0, 5.0, 1.0, 0.5, -2.0])
+    assert select_cells(cells, logits).tolist() == [[5, 5, 6], [9, 9, 9]]  # above 0: (5,5,5), (6,6,6) suppressed
+    assert select_cells(cells, logits, count=3).tolist() == [[5, 5, 6], [9, 9, 9], [20, 1, 1]]
+    assert select_cells(cells, logits, count=1).tolist() == [[5, 5, 6]]
+    edge = torch.tensor([[0, 0, 0], [127, 127, 127], [1, 1, 1]])
+    assert len(select_cells(edge, torch.tensor([1.0, 1.0, 0.5]))) == 2  # border cells index safely
+
+
+def test_dense_grid_and_net_scores_line_up():
+    pts, nrm = _box_points(600)
+    net = CellNet(CellNetConfig(hidden=16, depth=1, n_points=600)).eval()
+    cells, logits = net.score(pts, nrm)
+    grid = net.grid(pts, nrm)
+    assert grid.shape == (CELLS ** 3,)
+    assert torch.allclose(grid[flat_index(cells)], logits.clamp(min=FLOOR))
+    off = torch.ones(CELLS ** 3, dtype=torch.bool)
+    off[flat_index(cells)] = False
+    assert (grid[off] == FLOOR).all()
+    assert torch.equal(dense_grid(cells, logits), grid)
+
+
+def _decoder(seed: int = 0) -> VertexDecoder:
+    torch.manual_seed(seed)
+    enc = EncoderConfig(n_points=64, n_latents=4, dim=32, depth=1, heads=2, n_freqs=4, anchors=8)
+    m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, evidence=True, evidence_normals=True,
+                                   evidence_cells=True)).eval()
+    with torch.no_grad():
+        m.head.weight.normal_(0, 1.0)
+        for t in (m.evidence.cell_block_table, m.evidence.cell_skip_table, m.evidence.cell_eos_table):
+            t.weight.normal_(0, 3.0 / GAIN)
+    return m
+
+
+def _cell_grids(b: int, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    grid = torch.full((b, CELLS ** 3), FLOOR)
+    idx = torch.randint(0, CELLS ** 3, (b, 400), generator=g)
+    grid.scatter_(1, idx, torch.randn(b, 400, generator=g) * 4)
+    return grid
+
+
+def test_decoder_reads_the_cell_log_odds():
+    m = _decoder()
+    pts = torch.rand(2, 64, 3) - 0.5
+    nrm = torch.nn.functional.normalize(torch.randn(2, 64, 3), dim=-1)
+    grid = _cell_grids(2)
+    with pytest.raises(ValueError, match="cell log-odds"):
+        m.point_evidence(pts, nrm)
+    base = m.point_evidence(pts, nrm, torch.full_like(grid, FLOOR))
+    ev = m.point_evidence(pts, nrm, grid)
+    block = torch.tensor([[-1, 7, 300], [0, 5, 511]])
+    diff = ev.logit_bias(block) - base.logit_bias(block)
+    for r in range(2):
+        for t, b in enumerate(block[r].tolist()):
+            if b < 0:
+                assert diff[r, t, vt.OFFSET0:].abs().max() == 0  # no block yet: no offset evidence
+                continue
+            o = torch.arange(vt.N_OFFSETS)
+            cell = torch.stack([b // 64 * 16 + o // 256, (b // 8) % 8 * 16 + (o // 16) % 16, b % 8 * 16 + o % 16], 1)
+            want = m.evidence.cell_gain * (grid[r, flat_index(cell)] - FLOOR)
+            assert torch.allclose(diff[r, t, vt.OFFSET0:], want, atol=1e-4)
+    # The expected vertex count of a block is the sum of its cells' probabilities.
+    p = torch.sigmoid(grid[0]).reshape(128, 128, 128)
+    assert torch.allclose(ev.cell_expected[0, 7], p[0:16, 0:16, 112:128].sum(), rtol=1e-4)
+
+
+def test_cached_equals_uncached_with_cell_evidence():
+    m = _decoder(3)
+    pts = torch.rand(2, 64, 3) - 0.5
+    nrm = torch.nn.functional.normalize(torch.randn(2, 64, 3), dim=-1)
+    with torch.no_grad():
+        prefix = m.condition(pts, nrm)
+    ev = m.point_evidence(pts, nrm, _cell_grids(2, 1))
+    cached = generate(m, prefix, SamplingConfig(temperature=0, max_vertices=10), evidence=ev)
+    uncached = generate_uncached(m, prefix, max_vertices=10, evidence=ev)
+    for a, b in zip(cached, uncached, strict=True):
+        row = b.tolist()
+        assert a.tolist() == (row[: row.index(vt.EOS) + 1] if vt.EOS in row else [t for t in row if t != vt.PAD])
+    assert any(len(a) > 4 for a in cached)

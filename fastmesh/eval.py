@@ -20,13 +20,24 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from .faces import mesh_from_adjacency
-from .io import SUPPORTED_FORMATS, Normalization, Shape, ShapeError, input_surface, load_shape, sample_surface
-from .metrics import edge_metrics, edges_from_faces, surface_distance, vertex_metrics
+from .faces import FaceConfig, mesh_from_adjacency, remove_unreferenced
+from .io import (
+    SUPPORTED_FORMATS,
+    Normalization,
+    Shape,
+    ShapeError,
+    input_surface,
+    load_shape,
+    sample_surface,
+    write_mesh,
+)
+from .metrics import edge_metrics, edges_from_faces, mesh_topology, surface_distance, vertex_metrics
+from .surface_faces import restricted_delaunay_mesh
 from .tokenizer import dequantize, quantize_mesh
 
 MESH_EXTS = ("ply", "obj", "glb", "gltf", "stl", "off")
@@ -100,29 +111,37 @@ def _score(result: tuple[np.ndarray, np.ndarray], ref: Shape, artist: dict) -> d
 
 
 def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("fastmesh",),
-                        log: Callable[[str], None] | None = None) -> dict:
-    """Score each system on every (input, reference) pair; returns per-mesh rows and summaries."""
+                        log: Callable[[str], None] | None = None, save: str | Path | None = None) -> dict:
+    """Score each system on every (input, reference) pair; returns per-mesh rows and summaries.
+
+    With ``save`` every result is written in the input's (= the reference's) frame (see :func:`_save`).
+    """
     from .pipeline import GenerationError
 
     rows = []
     for i, (inp, ref_path) in enumerate(pairs, 1):
         ref = load_shape(ref_path)
         shape = load_shape(inp)
-        row = {"name": inp.stem, "reference": {"vertices": int(len(ref.vertices)), "faces": int(len(ref.faces))}}
+        ref_top = mesh_topology(ref.vertices, ref.faces)
+        row = {"name": inp.stem, "reference": {"vertices": int(len(ref.vertices)), "faces": int(len(ref.faces)),
+                                               "watertight": ref_top["watertight"], "pieces": ref_top["pieces"]}}
         artist = artist_vertices(ref, shape)
         for system in systems:
             t = time.perf_counter()
             try:
                 if system == "fastmesh":
                     res = pipe.generate(shape, params)
-                    out = _score((res.vertices, res.faces), ref, artist)
-                    out.update(tokens=res.tokens, timings={k: round(v, 4) for k, v in res.timings.items()})
+                    mesh = (res.vertices, res.faces)
                 elif system == "convex_hull":
-                    out = _score(convex_hull(shape), ref, artist)
+                    mesh = convex_hull(shape)
                 elif system == "poisson":
-                    out = _score(poisson(shape, len(ref.faces), seed=params.seed), ref, artist)
+                    mesh = poisson(shape, len(ref.faces), seed=params.seed)
                 else:
                     raise ValueError(f"unknown system {system!r}")
+                out = {**_score(mesh, ref, artist), **_topology_row(*mesh)}
+                if system == "fastmesh":
+                    out.update(tokens=res.tokens, timings={k: round(v, 4) for k, v in res.timings.items()})
+                _save(save, system, inp.stem, *mesh)
                 out["seconds"] = round(time.perf_counter() - t, 4)
             except (GenerationError, ShapeError, RuntimeError) as e:
                 out = {"failed": True, "error": f"{type(e).__name__}: {e}"[:200],
@@ -160,6 +179,11 @@ def summarise(rows: list[dict], system: str) -> dict:
         ratio = [r[system]["faces"] / max(1, r["reference"]["faces"]) for r in ok]
         out["mean_face_ratio"] = float(np.mean(ratio))
         out["over_1_5x_faces"] = int(sum(x > 1.5 for x in ratio))
+        out["share_edge_manifold"] = sum(r[system]["edge_manifold"] for r in ok) / len(rows)
+        closed = [r for r in ok if r["reference"]["watertight"]]
+        out["share_watertight"] = (sum(r[system]["watertight"] for r in closed) / len(closed)
+                                   if closed else float("nan"))
+        out["more_pieces_than_reference"] = int(sum(r[system]["pieces"] > r["reference"]["pieces"] for r in ok))
         out["vertex_metrics"] = summarise_vertex_metrics([r[system]["vertex_metrics"] for r in ok])
         if "timings" in ok[0][system]:
             out["mean_timings"] = {k: float(np.mean([r[system]["timings"][k] for r in ok]))
@@ -168,9 +192,43 @@ def summarise(rows: list[dict], system: str) -> dict:
     return out
 
 
+def _save(save: str | Path | None, system: str, name: str, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """``save/<name>.ply`` for the pipeline, ``save/<system>/<name>.ply`` for the others."""
+    if save is None or len(faces) == 0:
+        return
+    folder = Path(save) if system == "fastmesh" else Path(save) / system
+    folder.mkdir(parents=True, exist_ok=True)
+    write_mesh(folder / f"{name}.ply", vertices, faces)
+
+
+def _topology_row(vertices: np.ndarray, faces: np.ndarray) -> dict:
+    t = mesh_topology(vertices, faces)
+    return {"edge_manifold": t["edge_manifold"], "watertight": t["watertight"], "pieces": t["pieces"]}
+
+
+def gt_vertex_systems(face_config: FaceConfig, baseline: bool) -> dict[str, FaceConfig | None]:
+    """The face stages ``evaluate_gt_vertices`` scores: the pipeline's (``fastmesh``); with ``baseline``
+    also the other selection with the same settings (``selection_cliques`` or ``selection_surface``)
+    and the restricted Delaunay anchor (``restricted_delaunay``, no model)."""
+    systems: dict[str, FaceConfig | None] = {"fastmesh": face_config}
+    if baseline:
+        other = "cliques" if face_config.selection == "surface" else "surface"
+        systems[f"selection_{other}"] = replace(face_config, selection=other)
+        systems["restricted_delaunay"] = None
+    return systems
+
+
 def evaluate_gt_vertices(pipe, pairs: list[tuple[Path, Path]], filtering: bool = True, seed: int = 0,
-                         max_vertices: int | None = None, log: Callable[[str], None] | None = None) -> dict:
-    """Face stage alone on each reference's own 7-bit vertices: edge precision/recall/F1, CD, HD."""
+                         max_vertices: int | None = None, log: Callable[[str], None] | None = None,
+                         baseline: bool = False, save: str | Path | None = None) -> dict:
+    """Face stages alone on each reference's own 7-bit vertices, side by side on the same points.
+
+    Per mesh: the model's predicted-edge precision/recall/F1; per system (:func:`gt_vertex_systems`):
+    CD, HD, faces, the result's edge precision/recall/F1 against the reference's, edge-manifold,
+    watertight, pieces, seconds (the network pass counts for the systems that use it).  With ``save``
+    every result is written in the reference's original frame (see :func:`_save`).
+    """
+    systems = gt_vertex_systems(pipe.face_config, baseline)
     rows = []
     for i, (inp, ref_path) in enumerate(pairs, 1):
         ref = load_shape(ref_path)
@@ -183,30 +241,66 @@ def evaluate_gt_vertices(pipe, pairs: list[tuple[Path, Path]], filtering: bool =
         n_fp = pipe.face.cfg.encoder.n_points
         pts, nrm = sample_surface(shape, n_fp, seed=seed, vertices=norm.apply(shape.vertices))
         t = time.perf_counter()
-        edges = pipe.face.predict_edges(q, pts, nrm, filtering=pipe.filter_config if filtering else None)
-        seconds = time.perf_counter() - t
-        m = edge_metrics(edges, edges_from_faces(true_faces))
+        edges, logits = pipe.face.predict_edges(q, pts, nrm, filtering=pipe.filter_config if filtering else None,
+                                                return_logits=True)
+        net_seconds = time.perf_counter() - t
+        true_edges = edges_from_faces(true_faces)
+        m = edge_metrics(edges, true_edges)
         surface = input_surface(shape, norm.apply(shape.vertices), pipe.face_config.support_points, seed)
-        v, f = mesh_from_adjacency(dequantize(q), edges, pipe.face_config, points=surface)
+        ref_top = mesh_topology(q, true_faces)
         row = {"name": inp.stem, "vertices": int(len(q)), "true_faces": int(len(true_faces)),
-               "faces": int(len(f)), "precision": m["precision"], "recall": m["recall"], "f1": m["f1"],
-               "seconds": round(seconds, 4)}
-        if len(f):
-            d = surface_distance((norm.invert(v), f), (ref.vertices, ref.faces))
-            row.update(cd=d.cd, hd=d.hd)
-        else:
-            row.update(failed=True)
+               "reference": {"watertight": ref_top["watertight"], "pieces": ref_top["pieces"]},
+               "precision": m["precision"], "recall": m["recall"], "f1": m["f1"]}
+        for system, cfg in systems.items():
+            t = time.perf_counter()
+            v = dequantize(q)
+            if cfg is None:
+                f = restricted_delaunay_mesh(v, surface)
+            else:  # the reference's vertex indices, to compare edges
+                f = mesh_from_adjacency(v, edges, replace(cfg, remove_unreferenced=False), points=surface,
+                                        logits=logits)[1]
+            seconds = time.perf_counter() - t + (0.0 if cfg is None else net_seconds)
+            out = {"faces": int(len(f)), "seconds": round(seconds, 4)}
+            if len(f):
+                me = edge_metrics(edges_from_faces(f), true_edges)
+                v, f, _ = remove_unreferenced(v, f)  # the result's own bounding box normalises it
+                d = surface_distance((norm.invert(v), f), (ref.vertices, ref.faces))
+                out.update(cd=d.cd, hd=d.hd, edge_precision=me["precision"], edge_recall=me["recall"],
+                           edge_f1=me["f1"], **_topology_row(v, f))
+                _save(save, system, inp.stem, norm.invert(v), f)
+            else:
+                out.update(failed=True)
+            row[system] = out
         rows.append(row)
         if log:
             log(f"[{i}/{len(pairs)}] {inp.name}: V {len(q)} P {m['precision']:.3f} R {m['recall']:.3f} "
-                f"F1 {m['f1']:.3f}")
-    ok = [r for r in rows if not r.get("failed")]
-    summary = {"meshes": len(rows), "failures": len(rows) - len(ok)}
-    for k in ("precision", "recall", "f1", "seconds"):
+                f"F1 {m['f1']:.3f} | " + ", ".join(
+                    f"{s} " + ("failed" if row[s].get("failed") else f"CD {row[s]['cd']:.2f} HD {row[s]['hd']:.2f}")
+                    for s in systems))
+    summary = {"meshes": len(rows)}
+    for k in ("precision", "recall", "f1"):
         summary[f"mean_{k}"] = float(np.mean([r[k] for r in rows])) if rows else float("nan")
-    for k in ("cd", "hd"):
-        summary[f"mean_{k}"] = float(np.mean([r[k] for r in ok])) if ok else float("nan")
+    for system in systems:
+        summary[system] = summarise_gt(rows, system)
     return {"meshes": rows, "summary": summary}
+
+
+def summarise_gt(rows: list[dict], system: str) -> dict:
+    """Means over one system's results of :func:`evaluate_gt_vertices` rows (CD/HD over the meshes it
+    made), shares edge-manifold (over all meshes) and watertight (over the watertight references)."""
+    ok = [r for r in rows if not r[system].get("failed")]
+    out = {"meshes": len(rows), "failures": len(rows) - len(ok)}
+    for k in ("cd", "hd", "edge_precision", "edge_recall", "edge_f1"):
+        out[f"mean_{k}"] = float(np.mean([r[system][k] for r in ok])) if ok else float("nan")
+    for k in ("faces", "seconds"):
+        out[f"mean_{k}"] = float(np.mean([r[system][k] for r in rows])) if rows else float("nan")
+    out["share_edge_manifold"] = sum(r[system].get("edge_manifold", False) for r in rows) / max(1, len(rows))
+    closed = [r for r in rows if r["reference"]["watertight"]]
+    out["watertight_references"] = len(closed)
+    out["share_watertight"] = (sum(r[system].get("watertight", False) for r in closed) / len(closed)
+                               if closed else float("nan"))
+    out["more_pieces_than_reference"] = sum(r[system].get("pieces", 0) > r["reference"]["pieces"] for r in ok)
+    return out
 
 
 def export_eval_set(ds, source_root: str | Path, out: str | Path, split: str = "val", n_points: int = 8192,

@@ -55,6 +55,27 @@ class FaceConfig:
     max_faces_per_edge : int or None
         Keep faces best-supported first (with the input's samples; else in order) while no edge
         carries more than this many (:func:`limit_faces_per_edge`); 2 = edge-manifold.
+    selection : str
+        ``"cliques"``: the 3-cycles of the predicted edges with the clean-up above.  ``"surface"``
+        (needs the input's samples): restricted Delaunay triangles plus the 3-cycles that lie on
+        the input surface, scored by the model, selected to stay a surface and holes filled
+        (:func:`fastmesh.surface_faces.surface_mesh`; of the options above it uses
+        ``support_points`` and ``remove_unreferenced``, and always orients).
+    surface_tol : float or None
+        ``"surface"``: the support limit relative to the points' longest side (None: only the
+        floor of ``support.SPACING_FACTOR`` point spacings, which measures best).
+    fold_angle : float
+        ``"surface"``: degrees; two faces on an edge closer than this around it overlap.
+    fill_max_loop : int
+        ``"surface"``: longest boundary loop closed by ear clipping (0 = no filling).
+    support_weight : float
+        ``"surface"``: a triangle's score loses this much per support limit it strays.
+    model_weight : float
+        ``"surface"``: weight of the mean log-probability of a triangle's edges in its score.
+    model_triangles : bool
+        ``"surface"``: the 3-cycles of the predicted edges that pass the support test are
+        candidates too (else only the restricted Delaunay triangles, scored by the model; on the
+        out-of-package validation meshes the extra triangles raise CD and HD).
     """
 
     drop_zero_area: bool = True
@@ -66,6 +87,17 @@ class FaceConfig:
     support_tol: float | None = None
     support_points: int = 16384
     max_faces_per_edge: int | None = None
+    selection: str = "cliques"
+    surface_tol: float | None = None
+    fold_angle: float = 30.0
+    fill_max_loop: int = 64
+    support_weight: float = 1.0
+    model_weight: float = 1.0
+    model_triangles: bool = False
+
+    def __post_init__(self):
+        if self.selection not in ("cliques", "surface"):
+            raise ValueError(f"selection must be 'cliques' or 'surface', got {self.selection!r}")
 
 
 # --------------------------------------------------------------------------- graphs
@@ -381,7 +413,8 @@ def remove_unreferenced(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nda
 
 
 def mesh_from_adjacency(vertices: np.ndarray, adj, config: FaceConfig | None = None,
-                        points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                        points: np.ndarray | None = None, logits: np.ndarray | None = None
+                        ) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and a predicted adjacency -> a cleaned, oriented triangle mesh.
 
     Parameters
@@ -393,7 +426,9 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: FaceConfig | None = N
     points : (P, 3) float, optional
         Samples of the input surface in the frame of ``vertices``: with ``config.support_tol``,
         faces that leave that surface are dropped, and ``config.max_faces_per_edge`` keeps the
-        best-supported faces first.
+        best-supported faces first.  Needed by ``config.selection == "surface"``.
+    logits : (N, N) float, optional
+        The model's edge logits, to score candidates with ``selection == "surface"``.
 
     Returns
     -------
@@ -402,6 +437,13 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: FaceConfig | None = N
     """
     cfg = config or FaceConfig()
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    if cfg.selection == "surface":
+        from .surface_faces import surface_mesh
+
+        if points is None:
+            raise ValueError("selection 'surface' needs samples of the input surface (points)")
+        f = surface_mesh(v, as_edges(adj, len(v))[0], points, cfg, logits)
+        return remove_unreferenced(v, f)[:2] if cfg.remove_unreferenced else (v, f)
     f = triangles_from_adjacency(adj, len(v))
     if cfg.drop_zero_area:
         f = drop_degenerate(v, f, cfg.area_tol)

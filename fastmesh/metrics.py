@@ -270,3 +270,42 @@ def edge_metrics(pred_edges: np.ndarray, true_edges: np.ndarray) -> dict:
     recall = tp / len(t) if len(t) else 1.0
     f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
     return {"precision": precision, "recall": recall, "f1": f1, "tp": tp, "fp": fp, "fn": fn}
+
+
+# --------------------------------------------------------------------------- topology
+
+
+def mesh_topology(vertices: np.ndarray, faces: np.ndarray, merge: bool = True) -> dict:
+    """Whether a mesh is a surface, and of how many pieces.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+    faces : (F, 3) int
+    merge : bool
+        Treat vertices at the same position as one (files split vertices at UV and normal seams).
+
+    Returns
+    -------
+    dict: ``edge_manifold`` (no edge in more than two faces), ``watertight`` (every edge in exactly
+    two faces, at least one face), ``pieces`` (connected parts of the faces, joined at shared
+    vertices).
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if merge and len(f):
+        _, ids = np.unique(np.asarray(vertices, dtype=np.float64), axis=0, return_inverse=True)
+        f = ids.reshape(-1)[f]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    if len(f) == 0:
+        return {"edge_manifold": True, "watertight": False, "pieces": 0}
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _, count = np.unique(e, axis=0, return_counts=True)
+    used, remap = np.unique(f, return_inverse=True)
+    r = remap.reshape(-1, 3)
+    g = sp.coo_matrix((np.ones(2 * len(r)), (np.r_[r[:, 0], r[:, 1]], np.r_[r[:, 1], r[:, 2]])),
+                      shape=(len(used), len(used)))
+    return {"edge_manifold": bool(count.max() <= 2), "watertight": bool((count == 2).all()),
+            "pieces": int(connected_components(g, directed=False)[0])}

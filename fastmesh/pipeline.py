@@ -366,11 +366,14 @@ class Pipeline:
         t = time.perf_counter()
         predict = self.face.predictor(q, pts[:n_fp], nrm[:n_fp])
         calls: list[float] = []
+        first: list[np.ndarray] = []  # logits of the unmasked pass, to score candidate faces
 
         def timed(order, mask):
             t0 = time.perf_counter()
             check_cancel()
             out = predict(order, mask)
+            if not first:
+                first.append(out)
             calls.append(time.perf_counter() - t0)
             if len(calls) > 1:
                 f0, f1 = _STAGE_SPAN["filtering"]
@@ -384,9 +387,10 @@ class Pipeline:
         total_face = time.perf_counter() - t
         t = time.perf_counter()
         surface = None  # the input surface the faces must lie on
-        if self.face_config.support_tol is not None or self.face_config.max_faces_per_edge is not None:
-            surface = input_surface(shape, unit, self.face_config.support_points, seed)
-        verts, faces = mesh_from_adjacency(positions, edges, self.face_config, points=surface)
+        fc = self.face_config
+        if fc.support_tol is not None or fc.max_faces_per_edge is not None or fc.selection == "surface":
+            surface = input_surface(shape, unit, fc.support_points, seed)
+        verts, faces = mesh_from_adjacency(positions, edges, fc, points=surface, logits=first[0] if first else None)
         # The first pass and triangle extraction are the face stage; re-predictions are filtering.
         timings["faces"] += (calls[0] if calls else total_face) + time.perf_counter() - t
         timings["filtering"] += total_face - (calls[0] if calls else total_face)

@@ -60,6 +60,23 @@ def support_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
     return np.median(dist.reshape(samples.shape[:2]), axis=1)
 
 
+def support_limit(points: np.ndarray, tol: float, tree: cKDTree | None = None) -> float:
+    """The largest :func:`support_distance` of a face on the surface: ``tol`` times the points'
+    longest side, and at least ``SPACING_FACTOR`` median point spacings.
+
+    Parameters
+    ----------
+    points : (P, 3) float, at least two
+    tol : float
+    tree : cKDTree of ``points``, optional
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    tree = tree if tree is not None else cKDTree(pts)
+    # Between sparse samples a face on the surface is itself up to about half their spacing away.
+    nn, _ = tree.query(pts, k=2)
+    return max(tol * float((pts.max(0) - pts.min(0)).max()), SPACING_FACTOR * float(np.median(nn[:, 1])))
+
+
 def drop_unsupported(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, tol: float) -> np.ndarray:
     """The faces that lie on the input surface: ``faces[supported(...)]``; see :func:`supported`.
 
@@ -100,9 +117,7 @@ def supported(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, tol: 
     if len(faces) == 0 or len(pts) < 2:
         return np.ones(len(faces), dtype=bool)
     tree = cKDTree(pts)
-    # Between sparse samples a face on the surface is itself up to about half their spacing away.
-    nn, _ = tree.query(pts, k=2)
-    limit = max(tol * float((pts.max(0) - pts.min(0)).max()), SPACING_FACTOR * float(np.median(nn[:, 1])))
+    limit = support_limit(pts, tol, tree)
     if score is None:
         score = support_distance(vertices, faces, pts, tree)
     bad = score > limit

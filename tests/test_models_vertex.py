@@ -168,3 +168,31 @@ def test_sampled_sequences_decode_and_respect_max_vertices():
             assert len(np.unique(cells, axis=0)) == len(cells)
             assert (vt.encode(cells) == s).all()  # canonical: re-encoding gives the same tokens
         assert max(int((s >= vt.OFFSET0).sum()) for s in seqs) == 9
+
+
+def test_face_count_condition_adds_one_prefix_token_per_target():
+    from fastmesh.models.vertex import COUNT_BUCKETS, count_bucket
+
+    assert count_bucket(torch.tensor([0, -5, 16, 32, 4096, 10 ** 6, 23])).tolist() == [0, 0, 1, 5, COUNT_BUCKETS - 1,
+                                                                                        COUNT_BUCKETS - 1, 3]
+    torch.manual_seed(0)
+    enc = EncoderConfig(n_points=64, n_latents=4, dim=32, depth=1, heads=2, n_freqs=4)
+    m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, count_condition=True)).eval()
+    with torch.no_grad():
+        m.count_emb.weight.normal_(0, 1.0)
+        m.head.weight.normal_(0, 1.0)
+    pts, nrm = _points(2)
+    with torch.no_grad():
+        none = m.condition(pts, nrm)
+        asked = m.condition(pts, nrm, torch.tensor([100, 2000]))
+    assert none.shape == (2, 5, 32) and torch.equal(none[:, :4], asked[:, :4])
+    assert not torch.allclose(asked[0, 4], asked[1, 4]) and torch.equal(none, m.condition(pts, nrm, torch.zeros(2)))
+    cached = generate(m, asked, SamplingConfig(temperature=0, max_vertices=10))
+    uncached = generate_uncached(m, asked, max_vertices=10)
+    for a, b in zip(cached, uncached, strict=True):
+        assert a.tolist() == _trim(b)
+    # Training reads the target from the batch: the loss changes with it.
+    tokens = torch.tensor([[vt.BOS, vt.BLOCK0 + 3, vt.OFFSET0 + 7, vt.EOS]])
+    l1 = m.loss(tokens, points=pts[:1], normals=nrm[:1], target_faces=torch.tensor([100]))
+    l2 = m.loss(tokens, points=pts[:1], normals=nrm[:1], target_faces=torch.tensor([3000]))
+    assert not torch.isclose(l1, l2)

@@ -1,8 +1,12 @@
-"""``fastmesh eval --inputs DIR --reference DIR [--json] [--gt-vertices] [--baseline]``.
+"""``fastmesh eval --inputs DIR --reference DIR [--json] [--gt-vertices] [--baseline] [--save DIR]``.
 
 Scores the pipeline (and with ``--baseline`` a convex hull and screened Poisson +
 quadric decimation) on every input that has a reference mesh of the same name, as
-../shared/EVAL.md defines.  Make such folders from a dataset's validation split with
+../shared/EVAL.md defines.  With ``--gt-vertices`` the face stage alone runs on each
+reference's vertices; ``--baseline`` then adds the other face selection and the
+surface-restricted Delaunay anchor on the same vertices and points.  ``--save DIR`` writes
+each result as ``DIR/<input name>.ply`` (the other systems' under ``DIR/<system>/``) in the
+reference's original frame.  Make such folders from a dataset's validation split with
 ``fastmesh data eval-set``.
 """
 
@@ -21,7 +25,9 @@ def register(sub) -> None:
     p.add_argument("--gt-vertices", action="store_true",
                    help="score the face stage alone on each reference's 7-bit vertices")
     p.add_argument("--baseline", action="store_true",
-                   help="also score convex hull and screened Poisson + decimation (needs pymeshlab)")
+                   help="also score convex hull and screened Poisson + decimation (needs pymeshlab); with "
+                        "--gt-vertices the other face selection and the restricted Delaunay anchor")
+    p.add_argument("--save", metavar="DIR", help="write every result as DIR/<input name>.ply (reference frame)")
     p.add_argument("--limit", type=int, default=0, help="only the first N pairs")
     p.add_argument("--json", action="store_true", help="print the whole report as JSON")
     add_sampling_args(p)
@@ -40,7 +46,8 @@ def _run(args) -> int:
     log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     if args.gt_vertices:
         report = evaluate_gt_vertices(pipe, pairs, filtering=params.filtering, seed=params.seed,
-                                      max_vertices=args.max_vertices, log=log)
+                                      max_vertices=args.max_vertices, log=log, baseline=args.baseline,
+                                      save=args.save)
     else:
         systems = ["fastmesh"]
         if args.baseline:
@@ -49,7 +56,7 @@ def _run(args) -> int:
             except ImportError:
                 raise ValueError("--baseline needs pymeshlab: pip install -e '.[bench]'") from None
             systems += ["convex_hull", "poisson"]
-        report = evaluate_end_to_end(pipe, pairs, params, systems=systems, log=log)
+        report = evaluate_end_to_end(pipe, pairs, params, systems=systems, log=log, save=args.save)
     report["weights"] = pipe.source
     if args.json:
         print(json.dumps(report, indent=2))

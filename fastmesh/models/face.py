@@ -173,19 +173,31 @@ class FaceModel(nn.Module):
         return predict
 
     def predict_edges(self, q: np.ndarray, points: np.ndarray, normals: np.ndarray,
-                      filtering: FilterConfig | None = None) -> np.ndarray:
+                      filtering: FilterConfig | None = None, return_logits: bool = False):
         """(E, 2) int64 predicted edges (i < j) among vertices ``q`` (N, 3).
 
         Without ``filtering``: one unmasked pass, edges where the symmetrised probability
         exceeds 0.5.  With it: ``filtering.filter_predictions`` (re-predictions under masks).
+        With ``return_logits``: ``(edges, logits)``, the (N, N) float32 logits of the unmasked pass.
         """
         n = len(q)
         if n < 2:
-            return np.zeros((0, 2), dtype=np.int64)
+            edges = np.zeros((0, 2), dtype=np.int64)
+            return (edges, np.zeros((n, n), dtype=np.float32)) if return_logits else edges
         predict = self.predictor(q, points, normals)
+        first: list[np.ndarray] = []
+
+        def keep_first(order: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+            out = predict(order, mask)
+            if not first:  # the unmasked pass in the input order
+                first.append(out)
+            return out
+
         if filtering is None:
-            return edges_from_logits(predict(np.arange(n), None), 0.5)
-        return filter_predictions(predict, n, filtering).edges
+            edges = edges_from_logits(keep_first(np.arange(n), None), 0.5)
+        else:
+            edges = filter_predictions(keep_first, n, filtering).edges
+        return (edges, first[0]) if return_logits else edges
 
 
 def _f32(a, device) -> torch.Tensor:

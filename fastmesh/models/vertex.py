@@ -37,6 +37,7 @@ class VertexConfig:
     evidence: bool = False  # add the learned point-evidence logit bias (models.evidence)
     evidence_normals: bool = False  # ... and its normal-spread ("corner") table
     evidence_cells: bool = False  # ... and the cell log-odds of models.cells
+    count_condition: bool = False  # one more prefix token: the face count asked for (or "the model's choice")
 
     @property
     def head_dim(self) -> int:
@@ -72,6 +73,18 @@ def grammar_mask(prev: torch.Tensor, block: torch.Tensor, offset: torch.Tensor,
     return mask | (dead & (ids == vt.PAD))
 
 
+# Face counts asked for, in buckets of a quarter octave from 16 to 4096 faces; bucket 0 is "no target".
+COUNT_MIN, COUNT_MAX, COUNT_STEPS_PER_OCTAVE = 16, 4096, 4
+COUNT_BUCKETS = 2 + COUNT_STEPS_PER_OCTAVE * 8
+
+
+def count_bucket(target_faces: torch.Tensor) -> torch.Tensor:
+    """(B,) face counts asked for (0 or less: none) -> (B,) bucket ids of the count token."""
+    t = target_faces.float()
+    b = 1 + (COUNT_STEPS_PER_OCTAVE * torch.log2(t.clamp(COUNT_MIN, COUNT_MAX) / COUNT_MIN)).round().long()
+    return torch.where(t > 0, b, 0)
+
+
 def next_token_loss(logits: torch.Tensor, tokens: torch.Tensor) -> torch.Tensor:
     """Cross entropy of logits (B, T-1, V) against tokens[:, 1:], PAD ignored."""
     target = tokens[:, 1:]
@@ -90,24 +103,32 @@ class VertexDecoder(nn.Module):
         self.layers = nn.ModuleList([Block(cfg.dim, cfg.heads) for _ in range(cfg.depth)])
         self.norm = RMSNorm(cfg.dim)
         self.head = nn.Linear(cfg.dim, vt.VOCAB_SIZE, bias=False)
+        self.count_emb = nn.Embedding(COUNT_BUCKETS, cfg.dim) if cfg.count_condition else None
         init_weights(self)
         # after init_weights: its tables start at zero (no bias until training finds the evidence useful)
         self.evidence = PointEvidence(normals=cfg.evidence_normals, cells=cfg.evidence_cells) if cfg.evidence else None
 
     # ------------------------------------------------------------------ pieces
 
-    def condition(self, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    def condition(self, points: torch.Tensor, normals: torch.Tensor,
+                  target_faces: torch.Tensor | None = None) -> torch.Tensor:
         """(B, P, 3) points + normals -> (B, M, dim) prefix.
 
         Anchored encoders (``EncoderConfig.anchors``) also add the cell embedding of each
         anchor's 7-bit cell, the same table offset tokens use for their vertex: a vertex
-        token and an input region at the same place start out similar.
+        token and an input region at the same place start out similar.  With
+        ``count_condition`` the prefix ends with a token for ``target_faces`` (B,) (0 or None:
+        the model chooses the count itself; trained with both).
         """
         latents, anchor_pts = self.encoder(points, normals, return_anchors=True)
         prefix = self.cond_proj(latents)
         if anchor_pts is not None:
             cells = ((anchor_pts.float() + 0.5) * LEVELS).floor().clamp(0, LEVELS - 1).long()
             prefix = prefix + self.cell_emb(cells)
+        if self.count_emb is not None:
+            if target_faces is None:
+                target_faces = torch.zeros(prefix.shape[0], dtype=torch.long, device=prefix.device)
+            prefix = torch.cat([prefix, self.count_emb(count_bucket(target_faces))[:, None]], dim=1)
         return prefix
 
     def point_evidence(self, points: torch.Tensor, normals: torch.Tensor | None = None,
@@ -138,15 +159,17 @@ class VertexDecoder(nn.Module):
 
     def forward(self, tokens: torch.Tensor, prefix: torch.Tensor | None = None,
                 points: torch.Tensor | None = None, normals: torch.Tensor | None = None,
-                evidence: Evidence | None = None, cells: torch.Tensor | None = None) -> torch.Tensor:
+                evidence: Evidence | None = None, cells: torch.Tensor | None = None,
+                target_faces: torch.Tensor | None = None) -> torch.Tensor:
         """Uncached pass: tokens (B, T) -> logits (B, T, VOCAB) for the *next* token.
 
         The condition is ``prefix`` (B, M, dim) and ``evidence``, or both computed from
-        ``points``/``normals`` (B, P, 3) and ``cells`` (B, 128^3) (the training path, so DDP sees one forward).
+        ``points``/``normals`` (B, P, 3), ``cells`` (B, 128^3) and ``target_faces`` (B,) (the training path,
+        so DDP sees one forward).
         Grammar masking is applied here too, so training and decoding see the same distribution.
         """
         if prefix is None:
-            prefix = self.condition(points, normals)
+            prefix = self.condition(points, normals, target_faces)
             evidence = self.point_evidence(points, normals, cells)
         block, offset = grammar_state(tokens)
         x = torch.cat([prefix.to(self.tok_emb.weight.dtype), self.embed(tokens, block)], dim=1)

@@ -57,10 +57,17 @@ class VertexTask:
         batch = {"tokens": torch.from_numpy(tokens), **_points_tensors(samples)}
         if reads_cells:
             batch["cells"] = torch.stack([ds.cell_logits(int(i)) for i in indices])
+        if cfg.model.get("count_condition"):
+            # The true face count as the condition, dropped at random so "the model's choice" is trained
+            # (and validated) too.
+            faces = np.array([len(s[1]) for s in samples])
+            drop = rng.random(len(faces)) < COUNT_DROP
+            batch["target_faces"] = torch.from_numpy(np.where(drop, 0, faces))
         return batch
 
     def loss(self, model, batch):
-        loss = model.loss(batch["tokens"], points=batch["points"], normals=batch["normals"], cells=batch.get("cells"))
+        loss = model.loss(batch["tokens"], points=batch["points"], normals=batch["normals"], cells=batch.get("cells"),
+                          target_faces=batch.get("target_faces"))
         return loss, int((batch["tokens"][:, 1:] != vt.PAD).sum())
 
     @torch.no_grad()
@@ -77,6 +84,9 @@ class VertexTask:
         own = float(self.loss(model, b)[0])
         other = float(self.loss(model, {k: v.roll(1, 0) if k != "tokens" else v for k, v in b.items()})[0])
         return {"cond_gain": round(other - own, 5)}
+
+
+COUNT_DROP = 0.5  # share of training sequences whose face count is not given
 
 
 def _n_points(cfg) -> int:

@@ -1,0 +1,194 @@
+"""Surface face selection: restricted Delaunay candidates, manifold selection, hole filling, the ladder
+of simple shapes, and the eval verbs that score it side by side."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from fastmesh import surface_faces as sf
+from fastmesh.cli import main
+from fastmesh.faces import FaceConfig, mesh_from_adjacency
+from fastmesh.io import Normalization
+from fastmesh.metrics import mesh_topology
+from fastmesh.support import support_distance, support_limit
+from fastmesh.tokenizer import dequantize, quantize_mesh
+
+PRIMITIVES = {
+    "box": lambda: trimesh.creation.box(),
+    "cylinder": lambda: trimesh.creation.cylinder(radius=0.5, height=1.0, sections=16),
+    "cone": lambda: trimesh.creation.cone(radius=0.5, height=1.0, sections=16),
+    "icosphere1": lambda: trimesh.creation.icosphere(subdivisions=1),
+    "icosphere2": lambda: trimesh.creation.icosphere(subdivisions=2),
+}
+SURFACE = FaceConfig(selection="surface")
+
+
+def _max_faces_per_edge(faces: np.ndarray) -> int:
+    f = np.asarray(faces)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    return int(np.unique(e, axis=0, return_counts=True)[1].max())
+
+
+def _primitive(name: str, normals: bool = False):
+    """The primitive's vertices (merged) and 8192 samples of its surface (and their normals)."""
+    m = PRIMITIVES[name]()
+    m.merge_vertices()
+    pts, fi = trimesh.sample.sample_surface(m, 8192, seed=0)
+    return (m, np.asarray(pts), m.face_normals[fi]) if normals else (m, np.asarray(pts))
+
+
+def _assert_closed_on_surface(m, v, f, pts):
+    top = mesh_topology(v, f)
+    assert top["watertight"] and top["pieces"] == 1, top
+    assert _max_faces_per_edge(f) == 2
+    assert (support_distance(v, f, pts) <= support_limit(pts, 0.0)).all()  # no face off the surface
+    # oriented outward; 7-bit cells move the vertices a little
+    assert trimesh.Trimesh(v, f, process=False).volume == pytest.approx(m.volume, rel=0.05)
+
+
+@pytest.mark.parametrize("name", list(PRIMITIVES))
+def test_primitives_close_without_a_model(name):
+    m, pts = _primitive(name)
+    v, f = mesh_from_adjacency(m.vertices, np.zeros((0, 2), dtype=np.int64), SURFACE, points=pts)
+    _assert_closed_on_surface(m, v, f, pts)
+    if name == "box":
+        assert len(f) == 12
+
+
+def test_restricted_delaunay_anchor_on_the_box():
+    m, pts = _primitive("box")
+    f = sf.restricted_delaunay_mesh(m.vertices, pts)
+    assert len(f) == 12 and mesh_topology(m.vertices, f)["watertight"]
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    from fastmesh.pipeline import Pipeline
+
+    return Pipeline.from_pretrained(device="cpu")
+
+
+@pytest.mark.parametrize("name", ["box", "cylinder"])
+def test_shipped_face_model_closes_box_and_cylinder(shipped, name):
+    """The shipped face model's edges and logits on the primitive's own 7-bit vertices."""
+    m, pts, nrm = _primitive(name, normals=True)
+    norm = Normalization.fit(m.vertices)
+    q, _, _ = quantize_mesh(norm.apply(m.vertices), m.faces)
+    unit_pts = norm.apply(pts)
+    n_fp = shipped.face.cfg.encoder.n_points
+    edges, logits = shipped.face.predict_edges(q, unit_pts[:n_fp], nrm[:n_fp], filtering=shipped.filter_config,
+                                               return_logits=True)
+    cfg = FaceConfig(**{**shipped.face_config.__dict__, "selection": "surface", "remove_unreferenced": False})
+    v, f = mesh_from_adjacency(dequantize(q), edges, cfg, points=unit_pts, logits=logits)
+    _assert_closed_on_surface(trimesh.Trimesh(norm.apply(m.vertices), m.faces), v, f, unit_pts)
+    if name == "box":
+        assert len(f) == 12
+
+
+def test_selection_never_puts_an_edge_in_three_faces():
+    # A book: five pages hinged on edge (0, 1), spread 72 degrees apart, all scored well.
+    ang = np.arange(5) * 2 * np.pi / 5
+    v = np.concatenate([[[0, 0, 0], [0, 0, 1.0]], np.stack([np.cos(ang), np.sin(ang), np.full(5, 0.5)], 1)])
+    pages = np.array([[0, 1, 2 + k] for k in range(5)])
+    frames = np.full((len(v), 2, 3), np.nan)
+    f, _ = sf.select_faces(v, pages, np.ones(5), frames)
+    assert len(f) == 2 and _max_faces_per_edge(f) == 2
+    # Dense random candidates around a sphere: whatever is picked stays edge-manifold.
+    rng = np.random.default_rng(0)
+    s = rng.normal(size=(60, 3))
+    s /= np.linalg.norm(s, axis=1, keepdims=True)
+    close = np.argwhere(np.linalg.norm(s[:, None] - s[None], axis=2) < 0.9)
+    pts = trimesh.sample.sample_surface(trimesh.creation.icosphere(4), 8192, seed=0)[0]
+    f = sf.surface_mesh(s, close, pts, FaceConfig(selection="surface", support_tol=0.1))
+    assert len(f) and _max_faces_per_edge(f) <= 2
+
+
+def test_folded_faces_are_not_both_selected():
+    # Both diagonal splits of a flat quad: the second pair folds onto the first.
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]])
+    cand = np.array([[0, 1, 2], [0, 2, 3], [0, 1, 3], [1, 2, 3]])
+    f, _ = sf.select_faces(v, cand, np.array([4.0, 3, 2, 1]), np.full((4, 2, 3), np.nan))
+    assert sorted(map(tuple, np.sort(f, 1).tolist())) == [(0, 1, 2), (0, 2, 3)]
+
+
+def test_fill_closes_a_hole_and_leaves_an_open_input_open():
+    m, pts = _primitive("icosphere2")
+    f = np.asarray(m.faces)[np.r_[0:5, 12:len(m.faces)]]  # a hole where 7 faces were
+    book = sf._Selection(m.vertices, sf.vertex_frames(m.vertices, pts, f), 30.0)
+    for t in f.tolist():
+        book.add(*t)
+    filled = sf.fill_holes(m.vertices, f, book, pts, support_limit(pts, 0.0))
+    assert mesh_topology(m.vertices, filled)["watertight"]
+    # A flat open grid: its outer boundary is not a hole of the surface.
+    k = 6
+    x, y = np.meshgrid(np.arange(k), np.arange(k), indexing="ij")
+    grid = np.stack([x.ravel(), y.ravel(), np.zeros(k * k)], 1) / (k - 1)
+    plane = np.c_[np.random.default_rng(0).random((8192, 2)), np.zeros(8192)]
+    f = sf.surface_mesh(grid, np.zeros((0, 2), dtype=np.int64), plane)
+    assert len(f) == 2 * (k - 1) ** 2 and not mesh_topology(grid, f)["watertight"]
+
+
+def test_boundary_loops_of_an_open_cylinder():
+    m = trimesh.creation.cylinder(radius=1, height=1, sections=8)
+    m.merge_vertices()
+    side = m.faces[np.abs(m.face_normals[:, 2]) < 0.5]
+    loops = sf.boundary_loops(side)
+    assert sorted(len(x) for x in loops) == [8, 8]
+
+
+def test_delaunay_triangles_of_flat_and_degenerate_inputs():
+    flat = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0.5, 0.5, 0]])
+    assert len(sf.delaunay_triangles(flat)) == 4
+    assert len(sf.delaunay_triangles(np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0.0]]))) == 0
+    assert len(sf.delaunay_triangles(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]))) == 4
+
+
+def _eval_folders(tmp_path: Path) -> tuple[Path, Path]:
+    inputs, refs = tmp_path / "inputs", tmp_path / "reference"
+    inputs.mkdir()
+    refs.mkdir()
+    for name, mesh in (("box", trimesh.creation.box((2, 1, 3))), ("ball", trimesh.creation.icosphere(1))):
+        mesh.apply_translation([5, -1, 2])  # an off-centre frame, to check the saved results' frame
+        pts, fi = trimesh.sample.sample_surface(mesh, 4096, seed=0)
+        np.savez(inputs / f"{name}.npz", points=pts, normals=mesh.face_normals[fi])
+        (refs / f"{name}.ply").write_bytes(mesh.export(file_type="ply"))
+    return inputs, refs
+
+
+def test_eval_gt_vertices_baseline_side_by_side_and_save(tmp_path, capsys, weights):
+    inputs, refs = _eval_folders(tmp_path)
+    save = tmp_path / "saved"
+    code = main(["eval", "--inputs", str(inputs), "--reference", str(refs), "--gt-vertices", "--baseline",
+                 "--save", str(save), "--weights", weights, "--json"])
+    assert code == 0
+    doc = json.loads(capsys.readouterr().out)
+    summary = doc["summary"]
+    assert {"fastmesh", "selection_surface", "restricted_delaunay"} <= set(summary)
+    anchor = summary["restricted_delaunay"]
+    assert anchor["share_edge_manifold"] == 1.0 and anchor["watertight_references"] == 2
+    for row in doc["meshes"]:
+        assert {"cd", "hd", "edge_f1", "watertight", "seconds"} <= set(row["restricted_delaunay"])
+    box = trimesh.load(save / "restricted_delaunay" / "box.ply", process=False)
+    ref = trimesh.load(refs / "box.ply", process=False)
+    assert np.allclose(box.bounds, ref.bounds, atol=0.05)  # the reference's frame, 7-bit vertices
+    assert (save / "box.ply").exists() or doc["meshes"][0]["fastmesh"].get("failed")
+
+
+def test_eval_end_to_end_save_and_topology(tmp_path, capsys, weights):
+    inputs, refs = _eval_folders(tmp_path)
+    save = tmp_path / "saved"
+    code = main(["eval", "--inputs", str(inputs), "--reference", str(refs), "--limit", "1", "--save", str(save),
+                 "--weights", weights, "--json", "--max-vertices", "16"])
+    assert code == 0
+    doc = json.loads(capsys.readouterr().out)
+    row = doc["meshes"][0]
+    if not row["fastmesh"].get("failed"):
+        assert {"edge_manifold", "watertight", "pieces"} <= set(row["fastmesh"])
+        assert (save / f"{row['name']}.ply").exists()
+    assert "more_pieces_than_reference" in doc["summary"]["fastmesh"] or doc["summary"]["fastmesh"]["failures"]
+    assert row["reference"]["watertight"] is True

@@ -103,7 +103,10 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=3)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    pipe = Pipeline.from_pretrained(args.weights, device="cpu")
+    try:
+        pipe = Pipeline.from_pretrained(args.weights, device="cpu", threads=args.threads)
+    except TypeError:  # code from before Pipeline took a thread count: torch's, set above
+        pipe = Pipeline.from_pretrained(args.weights, device="cpu")
     counts = [int(c) for c in args.candidates.split(",")]
     inputs = pick_inputs(args.inputs, args.limit)
     if args.decode_only:

@@ -1,6 +1,6 @@
 """The ladder of simple shapes: does the pipeline find a primitive's own vertices?
 
-    python benchmarks/primitives.py [--weights DIR] [--shapes box,cone] [--seed 0] [--threads 2] [--json]
+    python benchmarks/primitives.py [--weights DIR] [--shapes box,cone] [--seed 0] [--threads N] [--json]
 
 Each shape of ``fastmesh.primitives.LADDER`` (box, L-shaped block, box with a square through-hole,
 cylinder and cone of 16 sides, icosphere of 1 and 2 subdivisions, torus) is sampled to 8,192
@@ -55,18 +55,17 @@ def main() -> int:
     ap.add_argument("--weights", default=None, metavar="DIR", help="weights folder (default: the shipped ones)")
     ap.add_argument("--shapes", default=",".join(LADDER), help="comma-separated subset of the ladder")
     ap.add_argument("--seed", type=int, default=0, help="seed of the point sample and of generation")
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: the pipeline's)")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
-    pipe = Pipeline.from_pretrained(args.weights)
+    pipe = Pipeline.from_pretrained(args.weights, threads=args.threads)
     params = GenerateParams(seed=args.seed)
     rows = [run_shape(pipe, name, params) for name in args.shapes.split(",")]
     if args.json:
         print(json.dumps({"weights": pipe.source, "rows": rows}, indent=2))
         return 0
     print(f"weights {pipe.source}, default settings ({params.candidates} candidates), seed {args.seed}, "
-          f"{args.threads} threads")
+          f"{torch.get_num_threads()} thread(s)")
     print(f"{'shape':<11} {'ref V':>5} {'gen V':>5} {'ratio':>5} {'P@1':>5} {'R@1':>5} {'on-surf':>7} {'s':>6}  ok")
     for r in rows:
         if "failed" in r:

@@ -78,7 +78,8 @@ def time_decoding(pipe: Pipeline, inputs: list[Path], k: int, rounds: int) -> No
         shape = load_shape(f)
         unit = Normalization.fit(shape.vertices).apply(shape.vertices)
         # Candidate k's own surface sample and condition, as Pipeline.generate makes them.
-        encoded = [pipe._encode(shape, unit, seed) for seed in range(k)]
+        cells = pipe._cell_grid(shape, unit)
+        encoded = [pipe._encode(shape, unit, seed, GenerateParams(), cells) for seed in range(k)]
         prefix, evidence = [e[2] for e in encoded], [e[3] for e in encoded]
         med, lengths = _decode_times(pipe, prefix, evidence, rounds)
         for name in totals:

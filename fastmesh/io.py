@@ -9,7 +9,6 @@ so results can be written back where the input was.
 from __future__ import annotations
 
 import io
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,8 @@ EXPORT_FORMATS = ("glb", "obj", "ply")
 # Default limits; the service narrows them through its settings.
 MAX_POINTS = 2_000_000
 MAX_FACES = 2_000_000
+# Smallest bounding-box side: 1 / MIN_EXTENT is still a normal float64 (subnormal extents overflow the scale).
+MIN_EXTENT = float(np.finfo(np.float64).tiny)
 
 
 class ShapeError(ValueError):
@@ -75,11 +76,20 @@ class Normalization:
 
     @classmethod
     def fit(cls, points: np.ndarray) -> Normalization:
-        lo, hi = points.min(0), points.max(0)
-        extent = float((hi - lo).max())
-        if not np.isfinite(extent) or extent <= 0:
+        """Raises :class:`ShapeError` for a zero extent, and for one the unit cube cannot hold in float64
+        (wider than the largest float, or so small that its inverse overflows)."""
+        lo, hi = np.asarray(points, dtype=np.float64).min(0), np.asarray(points, dtype=np.float64).max(0)
+        with np.errstate(over="ignore"):
+            extent = float((hi - lo).max())
+        if extent == 0:
             raise ShapeError("degenerate", "shape has zero extent (all points coincide)")
-        return cls(center=(lo + hi) / 2.0, scale=1.0 / extent)
+        if not np.isfinite(extent):
+            raise ShapeError("out_of_range", "coordinates span more than the largest float64 number "
+                                             "(about 1.8e308); scale the shape down")
+        if extent < MIN_EXTENT:
+            raise ShapeError("degenerate", f"the shape is {extent:.3g} units across, too small to be scaled to "
+                                           f"the unit cube (at least {MIN_EXTENT:.3g}); scale it up")
+        return cls(center=lo / 2.0 + hi / 2.0, scale=1.0 / extent)
 
     def apply(self, v: np.ndarray) -> np.ndarray:
         return (np.asarray(v, dtype=np.float64) - self.center) * self.scale
@@ -99,7 +109,7 @@ def _ext(name: str) -> str:
 
 
 def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
-               max_points: int = MAX_POINTS, max_faces: int = MAX_FACES) -> Shape:
+               max_points: int = MAX_POINTS, max_faces: int = MAX_FACES, normals: bool = True) -> Shape:
     """Read a mesh or point cloud from a path or from bytes.
 
     Parameters
@@ -110,13 +120,20 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
         Name used for the format when ``source`` is bytes.
     max_points, max_faces : int
         Larger inputs are refused (``ShapeError('too_large')``) before heavy work.
+    normals : bool
+        Give a point cloud a unit normal at every point (estimating missing or unusable ones, the
+        costly part of loading a large cloud).  False keeps the file's normals as they are (or None);
+        :func:`with_normals` completes them later.
 
     Raises
     ------
     ShapeError
-        With code ``unsupported_format``, ``unreadable``, ``empty``, ``non_finite``,
+        With code ``unsupported_format``, ``unreadable``, ``empty``, ``non_finite``, ``out_of_range``,
         ``degenerate`` or ``too_large``.
     """
+    from .pointfiles import load_numpy_points, load_text_points
+    from .precheck import plain_parse_error
+
     if isinstance(source, (bytes, bytearray, memoryview)):
         data = bytes(source)
         name = filename or ""
@@ -134,9 +151,9 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
         raise ShapeError("empty", "file is empty")
     try:
         if ext in ("xyz", "txt"):
-            shape = _load_text_points(data, max_points)
+            shape = load_text_points(data, max_points)
         elif ext in ("npy", "npz"):
-            shape = _load_numpy_points(data, ext, max_points)
+            shape = load_numpy_points(data, ext, max_points)
         else:
             _precheck_mesh(data, ext, max_points, max_faces)
             shape = _load_trimesh(data, ext)
@@ -144,118 +161,25 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
         raise
     except MemoryError:
         raise ShapeError("too_large", "file declares more data than can be loaded") from None
-    except Exception as e:  # parsers raise anything from IndexError to struct.error
-        raise ShapeError("unreadable", f"cannot parse .{ext} file: {type(e).__name__}: {e}"[:300]) from None
-    return validate_shape(shape, max_points=max_points, max_faces=max_faces)
+    except Exception as e:  # parsers raise anything from IndexError to struct.error: say what it means
+        raise ShapeError("unreadable", plain_parse_error(e, ext, data)) from None
+    return validate_shape(shape, max_points=max_points, max_faces=max_faces, normals=normals)
 
 
-def _too_many(n: int, limit: int, what: str = "points/vertices") -> ShapeError:
+def too_many(n: int, limit: int, what: str = "points/vertices") -> ShapeError:
     return ShapeError("too_large", f"{n} {what} exceed the limit of {limit}")
 
 
-def _load_text_points(data: bytes, max_points: int = MAX_POINTS) -> Shape:
-    # Python lists of split lines cost ~200 bytes a point: count lines before splitting (a 64 MB upload
-    # of short lines would otherwise take gigabytes and a minute only to be refused).  Lines that are not
-    # comments ('#' first) or empty bound the points from above.
-    lines = data.count(b"\n") + (not data.endswith(b"\n")) - data.count(b"\n#") - data.startswith(b"#") \
-        - data.count(b"\n\n") - data.count(b"\n\r\n")
-    if lines > max_points:
-        raise ShapeError("too_large", f"{lines} lines exceed the limit of {max_points} points")
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError:
-        raise ShapeError("unreadable", "text point file is not UTF-8") from None
-    rows = [ln.replace(",", " ").split() for ln in text.splitlines()]
-    rows = [r for r in rows if r and not r[0].startswith("#")]
-    if not rows:
-        raise ShapeError("empty", "no points in file")
-    width = len(rows[0])
-    if width not in (3, 6) or any(len(r) != width for r in rows):
-        raise ShapeError("unreadable", "each line must hold 3 (x y z) or 6 (x y z nx ny nz) numbers")
-    arr = np.array(rows, dtype=np.float64)
-    return _points_from_array(arr)
-
-
-def _npy_rows(f, max_points: int) -> None:
-    """Read an .npy header from ``f`` and refuse more than ``max_points`` rows before any data is read.
-
-    An .npz member is compressed: a 1 MB upload can declare gigabytes of zeros (a zip bomb).
-    """
-    version = np.lib.format.read_magic(f)
-    if version == (1, 0):
-        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
-    else:
-        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
-    rows = shape[0] if shape else 1
-    if rows > max_points:
-        raise _too_many(rows, max_points)
-    if int(np.prod(shape, dtype=np.float64)) * dtype.itemsize > max_points * 6 * 8:  # wider than N x 6 float64
-        raise ShapeError("too_large", f"array of shape {shape} is larger than {max_points} points")
-
-
-def _load_numpy_points(data: bytes, ext: str, max_points: int = MAX_POINTS) -> Shape:
-    if ext == "npy":
-        _npy_rows(io.BytesIO(data), max_points)
-    # allow_pickle=False: an .npy upload must never execute code.
-    obj = np.load(io.BytesIO(data), allow_pickle=False)
-    if ext == "npz":
-        keys = list(obj.keys())
-        if not keys:
-            raise ShapeError("empty", "npz archive holds no arrays")
-        key = next((k for k in ("points", "pointcloud", "xyz", "arr_0") if k in keys), keys[0])
-        for k in (key, "normals") if "normals" in keys else (key,):
-            with obj.zip.open(f"{k}.npy") as member:
-                _npy_rows(member, max_points)
-        arr = obj[key]
-        if "normals" in keys and arr.ndim == 2 and arr.shape[1] == 3:
-            arr = np.concatenate([arr, obj["normals"]], axis=1)
-    else:
-        arr = obj
-    if arr.dtype.kind not in "fiu" or arr.ndim != 2 or arr.shape[1] not in (3, 6):
-        raise ShapeError("unreadable", f"expected an N x 3 or N x 6 numeric array, got {arr.dtype} {arr.shape}")
-    return _points_from_array(arr.astype(np.float64))
-
-
-def _points_from_array(arr: np.ndarray) -> Shape:
-    if len(arr) == 0:
-        raise ShapeError("empty", "no points in file")
-    normals = arr[:, 3:6] if arr.shape[1] == 6 else None
-    return Shape(vertices=arr[:, :3].copy(), normals=normals)
-
-
 def _precheck_mesh(data: bytes, ext: str, max_points: int, max_faces: int) -> None:
-    """Refuse what the parser would choke on, before parsing.
+    """Refuse what the parser would choke on, before parsing (see :mod:`fastmesh.precheck`)."""
+    from .precheck import check_gltf, check_obj, check_ply
 
-    An OBJ's vertex and face lines are counted (parsing 64 MB of them takes ~1 GB); a .gltf must embed
-    its buffers: an external ``uri`` names a file this upload does not have (and must never be looked
-    up on the server's disk).
-    """
     if ext == "obj":
-        n_v = data.count(b"\nv ") + data.startswith(b"v ")
-        if n_v > max_points:
-            raise _too_many(n_v, max_points)
-        n_f = data.count(b"\nf ") + data.startswith(b"f ")
-        if n_f > max_faces:
-            raise _too_many(n_f, max_faces, "faces")
-    elif ext == "gltf":
-        try:
-            doc = json.loads(data)
-        except (ValueError, RecursionError):
-            raise ShapeError("unreadable", "a .gltf file must be JSON (use .glb for binary glTF)") from None
-        if not isinstance(doc, dict):
-            raise ShapeError("unreadable", "a .gltf file must hold a JSON object")
-        asset = doc.get("asset")
-        version = str(asset.get("version", "")) if isinstance(asset, dict) else ""
-        if not version.startswith("2"):
-            raise ShapeError("unreadable", f"only glTF 2.0 is supported; this file says version '{version[:20]}'")
-        buffers = doc.get("buffers")
-        for b in buffers if isinstance(buffers, list) else []:
-            uri = b.get("uri") if isinstance(b, dict) else None
-            if isinstance(uri, str) and not uri.startswith("data:"):
-                raise ShapeError("unreadable", f"glTF buffer '{uri[:80]}' is an external file; upload a .glb, "
-                                               "or a .gltf with embedded (data:) buffers")
-        if not isinstance(buffers, (list, type(None))):
-            raise ShapeError("unreadable", "glTF 'buffers' must be a list")
+        check_obj(data, max_points, max_faces)
+    elif ext in ("gltf", "glb"):
+        check_gltf(data, ext, max_points, max_faces)
+    elif ext == "ply":
+        check_ply(data, max_points, max_faces)
 
 
 def _load_trimesh(data: bytes, ext: str) -> Shape:
@@ -295,42 +219,71 @@ def _load_trimesh(data: bytes, ext: str) -> Shape:
     raise ShapeError("unreadable", f"no mesh or points found in .{ext} file")
 
 
-def validate_shape(shape: Shape, max_points: int = MAX_POINTS, max_faces: int = MAX_FACES) -> Shape:
-    """Check a shape for the failures every consumer would trip over; fill in normals."""
+def validate_shape(shape: Shape, max_points: int = MAX_POINTS, max_faces: int = MAX_FACES,
+                   normals: bool = True) -> Shape:
+    """Check a shape for the failures every consumer would trip over.
+
+    Geometry checks (face areas, collinearity) run in the unit cube, so coordinates anywhere in
+    float64's range give the same answers.  ``normals``: complete a point cloud's normals
+    (:func:`with_normals`); False keeps what the file gave (or None).
+    """
     v = np.asarray(shape.vertices, dtype=np.float64)
     if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
         raise ShapeError("empty", "shape has no vertices")
     if len(v) > max_points:
-        raise ShapeError("too_large", f"{len(v)} points/vertices exceed the limit of {max_points}")
+        raise too_many(len(v), max_points)
     if not np.isfinite(v).all():
         raise ShapeError("non_finite", "coordinates contain NaN or infinity")
+    unit = Normalization.fit(v).apply(v)  # raises on zero or unusable extent
     faces = shape.faces
     if faces is not None:
         faces = np.asarray(faces, dtype=np.int64)
         if len(faces) > max_faces:
-            raise ShapeError("too_large", f"{len(faces)} faces exceed the limit of {max_faces}")
+            raise too_many(len(faces), max_faces, "faces")
         if faces.size and (faces.min() < 0 or faces.max() >= len(v)):
-            raise ShapeError("unreadable", "face indices out of range")
-        area = _face_areas(v, faces)
+            raise ShapeError("unreadable", f"a face refers to a vertex the file does not have (it has {len(v)} "
+                                           "vertices)")
+        area = _face_areas(unit, faces)
         faces = faces[area > 0]
         if len(faces) == 0:
             raise ShapeError("degenerate", "every face has zero area")
-    Normalization.fit(v)  # raises on zero extent
-    if faces is None:
-        if len(v) < 4:
-            raise ShapeError("degenerate", f"a point cloud needs at least 4 points, got {len(v)}")
-        centred = v - v.mean(0)
-        sv = np.linalg.svd(centred[:: max(1, len(v) // 20000)], compute_uv=False)
-        if sv[1] <= 1e-9 * sv[0]:
-            raise ShapeError("degenerate", "points are collinear; no surface can be built")
-    normals = shape.normals
-    if faces is None:
-        if normals is not None:
-            normals = np.asarray(normals, dtype=np.float64)
-            if normals.shape != v.shape or not np.isfinite(normals).all():
-                normals = None
-        normals = _unit(normals) if normals is not None else estimate_normals(v)
-    return Shape(vertices=v, faces=faces, normals=normals)
+        return Shape(vertices=v, faces=faces)
+    if len(v) < 4:
+        raise ShapeError("degenerate", f"a point cloud needs at least 4 points, got {len(v)}")
+    centred = unit - unit.mean(0)
+    sv = np.linalg.svd(centred[:: max(1, len(v) // 20000)], compute_uv=False)
+    if sv[1] <= 1e-9 * sv[0]:
+        raise ShapeError("degenerate", "points are collinear; no surface can be built")
+    given = shape.normals
+    if given is not None:
+        given = np.asarray(given, dtype=np.float64)
+        if given.shape != v.shape:
+            given = None
+    out = Shape(vertices=v, normals=given)
+    return with_normals(out) if normals else out
+
+
+def with_normals(shape: Shape) -> Shape:
+    """The point cloud with a unit normal at every point: the given ones where finite and non-zero,
+    estimated ones (:func:`estimate_normals`) elsewhere.  A mesh is returned as it is.
+
+    All-zero or NaN normal columns are what some exporters write for "no normals"; taken as given
+    they would all point one way and mislead the models.
+    """
+    if shape.faces is not None:
+        return shape
+    given = shape.normals
+    if given is None:
+        return Shape(vertices=shape.vertices, normals=estimate_normals(shape.vertices))
+    given = np.asarray(given, dtype=np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):
+        length = np.linalg.norm(given, axis=1)
+    usable = np.isfinite(length) & (length > 1e-12)
+    if usable.all():
+        return Shape(vertices=shape.vertices, normals=given / length[:, None])
+    out = estimate_normals(shape.vertices)
+    out[usable] = given[usable] / length[usable, None]
+    return Shape(vertices=shape.vertices, normals=out)
 
 
 def _face_areas(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -346,11 +299,17 @@ def _unit(x: np.ndarray) -> np.ndarray:
 def estimate_normals(points: np.ndarray, k: int = 12) -> np.ndarray:
     """PCA normals from ``k`` nearest neighbours, flipped to face away from the centroid.
 
-    Outward orientation by centroid is a heuristic (wrong inside concavities), but the
-    models only need a consistent-ish signal; the authors' data had true normals.
+    Computed in the unit cube: squared distances of coordinates far from 1 would overflow (or
+    underflow) the kd-tree.  Outward orientation by centroid is a heuristic (wrong inside
+    concavities), but the models only need a consistent-ish signal; the authors' data had true normals.
+
+    Returns
+    -------
+    (N, 3) float64 unit normals.
     """
     from scipy.spatial import cKDTree
 
+    points = Normalization.fit(points).apply(points)
     n = len(points)
     k = min(k, n)
     _, idx = cKDTree(points).query(points, k=k)

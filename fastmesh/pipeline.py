@@ -40,6 +40,7 @@ __all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "
 
 NETWORKS = ("vertex", "enhancer", "face")
 CELLS = "cells"  # the cell evidence network (models.cells), needed by a decoder trained with it
+CELL_SEED = 0  # of the input sample the cell evidence reads
 # Share of the overall progress bar each stage covers (decoding dominates).  The candidates are
 # encoded and decoded together; each then has its share of the stages from the enhancer on.
 _STAGE_SPAN = {"encode": (0.0, 0.03), "vertices": (0.03, 0.80), "enhancer": (0.80, 0.83), "faces": (0.83, 0.90),
@@ -181,7 +182,8 @@ class Pipeline:
             raise ValueError("only size='tiny' is defined")
         torch.manual_seed(seed)
         enc = EncoderConfig(n_points=256, n_latents=8, dim=32, depth=1, heads=2, n_freqs=4)
-        vertex = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, max_vertices=64, evidence=True))
+        vertex = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, max_vertices=64, evidence=True,
+                                            count_condition=True))
         enhancer = Enhancer(EnhancerConfig(dim=32, depth=1, heads=2, encoder=enc))
         face = FaceModel(FaceModelConfig(dim=32, depth=1, heads=2, edge_heads=4, edge_mlp_hidden=4, encoder=enc))
         with torch.no_grad():
@@ -209,8 +211,7 @@ class Pipeline:
     # ------------------------------------------------------------------ generation
 
     def _n_points(self) -> int:
-        n = max(net.cfg.encoder.n_points for net in (self.vertex, self.enhancer, self.face))
-        return max(n, self.cells.cfg.n_points) if self.cells is not None else n
+        return max(net.cfg.encoder.n_points for net in (self.vertex, self.enhancer, self.face))
 
     def generate(self, shape: Shape, params: GenerateParams | None = None,
                  progress: Callable[[str, float], None] | None = None,
@@ -241,6 +242,7 @@ class Pipeline:
         """
         params = params or GenerateParams()
         params.validate(limit=self.max_vertices)
+        self._target(params)  # refuses a target_faces this decoder cannot read, before any work
         report = progress or (lambda stage, fraction: None)
 
         norm = Normalization.fit(shape.vertices)
@@ -249,8 +251,11 @@ class Pipeline:
         timings = {"encode": 0.0, "vertices": 0.0, "enhancer": 0.0, "faces": 0.0, "filtering": 0.0}
         # Candidate k is exactly what seed + k gives alone; all are scored against one sample of the input.
         reference = input_surface(shape, unit, self.face_config.support_points, params.seed) if n_cand > 1 else None
+        t = time.perf_counter()
+        cells = self._cell_grid(shape, unit)
+        timings["encode"] += time.perf_counter() - t
         best, fits, errors = None, [], []
-        decoded = self._decode(shape, unit, params, n_cand, report, should_cancel, timings)
+        decoded = self._decode(shape, unit, params, n_cand, report, should_cancel, timings, cells)
         rest = _STAGE_SPAN["enhancer"][0]
         for k, (pts, nrm, tokens) in enumerate(decoded):
             def share(stage, fraction, k=k):
@@ -281,22 +286,42 @@ class Pipeline:
         return GenerateResult(vertices=vertices, faces=best["faces"], tokens=best["tokens"], timings=timings,
                               info=info, quality=mesh_quality(vertices, best["faces"], shape, params.seed))
 
-    def _encode(self, shape: Shape, unit: np.ndarray, seed: int) -> tuple:
+    def _target(self, params: GenerateParams) -> torch.Tensor | None:
+        """(1,) faces asked for, as the decoder's count token reads them (None: the model's choice)."""
+        if params.target_faces is None:
+            return None
+        if not self.vertex.cfg.count_condition:
+            raise ValueError("target_faces: this vertex decoder was not trained with a face-count condition")
+        return torch.tensor([params.target_faces], device=self.device)
+
+    def _cell_grid(self, shape: Shape, unit: np.ndarray) -> torch.Tensor | None:
+        """(1, 128^3) cell log-odds of the input for a decoder that reads them (``models.cells``), else None.
+
+        Evidence about the input, not a random choice: drawn from one sample of fixed seed, so every
+        candidate reads the same grid and candidate k stays exactly what seed + k gives alone.
+        """
+        if not self.vertex.cfg.evidence_cells:
+            return None
+        pts, nrm = sample_surface(shape, self.cells.cfg.n_points, seed=CELL_SEED, vertices=unit)
+        return self.cells.grid(pts, nrm)[None].to(self.device)
+
+    def _encode(self, shape: Shape, unit: np.ndarray, seed: int, params: GenerateParams,
+                cells: torch.Tensor | None = None) -> tuple:
         """The surface sample of ``seed`` (points, normals: (n, 3) float32 in the normalised frame ``unit``)
-        and the vertex decoder's condition on it: (points, normals, prefix (1, M, dim), evidence)."""
+        and the vertex decoder's condition on it: (points, normals, prefix (1, M, dim), evidence); ``cells``
+        from :meth:`_cell_grid`."""
         pts, nrm = sample_surface(shape, self._n_points(), seed=seed, vertices=unit)
         n_vp = self.vertex.cfg.encoder.n_points
         pts_t = torch.from_numpy(pts).to(self.device)[None, :n_vp]
         nrm_t = torch.from_numpy(nrm).to(self.device)[None, :n_vp]
         with torch.inference_mode():
-            prefix = self.vertex.condition(pts_t, nrm_t)
-            grid = None if not self.vertex.cfg.evidence_cells else self.cells.grid(pts[:self.cells.cfg.n_points],
-                                                                  nrm[:self.cells.cfg.n_points])[None].to(self.device)
-            evidence = self.vertex.point_evidence(pts_t, nrm_t, grid)
+            prefix = self.vertex.condition(pts_t, nrm_t, self._target(params))
+            evidence = self.vertex.point_evidence(pts_t, nrm_t, cells)
         return pts, nrm, prefix, evidence
 
     def _decode(self, shape: Shape, unit: np.ndarray, params: GenerateParams, n_cand: int,
-                report: Callable[[str, float], None], should_cancel, timings: dict) -> list[tuple]:
+                report: Callable[[str, float], None], should_cancel, timings: dict,
+                cells: torch.Tensor | None = None) -> list[tuple]:
         """Vertex tokens of candidates ``params.seed`` ... ``params.seed + n_cand - 1``, decoded as one batch.
 
         Candidate k reads its own surface sample (seed + k) and samples with seed + k: it is what that
@@ -310,7 +335,7 @@ class Pipeline:
         report("encode", 0.0)
         samples, prefixes, evidence = [], [], []
         for k in range(n_cand):
-            pts, nrm, prefix, ev = self._encode(shape, unit, params.seed + k)
+            pts, nrm, prefix, ev = self._encode(shape, unit, params.seed + k, params, cells)
             samples.append((pts, nrm))
             prefixes.append(prefix)
             evidence.append(ev)

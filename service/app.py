@@ -18,19 +18,19 @@ from pathlib import PurePath
 
 import anyio
 from fastapi import Depends, FastAPI, File, Form, Header, Path, Query, Request, Response, UploadFile
-from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from fastmesh.io import EXPORT_FORMATS, ShapeError, export_mesh, load_shape
-from fastmesh.params import MAX_CANDIDATES
+from fastmesh.params import MAX_CANDIDATES, TARGET_FACES
 
 from . import errors
 from .errors import ApiError
 from .metrics import Metrics
-from .middleware import BodyLimit, RequestMetrics
+from .middleware import ApiKeyGate, BodyLimit, JsonCORS, RequestMetrics
 from .params import build_params, generation_defaults, input_info, safe_filename
-from .preview import preview_router
+from .preview import DEFAULT_PREVIEW, preview_router
+from .render_pool import RenderPool
 from .schemas import Health, Job, Ready, error_responses
 from .settings import Settings
 from .store import FINAL, QueueFull, Store, mesh_from_bytes, shape_to_bytes
@@ -58,6 +58,8 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     store = store or Store(settings)
     metrics = Metrics(store)
     defaults = generation_defaults()
+    renders = RenderPool(DEFAULT_PREVIEW.max_concurrent_renders)
+    parse_slots = threading.BoundedSemaphore(settings.max_concurrent_parses)
     keys = {hashlib.sha256(k.encode()).hexdigest()[:16]: k for k in settings.api_keys}
     # Documents the scheme in OpenAPI (the /docs "Authorize" button); checking is ours, for JSON errors.
     bearer = HTTPBearer(auto_error=False, description="An API key from FASTMESH_API_KEYS (when set).")
@@ -69,6 +71,7 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
         reaper.start()
         yield
         stop.set()
+        renders.close()
 
     app = FastAPI(title="FastMesh", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
                   openapi_tags=[{"name": "jobs", "description": "Submit, watch, download, cancel."},
@@ -77,11 +80,15 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     errors.install(app)
 
     # ------------------------------------------------------------------ access
+    def key_of(token: str) -> str | None:
+        """The hash naming the key ``token`` is, None when it is none of them."""
+        token = token.strip().encode()
+        return next((h for h, k in keys.items() if hmac.compare_digest(token, k.encode())), None)
+
     def owner(request: Request, cred: HTTPAuthorizationCredentials | None = Depends(bearer)) -> str:
         """Who is asking: the hash of their API key, or 'anonymous' when keys are off.  Rate-limits them."""
         if keys:
-            token = cred.credentials.strip() if cred else ""
-            who = next((h for h, k in keys.items() if hmac.compare_digest(token.encode(), k.encode())), None)
+            who = key_of(cred.credentials if cred else "")
             if who is None:
                 raise ApiError(401, "unauthorized", "missing or unknown API key; send 'Authorization: Bearer <key>'",
                                {"WWW-Authenticate": "Bearer"})
@@ -147,6 +154,9 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
                                                          "nearest the input is returned; 1 is fastest "
                                                          f"({d('candidates')}).",
                                              examples=[defaults.get("candidates")]),
+               target_faces: int | None = Form(None, ge=TARGET_FACES[0], le=TARGET_FACES[1],
+                                               description="Faces to aim for; unset = the model chooses the count "
+                                                           "from the shape.", examples=[300]),
                formats: str | None = Form(None, description="Comma list of glb, obj, ply exported with the job "
                                                             f"(default {','.join(settings.default_formats)}).",
                                           examples=["glb,obj"]),
@@ -159,29 +169,41 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
                                                 "per minute for this key", {"Retry-After": str(wait)})
         params = build_params({"seed": seed, "temperature": temperature, "top_k": top_k, "top_p": top_p,
                                "max_vertices": max_vertices, "enhancer": enhancer, "filtering": filtering,
-                               "candidates": candidates},
+                               "candidates": candidates, "target_faces": target_faces},
                               formats, settings.default_formats, store.vertex_limit())
-        data = file.file.read(settings.max_upload_bytes + 1)
-        if len(data) > settings.max_upload_bytes:
-            raise ApiError(413, "too_large", f"upload larger than the {settings.max_upload_bytes} byte limit")
-        filename = safe_filename(file.filename)
-        fingerprint = hashlib.sha256(data + json.dumps(params, sort_keys=True).encode()).hexdigest()[:32]
-        if idempotency_key:
-            existing = _idempotent_job(store, who, idempotency_key, fingerprint)
-            if existing is not None:
-                return job_response(existing, 200)
-        depth = store.queue_depth()
-        if depth >= settings.max_queue_depth:
-            raise ApiError(429, "queue_full", f"{depth} jobs are waiting (limit {settings.max_queue_depth}); "
-                                              "retry later", {"Retry-After": str(_retry_after(store, depth))})
-        t0 = time.perf_counter()
+        # Reading and parsing hold up to a few times the upload in memory: a fixed number at once keeps the
+        # API's peak a known multiple of the limits; beyond it the client is told to come back.
+        if not parse_slots.acquire(timeout=settings.parse_wait_seconds):
+            raise ApiError(429, "busy", f"{settings.max_concurrent_parses} uploads are being read; retry shortly",
+                           {"Retry-After": "2"})
         try:
-            shape = load_shape(data, filename=filename, max_points=settings.max_points, max_faces=settings.max_faces)
-        except ShapeError as e:
-            raise ApiError(errors.SHAPE_STATUS.get(e.code, 422), e.code, e.message) from None
-        load_seconds = time.perf_counter() - t0
-        info = input_info(filename, shape)
-        blob = shape_to_bytes(shape)
+            data = file.file.read(settings.max_upload_bytes + 1)
+            if len(data) > settings.max_upload_bytes:
+                raise ApiError(413, "too_large", f"upload larger than the {settings.max_upload_bytes} byte limit")
+            filename = safe_filename(file.filename)
+            fingerprint = hashlib.sha256(data + json.dumps(params, sort_keys=True).encode()).hexdigest()[:32]
+            if idempotency_key:
+                existing = _idempotent_job(store, who, idempotency_key, fingerprint)
+                if existing is not None:
+                    return job_response(existing, 200)
+            depth = store.queue_depth()
+            if depth >= settings.max_queue_depth:
+                raise ApiError(429, "queue_full", f"{depth} jobs are waiting (limit {settings.max_queue_depth}); "
+                                                  "retry later", {"Retry-After": str(_retry_after(store, depth))})
+            t0 = time.perf_counter()
+            try:
+                # A point cloud's normals are estimated by the worker, outside the request path.
+                shape = load_shape(data, filename=filename, max_points=settings.max_points,
+                                   max_faces=settings.max_faces, normals=False)
+            except ShapeError as e:
+                raise ApiError(errors.SHAPE_STATUS.get(e.code, 422), e.code, e.message) from None
+            del data
+            load_seconds = time.perf_counter() - t0
+            info = input_info(filename, shape)
+            blob = shape_to_bytes(shape)
+            del shape
+        finally:
+            parse_slots.release()
         job_id = store.new_id()
         if idempotency_key:
             # The claim names the job id before the job exists: an API killed between creating the job
@@ -263,7 +285,7 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
 
     # ------------------------------------------------------------------ ops
     @app.get("/healthz", tags=["ops"], response_model=Health, summary="The process is up")
-    def healthz() -> dict:
+    async def healthz() -> dict:  # async: answers from the event loop even when every worker thread is busy
         return {"status": "ok"}
 
     @app.get("/readyz", tags=["ops"], response_model=Ready, summary="Redis reachable and a worker alive",
@@ -283,14 +305,19 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     def prometheus() -> Response:
         return Response(metrics.render(), media_type="text/plain; version=0.0.4; charset=utf-8")
 
-    app.include_router(preview_router(store, owner, job_of))  # /v1/jobs/{id}/preview.png, .../input.ply
+    app.state.previews = preview_router(store, owner, job_of, renders)
+    app.include_router(app.state.previews)  # /v1/jobs/{id}/preview.png, .../input.ply
     app.include_router(web_router(settings, defaults))  # the page at / (service/web)
 
     # Each add_middleware wraps the previous ones: CORS ends outermost, so 413s and 429s carry its headers too.
-    app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes, idle_seconds=settings.body_timeout_seconds)
+    if keys:
+        app.add_middleware(ApiKeyGate, known=lambda token: key_of(token) is not None,
+                           fail_hit=lambda a: store.rate_hit("authfail", a, settings.auth_fail_limit_per_minute),
+                           fail_wait=lambda a: store.rate_wait("authfail", a, settings.auth_fail_limit_per_minute))
     app.add_middleware(RequestMetrics, metrics=metrics)
     if settings.cors_origins:
-        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
+        app.add_middleware(JsonCORS, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST", "DELETE"],
                            allow_headers=["Authorization", "Idempotency-Key", "Content-Type"],
                            expose_headers=["Location", "Retry-After", "X-Queue-Position"])

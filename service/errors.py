@@ -67,7 +67,9 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(redis.RedisError)
     async def _redis(request: Request, exc: redis.RedisError):
         log.error("redis error on %s %s: %s", request.method, request.url.path, exc)
-        return error_response(503, "unavailable", "the job store (Redis) is unreachable; retry later",
+        why = "full (its memory cap is reached)" if isinstance(exc, redis.exceptions.OutOfMemoryError) \
+            else "unreachable"
+        return error_response(503, "unavailable", f"the job store (Redis) is {why}; retry later",
                               {"Retry-After": "5"})
 
     @app.exception_handler(Exception)

@@ -1,12 +1,19 @@
-"""ASGI middleware: the upload size cap and request metrics.
+"""ASGI middleware: the API-key gate, the upload size cap and request metrics.
 
-Both are plain ASGI (no BaseHTTPMiddleware) so they add microseconds, not a task per request.
+All are plain ASGI (no BaseHTTPMiddleware) so they add microseconds, not a task per request.
 """
 
 from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
+
+import anyio
+import redis
+from starlette.datastructures import Headers
+from starlette.middleware.cors import CORSMiddleware
+from starlette.responses import JSONResponse, Response
 
 from .metrics import Metrics
 
@@ -14,23 +21,70 @@ from .metrics import Metrics
 MULTIPART_OVERHEAD = 64 * 1024
 
 
-def _json_error(status: int, code: str, message: str) -> tuple[dict, dict]:
+def _json_error(status: int, code: str, message: str, headers: dict[str, str] | None = None) -> tuple[dict, dict]:
     body = json.dumps({"error": {"code": code, "message": message}}).encode()
     start = {"type": "http.response.start", "status": status,
              "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                         (b"connection", b"close")]}
+                         (b"connection", b"close"), *((k.lower().encode(), v.encode()) for k, v in
+                                                      (headers or {}).items())]}
     return start, {"type": "http.response.body", "body": body}
 
 
+async def _answer(send, status: int, code: str, message: str, headers: dict[str, str] | None = None) -> None:
+    start, body = _json_error(status, code, message, headers)
+    await send(start)
+    await send(body)
+
+
+class ApiKeyGate:
+    """Check the API key of every ``/v1/`` request from its headers, before any of its body is read.
+
+    ``known(token)`` says whether a bearer token is a key.  Failed attempts are counted per client
+    address (``fail_hit(address)`` -> seconds to wait, 0 = allowed, ``fail_wait(address)`` the same
+    without counting); past the limit every request from that address gets 429 until the window
+    ends, right keys included, so keys cannot be guessed at line rate.  Two ``Authorization``
+    headers are refused: which one counts would depend on the framework.
+    """
+
+    def __init__(self, app, known: Callable[[str], bool], fail_hit: Callable[[str], int],
+                 fail_wait: Callable[[str], int]):
+        self.app, self.known, self.fail_hit, self.fail_wait = app, known, fail_hit, fail_wait
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or not scope["path"].startswith("/v1/") or scope["method"] == "OPTIONS":
+            return await self.app(scope, receive, send)
+        auth = [v for k, v in scope.get("headers", []) if k == b"authorization"]
+        if len(auth) > 1:
+            return await _answer(send, 400, "bad_request", "send one Authorization header, not several")
+        address = (scope.get("client") or ("unknown",))[0]
+        try:
+            wait = await anyio.to_thread.run_sync(self.fail_wait, address)
+            if not wait:
+                scheme, _, token = (auth[0].decode("latin-1") if auth else "").partition(" ")
+                if scheme.lower() == "bearer" and self.known(token.strip()):
+                    return await self.app(scope, receive, send)
+                wait = await anyio.to_thread.run_sync(self.fail_hit, address)
+        except redis.RedisError:
+            return await _answer(send, 503, "unavailable", "the job store (Redis) is unreachable; retry later",
+                                 {"Retry-After": "5"})
+        if wait:
+            return await _answer(send, 429, "rate_limited", "too many failed authentications from this address; "
+                                                            "retry later", {"Retry-After": str(wait)})
+        await _answer(send, 401, "unauthorized", "missing or unknown API key; send 'Authorization: Bearer <key>'",
+                      {"WWW-Authenticate": "Bearer"})
+
+
 class BodyLimit:
-    """Answer 413 as soon as a request body exceeds ``max_bytes`` (+ multipart overhead).
+    """Answer 413 as soon as a request body exceeds ``max_bytes`` (+ multipart overhead), 408 when
+    ``idle_seconds`` pass without any of it arriving (a slow client holds a connection and a worker
+    thread otherwise).
 
     A declared Content-Length is checked before reading anything; a chunked body is counted as it
     arrives, and once over the limit the app sees a disconnect while the client gets the 413.
     """
 
-    def __init__(self, app, max_bytes: int):
-        self.app, self.limit = app, max_bytes + MULTIPART_OVERHEAD
+    def __init__(self, app, max_bytes: int, idle_seconds: float = 30.0):
+        self.app, self.limit, self.idle = app, max_bytes + MULTIPART_OVERHEAD, idle_seconds
         self.mib = max_bytes / (1024 * 1024)
 
     async def __call__(self, scope, receive, send):
@@ -44,10 +98,7 @@ class BodyLimit:
                 except ValueError:
                     declared = -1
                 if declared > self.limit:
-                    start, body = _json_error(413, "too_large", msg)
-                    await send(start)
-                    await send(body)
-                    return
+                    return await _answer(send, 413, "too_large", msg)
         seen = 0
         answered = False
 
@@ -55,7 +106,13 @@ class BodyLimit:
             nonlocal seen, answered
             if answered:
                 return {"type": "http.disconnect"}
-            message = await receive()
+            with anyio.move_on_after(self.idle) as waited:
+                message = await receive()
+            if waited.cancelled_caught:
+                answered = True
+                await _answer(send, 408, "timeout", f"no part of the request body arrived for {self.idle:g} s "
+                                                    "(body_timeout_seconds)")
+                return {"type": "http.disconnect"}
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
                 if seen > self.limit:
@@ -73,8 +130,14 @@ class BodyLimit:
         await self.app(scope, limited_receive, guarded_send)
 
 
+# Label values come from fixed sets only: uvicorn accepts any token as a method, and a label per
+# made-up method (or raw path) would grow every scrape without bound.
+METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
+
+
 class RequestMetrics:
-    """Count requests and time them, by method, route template and status."""
+    """Count requests and time them, by method (``other`` outside :data:`METHODS`), route template
+    (``unmatched`` when no route took it) and status."""
 
     def __init__(self, app, metrics: Metrics):
         self.app, self.metrics = app, metrics
@@ -96,4 +159,19 @@ class RequestMetrics:
         finally:
             route = scope.get("route")
             path = getattr(route, "path", None) or "unmatched"
-            self.metrics.observe_request(scope["method"], path, status, time.perf_counter() - t0)
+            method = scope["method"] if scope["method"] in METHODS else "other"
+            self.metrics.observe_request(method, path, status, time.perf_counter() - t0)
+
+
+class JsonCORS(CORSMiddleware):
+    """Starlette's CORS layer, whose refused preflight is the JSON error shape like every other answer."""
+
+    def preflight_response(self, request_headers: Headers) -> Response:
+        response = super().preflight_response(request_headers)
+        if response.status_code < 400:
+            return response
+        headers = {k: v for k, v in response.headers.items() if k not in ("content-type", "content-length")}
+        refused = bytes(response.body).decode().removeprefix("Disallowed CORS ")
+        return JSONResponse({"error": {"code": "cors_refused", "message": f"this cross-origin request is not "
+                                                                         f"allowed: its {refused}"}},
+                            status_code=response.status_code, headers=headers)

@@ -2,30 +2,38 @@
 
 A preview shows the result mesh once the job has succeeded, and the input (point cloud or dense
 mesh) before that, or when the job failed or was cancelled, so a client always has something to
-show.  Rendering is :mod:`fastmesh.render` (numpy z-buffer, CPU only) on first request; the PNG is
-then cached in Redis per (job, what, size, wireframe) with the job's own retention time, so
-every later request is a single GET.  Access is that of the other ``/v1`` routes: the same
-``owner`` dependency (API key, rate limit) and ``job_of`` lookup (another key's job is a 404).
+show.  Rendering is :mod:`fastmesh.render` (numpy z-buffer, CPU only) in a small pool of child
+processes (:mod:`service.render_pool`), so the API's memory does not grow with the inputs.
 
-Installed by ``create_app`` with ``app.include_router(preview_router(store, owner, job_of))``.
+Each (job, what, size, wireframe) is rendered once: concurrent requests for it wait for the one
+render (single flight), whose PNG is cached in Redis for ``cache_seconds`` (at most the job's
+retention).  Sizes are snapped up to a few steps, so a job has at most a few dozen cached variants.
+The stored input is read only once a render slot is free, and when more distinct renders are
+pending than ``max_pending``, a request is answered 503 + Retry-After at once.  Access is that of
+the other ``/v1`` routes: the same ``owner`` dependency (API key, rate limit) and ``job_of`` lookup
+(another key's job is a 404).
+
+Installed by ``create_app`` with ``app.include_router(preview_router(store, owner, job_of, pool))``.
 """
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
+from concurrent.futures import TimeoutError as FutureTimeout
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
+import anyio
 import numpy as np
 from fastapi import APIRouter, Depends, Path, Query
 from fastapi.responses import Response
 
 from fastmesh.io import ShapeError, sample_triangles
-from fastmesh.render import render_mesh, render_points, render_shape, to_png
 
 from .errors import ApiError
+from .render_pool import RenderPool
 from .schemas import error_responses
-from .store import Store, mesh_from_bytes, shape_from_bytes
+from .store import Store, shape_from_bytes
 
 JOB_ID = Path(..., description="Job id as returned by POST /v1/jobs.",
               examples=["3f2b9c1d4e5f40718293a4b5c6d7e8f9"])
@@ -38,9 +46,12 @@ class PreviewConfig:
     min_size: int = 64  # pixels; smaller is useless, and the renderer frames poorly below ~32
     max_size: int = 1024  # pixels; a 1024 px render of a dense input mesh takes a few seconds
     default_size: int = 512
+    sizes: tuple[int, ...] = (64, 128, 256, 512, 1024)  # rendered sizes: a request gets the first >= its size
     # Renders are CPU-bound numpy: more at once only slow each other down (and the API with them).
     max_concurrent_renders: int = 2
-    render_wait_seconds: float = 30.0  # queueing for a render slot longer than this answers 503
+    max_pending: int = 8  # distinct renders running or waiting for a slot; beyond it 503 at once
+    render_wait_seconds: float = 30.0  # a render not done in this time answers 503
+    cache_seconds: int = 3600  # how long a rendered preview stays in Redis (at most the job's retention)
     overlay_points: int = 20_000  # default points in input.ply: enough to read the shape, ~240 KB
     max_overlay_points: int = 200_000
 
@@ -57,8 +68,13 @@ def cache_field(of: str, size: int, wireframe: bool) -> str:
     return f"{of}:{size}:{int(wireframe)}"
 
 
-def preview_source(store: Store, job: dict) -> tuple[str, object]:
-    """What to draw for ``job``: ``("result", (vertices, faces))`` once succeeded, else ``("input", Shape)``.
+def snap_size(size: int, sizes: tuple[int, ...]) -> int:
+    """The rendered size serving a request for ``size`` pixels: the smallest step at or above it."""
+    return next((s for s in sorted(sizes) if s >= size), max(sizes))
+
+
+def preview_blob(store: Store, job: dict) -> tuple[str, bytes]:
+    """What to draw for ``job``, as stored: ``("result", npz)`` once succeeded, else ``("input", npz)``.
 
     Raises
     ------
@@ -68,28 +84,21 @@ def preview_source(store: Store, job: dict) -> tuple[str, object]:
     if job["status"] == "succeeded":
         data = store.get_result(job["id"], "npz")
         if data is not None:
-            return "result", mesh_from_bytes(data)
+            return "result", data
     blob = store.get_input(job["id"])
     if blob is None:
         raise ApiError(404, "not_found", "nothing to preview: the job's input and result are no longer stored")
-    return "input", shape_from_bytes(blob)
+    return "input", blob
 
 
-def render_preview(of: str, source, size: int, wireframe: bool) -> bytes:
-    """PNG bytes of a result mesh ``(vertices, faces)`` or an input ``Shape``.
+class _Flight:
+    """One render in progress; the requests that asked for the same one wait on ``done``."""
 
-    A result without faces (a degenerate generation) is drawn as its vertices, so the preview still
-    shows what came out.  Raises :class:`ShapeError` when there is nothing drawable.
-    """
-    if of == "result":
-        vertices, faces = source
-        if len(faces):
-            img = render_mesh(vertices, faces, size=size, wireframe=wireframe)
-        else:
-            img = render_points(vertices, size=size)
-    else:
-        img = render_shape(source, size=size, wireframe=wireframe and source.faces is not None)
-    return to_png(img)
+    def __init__(self):
+        self.done = anyio.Event()
+        self.png: bytes | None = None
+        self.error: ApiError | None = None
+        self.of = ""
 
 
 def overlay_points(shape, n: int) -> np.ndarray:
@@ -111,49 +120,100 @@ def points_ply(points: np.ndarray) -> bytes:
     return header.encode("ascii") + p.tobytes()
 
 
-def preview_router(store: Store, owner: Callable, job_of: Callable[[str, str], dict],
+def preview_router(store: Store, owner: Callable, job_of: Callable[[str, str], dict], pool: RenderPool,
                    config: PreviewConfig = DEFAULT_PREVIEW) -> APIRouter:
-    """Routes for previews.  ``owner`` is the app's auth dependency, ``job_of(id, who)`` its job lookup."""
+    """Routes for previews.  ``owner`` is the app's auth dependency, ``job_of(id, who)`` its job lookup,
+    ``pool`` the render processes (``config.max_concurrent_renders`` of them)."""
     router = APIRouter(tags=["jobs"])
-    slots = threading.BoundedSemaphore(config.max_concurrent_renders)
+    # The route is async and its waiting is on the event loop: requests queued for a render hold no
+    # thread of the pool that every other route (and /healthz) runs in.  Event-loop state only.
+    flights: dict[str, _Flight] = {}
+    slots: list[anyio.Semaphore] = []  # made on first use, inside the event loop
+    router.renders = 0  # renders started, for tests and the benchmark
+
+    def busy(why: str) -> ApiError:
+        return ApiError(503, "busy", f"{why}; retry shortly", {"Retry-After": "2"})
+
+    def render_and_cache(job: dict, size: int, wireframe: bool) -> tuple[str, bytes]:
+        """(what, PNG) of ``job`` rendered by the pool, and cached.  Runs in a thread, holding a render slot."""
+        of, blob = preview_blob(store, job)  # read only now: waiting requests hold no input in memory
+        router.renders += 1
+        try:
+            png = pool.render(of, blob, size, wireframe, config.render_wait_seconds)
+        except ShapeError as e:
+            raise ApiError(422, e.code, f"cannot render a preview: {e.message}") from None
+        except (FutureTimeout, BrokenProcessPool):
+            raise busy("the preview could not be rendered in time") from None
+        del blob
+        key = cache_key(store, job["id"])
+        with store.r.pipeline() as tx:
+            tx.hset(key, cache_field(of, size, wireframe), png)
+            tx.expire(key, max(1, min(config.cache_seconds, store.ttl_of(job["id"]))))
+            tx.execute()
+        return of, png
+
+    async def lead(job: dict, size: int, wireframe: bool, flight: _Flight) -> None:
+        if not slots:
+            slots.append(anyio.Semaphore(config.max_concurrent_renders))
+        with anyio.move_on_after(config.render_wait_seconds) as waited:
+            await slots[0].acquire()
+        if waited.cancelled_caught:
+            raise busy("too many previews are being rendered")
+        try:
+            flight.of, flight.png = await anyio.to_thread.run_sync(render_and_cache, job, size, wireframe)
+        finally:
+            slots[0].release()
 
     @router.get("/v1/jobs/{job_id}/preview.png", response_class=Response,
                 summary="PNG preview: the result mesh, or the input before the result exists",
+                description=f"The image is rendered at the first of {', '.join(map(str, config.sizes))} px at or "
+                            "above `size` (a few sizes keep the cache small; scale it down where needed).",
                 responses={**error_responses(401, 404, 422, 429, 503),
                            200: {"description": "The preview; `X-Preview-Of` says whether it shows the `result` "
                                                 "or the `input`",
                                  "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
                                  "headers": {"X-Preview-Of": {"schema": {"type": "string",
                                                                          "enum": ["result", "input"]}}}}})
-    def preview(job_id: str = JOB_ID,
-                size: int = Query(config.default_size, ge=config.min_size, le=config.max_size,
-                                  description="Image side in pixels.", examples=[512]),
-                wireframe: bool = Query(False, description="Overlay the edges of the visible faces.",
-                                        examples=[True]),
-                who: str = Depends(owner)) -> Response:
-        job = job_of(job_id, who)
+    async def preview(job_id: str = JOB_ID,
+                      size: int = Query(config.default_size, ge=config.min_size, le=config.max_size,
+                                        description="Image side in pixels (snapped up to a rendered size).",
+                                        examples=[512]),
+                      wireframe: bool = Query(False, description="Overlay the edges of the visible faces.",
+                                              examples=[True]),
+                      who: str = Depends(owner)) -> Response:
+        job = await anyio.to_thread.run_sync(job_of, job_id, who)
+        size = snap_size(size, config.sizes)
         of = "result" if job["status"] == "succeeded" else "input"
-        key = cache_key(store, job_id)
-        png = store.r.hget(key, cache_field(of, size, wireframe))
+        field = cache_field(of, size, wireframe)
+        png = await anyio.to_thread.run_sync(store.r.hget, cache_key(store, job_id), field)
         if png is None:
-            of, source = preview_source(store, job)
-            if not slots.acquire(timeout=config.render_wait_seconds):
-                raise ApiError(503, "busy", "too many previews are being rendered; retry shortly",
-                               {"Retry-After": "2"})
-            try:
-                png = render_preview(of, source, size, wireframe)
-            except ShapeError as e:
-                raise ApiError(422, e.code, f"cannot render a preview: {e.message}") from None
-            finally:
-                slots.release()
-            with store.r.pipeline() as tx:
-                tx.hset(key, cache_field(of, size, wireframe), png)
-                tx.expire(key, store.ttl_of(job_id))
-                tx.execute()
+            name = f"{job_id}|{field}"
+            flight = flights.get(name)
+            if flight is None:  # no await between the look-up and the claim: one leader per name
+                if len(flights) >= config.max_pending:
+                    raise busy(f"{len(flights)} previews are waiting to be rendered")
+                flight = flights[name] = _Flight()
+                try:
+                    await lead(job, size, wireframe, flight)
+                except ApiError as e:
+                    flight.error = e
+                except Exception:  # Redis trouble: the waiting requests get an answer too, the leader the error
+                    flight.error = busy("the preview failed")
+                    raise
+                finally:
+                    flights.pop(name, None)
+                    flight.done.set()
+            else:
+                with anyio.move_on_after(config.render_wait_seconds) as waited:
+                    await flight.done.wait()
+                if waited.cancelled_caught:
+                    raise busy("the preview is still being rendered")
+            if flight.error is not None:
+                raise flight.error
+            png, of = flight.png, flight.of
         # A result preview never changes; an input preview turns into the result's at the same URL.
         cache = "private, max-age=86400" if of == "result" else "no-cache"
         return Response(png, media_type="image/png", headers={"Cache-Control": cache, "X-Preview-Of": of})
-
     @router.get("/v1/jobs/{job_id}/input.ply", response_class=Response,
                 summary="The input as points (PLY), to overlay on the result",
                 responses={**error_responses(401, 404, 422, 429, 503),

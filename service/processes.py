@@ -39,15 +39,21 @@ def wait_for(pred: Callable[[], object], timeout: float = 20.0, interval: float 
 
 
 class RedisServer:
-    """A throw-away ``redis-server`` (no persistence unless ``appendonly``), stopped by :meth:`stop`."""
+    """A throw-away ``redis-server`` (no persistence unless ``appendonly``), stopped by :meth:`stop`.
 
-    def __init__(self, port: int | None = None, appendonly: bool = False, directory: str | None = None):
+    ``maxmemory`` (e.g. "1gb") caps its memory with the ``noeviction`` policy: when full, writes fail
+    (submissions get 503) and nothing is evicted, since any other policy could drop a queued job.
+    """
+
+    def __init__(self, port: int | None = None, appendonly: bool = False, directory: str | None = None,
+                 maxmemory: str | None = None):
         exe = shutil.which("redis-server")
         if exe is None:
             raise RuntimeError("redis-server is not installed; install it with: apt-get install redis-server")
         self.port = port or free_port()
         self.dir = directory or tempfile.mkdtemp(prefix="fastmesh-redis-")
         self.appendonly = appendonly
+        self.maxmemory = maxmemory
         self.exe = exe
         self.proc: subprocess.Popen | None = None
         self.start()
@@ -59,6 +65,8 @@ class RedisServer:
     def start(self) -> None:
         args = [self.exe, "--port", str(self.port), "--bind", "127.0.0.1", "--dir", self.dir, "--save", "",
                 "--appendonly", "yes" if self.appendonly else "no"]
+        if self.maxmemory:
+            args += ["--maxmemory", self.maxmemory, "--maxmemory-policy", "noeviction"]
         self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                      start_new_session=True)
         client = redis.Redis(port=self.port)

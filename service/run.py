@@ -26,6 +26,12 @@ import redis
 from .processes import RedisServer, WorkerProcess, settings_env, wait_for
 from .settings import Settings
 
+# A worker that dies (OOM, kill -9) is started again, after 1, 2, 4, ... s; one that keeps dying is a
+# fault to show, so after MAX_RESTARTS restarts within RESTART_WINDOW seconds `make run` stops.
+MAX_RESTARTS = 5
+RESTART_WINDOW = 600.0
+RESTART_MAX_DELAY = 30.0
+
 
 def _say(msg: str) -> None:
     print(f"[fastmesh run] {msg}", flush=True)
@@ -69,6 +75,25 @@ def _fastmesh_cli() -> str:
     return "fastmesh"
 
 
+def _restart(worker: WorkerProcess, restarts: list[float]) -> WorkerProcess | None:
+    """A new worker of the same name after ``worker`` exited, after a back-off that doubles with each
+    restart in the last :data:`RESTART_WINDOW` seconds; None once :data:`MAX_RESTARTS` were spent there."""
+    code = worker.proc.returncode
+    worker.stop()
+    now = time.monotonic()
+    restarts[:] = [t for t in restarts if now - t < RESTART_WINDOW]
+    if len(restarts) >= MAX_RESTARTS:
+        _say(f"the worker exited with code {code}, its {len(restarts) + 1}th exit within {RESTART_WINDOW:g} s; "
+             "stopping")
+        return None
+    delay = min(RESTART_MAX_DELAY, 2.0 ** len(restarts))
+    _say(f"the worker exited with code {code}; starting it again in {delay:g} s "
+         f"(restart {len(restarts) + 1} of at most {MAX_RESTARTS} within {RESTART_WINDOW:g} s)")
+    time.sleep(delay)
+    restarts.append(time.monotonic())
+    return WorkerProcess(worker.settings, worker.name, log_path="-")
+
+
 def main() -> int:
     try:
         settings = Settings()
@@ -97,9 +122,10 @@ def main() -> int:
                 _say("redis-server is not installed. Install it with:\n\n    apt-get install redis-server\n\n"
                      "or point at a running one: FASTMESH_REDIS_URL=redis://HOST:6379/0 make run")
                 return 1
-            server = RedisServer(directory=str(workdir))
+            server = RedisServer(directory=str(workdir), maxmemory=settings.redis_maxmemory)
             settings = settings.model_copy(update={"redis_url": server.url})
-            _say(f"started redis-server on port {server.port} (data in {workdir}, not kept)")
+            _say(f"started redis-server on port {server.port} (at most {settings.redis_maxmemory}; data in {workdir}, "
+                 "not kept: stopping `make run` or a restart of this Redis forgets its jobs)")
         if _port_busy(settings.host, settings.port):
             _say(f"port {settings.port} on {settings.host} is in use; choose another with FASTMESH_PORT=8001 make run")
             return 1
@@ -127,10 +153,14 @@ def main() -> int:
               f"{_curl(url, example, key)}\n\n"
               f"or: {_fastmesh_cli()} submit {example} --url {url} -o example.glb"
               f"{' --api-key ' + shlex.quote(key) if key else ''}\n\nCtrl-C stops everything.\n", flush=True)
+        restarts: list[float] = []
         while True:
-            for name, p in (("worker", worker.proc), ("API", api)):
-                if p.poll() is not None:
-                    _say(f"the {name} exited with code {p.returncode}; stopping")
+            if api.poll() is not None:
+                _say(f"the API exited with code {api.returncode}; stopping")
+                return 1
+            if worker.proc.poll() is not None:
+                worker = _restart(worker, restarts)
+                if worker is None:
                     return 1
             time.sleep(0.5)
     except KeyboardInterrupt:

@@ -24,6 +24,8 @@ class Settings(BaseSettings):
     # --- where things live
     redis_url: str = Field("redis://127.0.0.1:6379/0", description="Redis holding jobs, inputs, results and the queue.")
     redis_prefix: str = Field("fastmesh", description="Prefix of every key the service writes (the RQ queue aside).")
+    redis_maxmemory: str = Field("1gb", description="Memory cap of the redis-server `make run` starts (policy "
+                                 "noeviction: when full, submissions get 503 and no queued job is evicted).")
     queue_name: str = Field("fastmesh", description="RQ queue the API fills and the workers drain.")
     host: str = "127.0.0.1"
     port: int = 8000
@@ -34,6 +36,8 @@ class Settings(BaseSettings):
     cors_origins: CommaList = Field(default_factory=list,
                                     description="Comma-separated origins allowed by CORS ('*' for any); empty = off.")
     rate_limit_per_minute: int = Field(1200, ge=0, description="/v1 requests per key (or IP) per minute; 0 = off.")
+    auth_fail_limit_per_minute: int = Field(30, ge=0, description="Failed authentications per client address per "
+                                            "minute; past it every request from there gets 429; 0 = off.")
     submit_rate_limit_per_minute: int = Field(120, ge=0, description="Job submissions per key per minute; 0 = off.")
 
     # --- input limits
@@ -43,6 +47,11 @@ class Settings(BaseSettings):
     max_queue_depth: int = Field(100, ge=1, description="Queued jobs above which submissions get 429.")
     default_formats: CommaList = Field(default_factory=lambda: ["glb"],
                                        description="Formats exported by the worker when a job names none.")
+    body_timeout_seconds: float = Field(30.0, gt=0, description="A request body with no bytes arriving for this "
+                                        "long is answered 408 (slow or stalled clients).")
+    max_concurrent_parses: int = Field(2, ge=1, description="Uploads read and parsed at once by one API process; "
+                                       "further ones wait up to parse_wait_seconds, then get 429 (busy).")
+    parse_wait_seconds: float = Field(1.0, ge=0, description="Longest wait of an upload for a parsing slot.")
     max_wait_seconds: float = Field(300.0, ge=0, description="Longest long-poll of GET .../result?wait=S.")
 
     # --- jobs and workers

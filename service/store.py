@@ -13,6 +13,7 @@ Layout (``P`` is ``Settings.redis_prefix``)::
     P:idem:<owner>:<sha>    "<job id> <request fingerprint>" for Idempotency-Key (+ " pending" until created)
     P:rate:<kind>:<owner>:<minute>   fixed-window request counters
     P:workers               zset worker name -> last heartbeat (unix seconds)
+    P:vertex_limit          max_vertices of the model the last heartbeating worker loaded
     P:worker:<name>         hash: pid host loads jobs weights started_at
     P:stats:jobs            hash: submitted succeeded failed cancelled retried
     P:stats:stage:<stage>   hash: count sum b:<le> (a histogram of stage durations)
@@ -37,7 +38,7 @@ import numpy as np
 import redis
 from rq import Queue
 
-from fastmesh.io import EXPORT_FORMATS, Shape
+from fastmesh.io import EXPORT_FORMATS, Normalization, Shape
 
 from .settings import Settings
 
@@ -112,21 +113,33 @@ def iso(t: float | None) -> str | None:
 
 
 def shape_to_bytes(shape: Shape) -> bytes:
-    """The parsed input, as it travels to the worker (npz, float64 / int64, no pickle)."""
-    arrays = {"vertices": shape.vertices}
+    """The parsed input, as it travels to the worker and sits in Redis for the job's retention (npz, no pickle).
+
+    Compact: positions are float32 in the unit cube plus the float64 map back (so a shape far from
+    the origin keeps its resolution), faces int32, normals float32; about 12 bytes a point instead of 24.
+    """
+    norm = Normalization.fit(shape.vertices)
+    arrays = {"unit": norm.apply(shape.vertices).astype(np.float32), "center": norm.center,
+              "scale": np.float64(norm.scale)}
     if shape.faces is not None:
-        arrays["faces"] = shape.faces
+        arrays["faces"] = np.asarray(shape.faces, np.int32 if len(shape.vertices) < 2**31 else np.int64)
     if shape.normals is not None:
-        arrays["normals"] = shape.normals
+        arrays["normals"] = np.asarray(shape.normals, np.float32)
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     return buf.getvalue()
 
 
 def shape_from_bytes(data: bytes) -> Shape:
+    """The shape :func:`shape_to_bytes` stored (float64 positions, int64 faces); also reads the older
+    float64 layout (``vertices``) of jobs queued before it."""
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
-        return Shape(vertices=z["vertices"], faces=z["faces"] if "faces" in z else None,
-                     normals=z["normals"] if "normals" in z else None)
+        if "unit" in z:
+            vertices = Normalization(center=z["center"], scale=float(z["scale"])).invert(z["unit"])
+        else:
+            vertices = z["vertices"]
+        return Shape(vertices=vertices, faces=z["faces"].astype(np.int64) if "faces" in z else None,
+                     normals=z["normals"].astype(np.float64) if "normals" in z else None)
 
 
 def mesh_to_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
@@ -445,6 +458,15 @@ class Store:
             count = pipe.execute()[0]
         return 0 if count <= limit else max(1, int(math.ceil((window + 1) * 60 - now)))
 
+    def rate_wait(self, kind: str, owner: str, limit: int) -> int:
+        """Seconds to wait when this minute's window already holds ``limit`` hits (0 = allowed); counts nothing."""
+        if limit <= 0:
+            return 0
+        now = time.time()
+        window = int(now // 60)
+        count = int(self.r.get(f"{self.p}:rate:{kind}:{owner}:{window}") or 0)
+        return 0 if count < limit else max(1, int(math.ceil((window + 1) * 60 - now)))
+
     # ------------------------------------------------------------------ workers and the reaper
     def worker_beat(self, name: str, info: dict | None = None) -> None:
         ttl = int(math.ceil(max(self.settings.heartbeat_ttl * 3, 60)))
@@ -453,21 +475,29 @@ class Store:
             if info:
                 pipe.hset(f"{self.p}:worker:{name}", mapping={k: json.dumps(v) for k, v in info.items()})
             pipe.expire(f"{self.p}:worker:{name}", ttl)
+            if info and isinstance(info.get("max_vertices"), int):  # outlives the worker: see vertex_limit
+                pipe.set(f"{self.p}:vertex_limit", info["max_vertices"], ex=self.settings.retention_seconds)
             # Forget workers silent for long (their own hash has expired by then too).
             pipe.zremrangebyscore(f"{self.p}:workers", "-inf", time.time() - ttl)
             pipe.execute()
 
     def vertex_limit(self) -> int | None:
-        """The smallest ``max_vertices`` the live workers' models accept (None if no worker said)."""
+        """The smallest ``max_vertices`` the live workers' models accept; with none alive, the limit the
+        last worker reported (a job queued meanwhile waits for that model); None if no worker ever said."""
         names = self.workers_alive()
         if not names:
-            return None
+            last = self.r.get(f"{self.p}:vertex_limit")
+            return int(last) if last is not None else None
         with self.r.pipeline() as pipe:
             for n in names:
                 pipe.hget(f"{self.p}:worker:{n}", "max_vertices")
             limits = [json.loads(v) for v in pipe.execute() if v is not None]
         limits = [v for v in limits if isinstance(v, int)]
         return min(limits) if limits else None
+
+    def worker_last_beat(self, name: str) -> float | None:
+        """Unix time of the last heartbeat of the worker ``name`` (None: none on record)."""
+        return self.r.zscore(f"{self.p}:workers", name)
 
     def worker_gone(self, name: str) -> None:
         self.r.zrem(f"{self.p}:workers", name)

@@ -117,6 +117,21 @@ def npy_header(shape: tuple, tail: int = 96) -> bytes:
     return buf.getvalue() + b"\0" * tail
 
 
+def instanced_glb(nodes: int, subdivisions: int = 3) -> bytes:
+    """A GLB holding one icosphere mesh shown by ``nodes`` nodes: flattened, each node is one more copy."""
+    glb = trimesh.creation.icosphere(subdivisions).export(file_type="glb")
+    (jlen,) = struct.unpack_from("<I", glb, 12)
+    doc = json.loads(glb[20:20 + jlen])
+    mesh = next(n["mesh"] for n in doc["nodes"] if "mesh" in n)
+    doc["nodes"] = [{"mesh": mesh, "translation": [3.0 * i, 0.0, 0.0]} for i in range(nodes)]
+    doc["scenes"], doc["scene"] = [{"nodes": list(range(nodes))}], 0
+    j = json.dumps(doc).encode()
+    j += b" " * (-len(j) % 4)
+    rest = glb[20 + jlen:]
+    return (struct.pack("<4sII", b"glTF", 2, 20 + len(j) + len(rest)) + struct.pack("<I4s", len(j), b"JSON") + j
+            + rest)
+
+
 def valid_samples() -> dict[str, bytes]:
     """One small valid file per supported format (and the ASCII variants of PLY and STL)."""
     from trimesh.exchange.gltf import export_gltf
@@ -255,12 +270,18 @@ def test_memory_bombs_do_not_allocate(idle):
         "zipbomb.npz": z.getvalue(),
         "lines.xyz": b"0 0 0\n" * 7_000_000,   # 42 MB of lines: gigabytes as Python lists
         "lines.obj": b"v 0 0 0\n" * 5_000_000,
+        # Line ends str.splitlines() honours besides \n: each must count, or end no line at all.
+        "cr-lines.xyz": b"0 0 1\r" * 4_000_000,
+        "fs-lines.xyz": b"0 0 1\x1c" * 4_000_000,
+        "ls-lines.xyz": "0 0 1\u2028".encode() * 3_000_000,
+        "instanced.glb": instanced_glb(1200),  # 155 KB: one mesh of 642 vertices shown by 1,200 nodes
     }
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # MiB, peak so far
     got = {n: outcome(idle.url, post(idle.url, n, b)) for n, b in bombs.items()}
     grew = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 - before
     assert all(o[:3] in ("413", "422") for o in got.values()), got
     assert got["zipbomb.npz"] == "413 too_large" and got["lines.xyz"] == "413 too_large", got
+    assert got["cr-lines.xyz"] == got["instanced.glb"] == "413 too_large", got
     # The uploads themselves are up to 42 MB and sit in memory a few times over (client, server, parser).
     assert grew < 400, (grew, got)
 
@@ -444,3 +465,157 @@ def test_io_textured_obj_and_old_gltf():
     with pytest.raises(ShapeError) as e:
         load_shape(json.dumps({"asset": {"version": "1.0"}, "buffers": {"b": {"uri": "x.bin"}}}).encode(), "a.gltf")
     assert e.value.code == "unreadable" and "glTF 2.0" in e.value.message
+
+
+# ---------------------------------------------------------------------------------------- extremes and wording
+
+
+def ply_double(mesh: trimesh.Trimesh) -> bytes:
+    """Binary PLY with float64 vertices (trimesh writes float32)."""
+    head = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(mesh.vertices)}\nproperty double x\n"
+            f"property double y\nproperty double z\nelement face {len(mesh.faces)}\n"
+            "property list uchar int vertex_indices\nend_header\n").encode()
+    faces = np.zeros(len(mesh.faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+    faces["n"], faces["v"] = 3, mesh.faces
+    return head + np.asarray(mesh.vertices, "<f8").tobytes() + faces.tobytes()
+
+
+def huge_samples(scale: float = 1e155, scale32: float = 1e37) -> dict[str, bytes]:
+    """Every format with coordinates near the top of its number type: float64 ones at ``scale`` (squared
+    distances overflow), float32 ones (STL, glTF) at ``scale32``."""
+    from trimesh.exchange.gltf import export_gltf
+
+    m64, m32 = trimesh.creation.icosphere(1), trimesh.creation.icosphere(1)
+    m64.vertices *= scale
+    m32.vertices *= scale32
+    pts = sphere_points(200, center=(0, 0, 0)) * scale
+    npz = io.BytesIO()
+    np.savez(npz, points=pts)
+    out = {"huge.xyz": xyz_bytes(pts, "%.9e"), "huge.txt": xyz_bytes(pts, "%.9e").replace(b" ", b","),
+           "huge.npy": npy_bytes(pts), "huge.npz": npz.getvalue(), "huge.ply": ply_double(m64),
+           "huge.off": m64.export(file_type="off").encode(),
+           "huge.obj": "".join(f"v {x:.9e} {y:.9e} {z:.9e}\n" for x, y, z in m64.vertices).encode()
+           + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in m64.faces).encode(),
+           "huge.stl": m32.export(file_type="stl"), "huge.glb": m32.export(file_type="glb"),
+           "huge.gltf": export_gltf(trimesh.Scene(m32), embed_buffers=True)["model.gltf"]}
+    return out
+
+
+def test_huge_samples_cover_every_supported_format():
+    assert {n.rsplit(".", 1)[1] for n in huge_samples()} == set(SUPPORTED_FORMATS)
+
+
+@pytest.mark.parametrize("name", sorted(huge_samples()))
+def test_huge_but_finite_coordinates_give_results(served, name):
+    """Points 1e155 apart overflowed the kd-tree's squared distances (a 500): every format now runs."""
+    app, _ = served
+    data = huge_samples()[name]
+    assert outcome(app.url, post(app.url, name, data, max_vertices=8)) == "succeeded", name
+
+
+def test_a_span_beyond_float64_is_a_clear_422(served):
+    app, _ = served
+    err = assert_error(post(app.url, "span.xyz", b"-1e308 0 0\n1e308 0 0\n0 1e308 0\n0 0 1e308\n"), 422,
+                       "out_of_range")
+    assert "span" in err["message"] and "scale the shape down" in err["message"]
+
+
+def test_text_points_end_lines_only_where_the_line_count_does():
+    """A 1.2 MB file of carriage-return lines is refused by the count, before any parsing allocates."""
+    import tracemalloc
+
+    from fastmesh.io import ShapeError, load_shape
+
+    tracemalloc.start()
+    try:
+        for data, code, words in ((b"0 0 1\r" * 200_000, "too_large", "lines exceed"),
+                                  (b"0 0 1\x1c" * 200_000, "unreadable", "characters long"),
+                                  ("0 0 1\u2028".encode() * 200_000, "unreadable", "characters long")):
+            with pytest.raises(ShapeError) as e:
+                load_shape(data, "a.xyz", max_points=1000)
+            assert e.value.code == code and words in e.value.message, e.value.message
+        peak = tracemalloc.get_traced_memory()[1] / 2**20
+    finally:
+        tracemalloc.stop()
+    assert peak < 25, peak  # MiB: the upload and a few copies of its text, no per-line objects (~50 MiB)
+    # Old-Mac line ends are still line ends.
+    assert len(load_shape(b"0 0 0\r1 0 0\r0 1 0\r0 0 1\r", "a.xyz").vertices) == 4
+
+
+def test_gltf_instances_are_counted_before_flattening():
+    import tracemalloc
+
+    from fastmesh.io import ShapeError, load_shape
+
+    three = load_shape(instanced_glb(3), "three.glb")
+    assert len(three.vertices) == 3 * 642  # what the count below multiplies: one copy per node
+    tracemalloc.start()
+    try:
+        with pytest.raises(ShapeError) as e:
+            load_shape(instanced_glb(1200), "many.glb", max_points=500_000)
+        peak = tracemalloc.get_traced_memory()[1] / 2**20
+    finally:
+        tracemalloc.stop()
+    assert e.value.code == "too_large" and "770400 vertices" in e.value.message and "instances" in e.value.message
+    assert peak < 20, peak  # MiB; flattening 1,200 copies first took hundreds
+    doc = json.loads(gltf_doc())
+    doc["nodes"] = [{"mesh": 0, "children": [1]}, {"children": [0]}]
+    with pytest.raises(ShapeError) as e:
+        load_shape(json.dumps(doc).encode(), "cycle.gltf")
+    assert e.value.code == "unreadable" and "cycle" in e.value.message
+
+
+def test_zero_or_nan_normals_are_estimated_not_taken():
+    """All-zero normal columns mean "no normals": taken as given they all pointed one way ((0, 0, 1))."""
+    from fastmesh.io import estimate_normals, load_shape
+
+    pts = sphere_points(300, center=(0, 0, 0))
+    zero = load_shape(npy_bytes(np.hstack([pts, np.zeros_like(pts)])), "z.npy")
+    assert np.allclose(zero.normals, estimate_normals(pts))
+    assert (np.einsum("ij,ij->i", zero.normals, pts) > 0.9).mean() > 0.95  # outward on a sphere
+    mixed = np.hstack([pts, pts * 2.0])
+    mixed[:10, 3:] = 0.0
+    mixed[10:20, 3:] = np.nan
+    got = load_shape(npy_bytes(mixed), "m.npy").normals
+    assert np.allclose(got[20:], pts[20:])  # given ones kept (made unit)
+    assert np.allclose(got[:20], estimate_normals(pts)[:20])
+
+
+def test_truncated_binary_ply_says_what_is_missing():
+    from fastmesh.io import ShapeError, load_shape
+
+    data = trimesh.creation.box().export(file_type="ply")
+    # The body is 8 x 12 bytes of vertices and 12 x 13 of triangles: 252 bytes.
+    for cut, words in ((data[:-232], ("truncated", "8 vertices, 12 faces", "at least 108 bytes", "only 20 bytes")),
+                       (data[:-1], ("does not match its header", "8 vertices, 12 faces", "252 bytes", "251 bytes"))):
+        with pytest.raises(ShapeError) as e:
+            load_shape(cut, "box.ply")
+        assert all(w in e.value.message for w in words), e.value.message
+        assert "unexpected length" not in e.value.message
+
+
+INTERNALS = ("Error", "NoneType", "subscriptable", "unexpected length", "'quad'", "unpack", "reshape", "Traceback")
+
+
+def test_parser_errors_are_worded_for_people():
+    """Damaged files of every format: each refusal names the problem, never a parser's internals."""
+    from fastmesh.io import ShapeError, load_shape
+
+    rng = np.random.default_rng(1)
+    messages = {}
+    for name, data in valid_samples().items():
+        variants = [data[:7], data[: len(data) // 3], data[: len(data) // 2], data[:-1],
+                    rng.integers(0, 256, len(data), dtype=np.uint8).tobytes()]
+        for _ in range(6):
+            b = bytearray(data)
+            for i in rng.choice(len(b), max(1, len(b) // 50), replace=False):
+                b[i] ^= 1 << int(rng.integers(8))
+            variants.append(bytes(b))
+        for v in variants:
+            try:
+                load_shape(v, name, normals=False)
+            except ShapeError as e:
+                messages[e.message] = name
+    assert len(messages) > 20
+    bad = {m: n for m, n in messages.items() if any(w in m for w in INTERNALS)}
+    assert not bad, bad

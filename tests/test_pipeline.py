@@ -124,10 +124,35 @@ def test_cancel_raises(pipe):
 
 
 @pytest.mark.parametrize("bad", [dict(temperature=-1), dict(top_p=0), dict(top_k=-2), dict(max_vertices=2),
-                                 dict(max_vertices=10**6), dict(seed=-1)])
+                                 dict(max_vertices=10**6), dict(seed=-1), dict(target_faces=3),
+                                 dict(target_faces=10**5), dict(target_faces=1.5)])
 def test_bad_params_raise_value_error(pipe, bad):
     with pytest.raises(ValueError):
         pipe.generate(_sphere(), GenerateParams(**bad))
+
+
+def test_target_faces_conditions_the_decoder(pipe):
+    """The face count asked for reaches the decoder's count token: it changes what is sampled (a random
+    decoder follows no target, but must read it), and a decoder without the token refuses it up front."""
+    shape = _sphere()
+    plain = pipe.generate(shape, GenerateParams(seed=1, candidates=1))
+    assert plain.faces.tolist() == pipe.generate(shape, GenerateParams(seed=1, candidates=1,
+                                                                       target_faces=None)).faces.tolist()
+    saved = pipe.vertex.count_emb.weight.detach().clone()
+    with torch.no_grad():
+        pipe.vertex.count_emb.weight.normal_(0, 3.0)
+    try:
+        small = pipe.generate(shape, GenerateParams(seed=1, candidates=1, target_faces=20))
+        large = pipe.generate(shape, GenerateParams(seed=1, candidates=1, target_faces=4000))
+    finally:
+        with torch.no_grad():
+            pipe.vertex.count_emb.weight.copy_(saved)
+    assert small.info["generated_vertices"] != large.info["generated_vertices"] or \
+        small.vertices.tolist() != large.vertices.tolist()
+    blind = Pipeline.random(seed=0)
+    blind.vertex.cfg.count_condition = False
+    with pytest.raises(ValueError, match="target_faces"):
+        blind.generate(shape, GenerateParams(target_faces=300))
 
 
 def test_no_faces_is_a_generation_error(pipe):

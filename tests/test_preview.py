@@ -117,7 +117,7 @@ def test_input_point_cloud_is_previewed_before_the_result_exists(open_app):
     job_id = submit(c)
     r = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 96})
     img = png(r)
-    assert img.shape == (96, 96, 3)
+    assert img.shape == (128, 128, 3)  # 96 px is served by the 128 px rendering
     assert r.headers["x-preview-of"] == "input"
     assert r.headers["cache-control"] == "no-cache"  # the same URL shows the result later
     frac = covered(img).mean()
@@ -135,7 +135,7 @@ def test_result_preview_replaces_the_input_and_is_shaded(open_app):
     assert r.headers["x-preview-of"] == "result"
     assert "max-age" in r.headers["cache-control"]
     assert not np.array_equal(img, before)
-    assert covered(img)[40, 40]  # the box sits in the middle of the frame
+    assert covered(img)[img.shape[0] // 2, img.shape[1] // 2]  # the box sits in the middle of the frame
     # Three faces of a box are visible from the 3/4 view, each flat-shaded a different grey.
     shades = {tuple(p) for p in img[covered(img)].reshape(-1, 3)[:, :3] // 8}
     assert len(shades) >= 3
@@ -151,7 +151,7 @@ def test_wireframe_draws_dark_edges_and_is_cached_separately(open_app):
     dark = lambda im: int((im[..., :3].max(-1) < 90).sum())  # noqa: E731
     assert dark(wired) > dark(plain) + 100
     for wire in (False, True):
-        assert store.r.hexists(cache_key(store, job_id), cache_field("result", 96, wire))
+        assert store.r.hexists(cache_key(store, job_id), cache_field("result", 128, wire))  # 96 snapped up
 
 
 def test_preview_is_rendered_once_then_served_from_the_cache(open_app):
@@ -286,3 +286,88 @@ def test_an_apps_keys_are_all_forgotten(redis_url):
     assert not any(r.scan_iter(f"*{s.queue_name}*"))
     assert f"rq:queue:{s.queue_name}".encode() not in r.smembers("rq:queues")
     assert not any(r.hget(k, "origin") == s.queue_name.encode() for k in r.scan_iter("rq:job:*"))
+
+
+def big_result(store: Store, c: httpx.Client) -> str:
+    """A succeeded job whose result is dense enough that a 1024 px render takes a noticeable time."""
+    job_id = submit(c)
+    sphere = trimesh.creation.icosphere(subdivisions=5)  # 20,480 faces
+    finish(store, job_id, sphere.vertices, sphere.faces)
+    return job_id
+
+
+def get_all(c: httpx.Client, urls: list[str]) -> list[httpx.Response]:
+    """The URLs requested at the same time, one thread each."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(len(urls)) as pool:
+        return list(pool.map(c.get, urls))
+
+
+def test_concurrent_requests_for_one_preview_render_it_once(open_app):
+    """Single flight: 16 requests at once for one (job, size, wireframe) cost one render, all get its bytes."""
+    app, store, c = open_app
+    job_id = big_result(store, c)
+    before = app.app.state.previews.renders
+    got = get_all(c, [f"/v1/jobs/{job_id}/preview.png?size={300 + i}" for i in range(16)])
+    assert {r.status_code for r in got} == {200}
+    assert len({r.content for r in got}) == 1
+    assert app.app.state.previews.renders - before == 1
+    assert store.r.hkeys(cache_key(store, job_id)) == [cache_field("result", 512, False).encode()]
+
+
+def test_sizes_snap_to_a_few_steps_so_the_cache_stays_small(open_app):
+    _, store, c = open_app
+    job_id = submit(c, sphere_xyz(50))
+    for size in range(64, 1025, 41):
+        r = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": size})
+        side = int.from_bytes(r.content[16:20], "big")
+        assert r.status_code == 200 and side >= size and side in (64, 128, 256, 512, 1024), (size, side)
+    assert store.r.hlen(cache_key(store, job_id)) <= 5
+    assert 0 < store.r.ttl(cache_key(store, job_id)) <= 3600  # previews live an hour, not the job's 24 h
+
+
+def test_more_pending_renders_than_the_bound_are_refused_at_once(open_app):
+    """Distinct renders beyond ``max_pending`` get 503 + Retry-After without waiting; the rest succeed."""
+    from service.preview import DEFAULT_PREVIEW
+
+    _, store, c = open_app
+    jobs = [big_result(store, c) for _ in range(DEFAULT_PREVIEW.max_pending + 6)]
+    got = get_all(c, [f"/v1/jobs/{j}/preview.png?size=1024&wireframe=1" for j in jobs])
+    codes = [r.status_code for r in got]
+    assert set(codes) <= {200, 503} and codes.count(200) >= DEFAULT_PREVIEW.max_concurrent_renders, codes
+    busy = [r for r in got if r.status_code == 503]
+    assert busy, codes
+    assert all(r.json()["error"]["code"] == "busy" and int(r.headers["retry-after"]) > 0 for r in busy)
+    assert all(r.elapsed.total_seconds() < 2 for r in busy)
+
+
+def test_render_processes_end_with_the_api_process_even_when_it_is_killed():
+    """An API stopped by SIGKILL runs no shutdown: its render processes must notice and exit on their own."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    code = ("import trimesh\nfrom service.render_pool import RenderPool\nfrom service.store import mesh_to_bytes\n"
+            "m = trimesh.creation.box()\npool = RenderPool(2)\n"
+            "print(len(pool.render('result', mesh_to_bytes(m.vertices, m.faces), 64, False, 60)), flush=True)\n"
+            "import time; time.sleep(120)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert int(proc.stdout.readline()) > 0
+        kids = [int(c) for t in Path(f"/proc/{proc.pid}/task").iterdir() for c in (t / "children").read_text().split()]
+        assert kids
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+
+    def running(pid: int) -> bool:
+        status = Path(f"/proc/{pid}/status")
+        return status.exists() and "State:\tZ" not in status.read_text()
+
+    deadline = time.monotonic() + 10
+    while any(running(k) for k in kids) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(running(k) for k in kids), kids

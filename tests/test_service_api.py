@@ -228,6 +228,7 @@ def test_bad_uploads_are_clear_4xx(served, name, data, status, code):
     ({"temperature": "inf"}, "temperature"), ({"temperature": -1}, "temperature"), ({"top_p": 1.5}, "top_p"),
     ({"top_k": -1}, "top_k"), ({"max_vertices": 0}, "max_vertices"), ({"max_vertices": "x"}, "max_vertices"),
     ({"enhancer": "maybe"}, "enhancer"), ({"formats": "fbx"}, "formats"), ({"formats": "glb,../x"}, "formats"),
+    ({"target_faces": 2}, "target_faces"), ({"target_faces": 10 ** 6}, "target_faces"),
 ])
 def test_bad_parameters_are_422_naming_the_field(served, fields, word):
     app, _ = served
@@ -435,3 +436,7 @@ def test_cors(keyed):
     assert "retry-after" in r.headers.get("access-control-expose-headers", "").lower()
     other = httpx.get(f"{keyed.url}/healthz", headers={"Origin": "https://evil.example"})
     assert "access-control-allow-origin" not in other.headers
+    refused = httpx.options(f"{keyed.url}/v1/jobs", headers={"Origin": "https://evil.example",
+                                                            "Access-Control-Request-Method": "PUT"})
+    err = assert_error(refused, 400, "cors_refused")  # the JSON error shape, not Starlette's plain text
+    assert "origin" in err["message"] and "method" in err["message"]

@@ -72,6 +72,45 @@ def test_make_run_serves_the_printed_curl_example_and_stops_on_ctrl_c(weights, t
     assert [k for k in kids if alive(k)] == []
 
 
+def test_make_run_restarts_a_worker_that_dies(weights, tmp_path):
+    """kill -9 of the worker (as the OOM killer does): `make run` starts it again and keeps serving."""
+    import httpx
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "service.run"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, env=run_env(FASTMESH_PORT=str(port), FASTMESH_WEIGHTS=weights,
+                                                   FASTMESH_HEARTBEAT_TTL="2", FASTMESH_HEARTBEAT_INTERVAL="0.5"))
+    lines: list[str] = []
+
+    def printed(text: str):
+        def seen():
+            line = proc.stdout.readline()
+            if not line and proc.poll() is not None:
+                raise RuntimeError("service.run exited:\n" + "".join(lines))
+            lines.append(line)
+            return text in line
+        return seen
+
+    try:
+        wait_for(printed("Ctrl-C stops everything"), 120, 0, what="the service to be ready")
+        worker = next(k for k in children(proc.pid) if "fastmesh-worker" in Path(f"/proc/{k}/cmdline").read_text()
+                      or "worker.main" in Path(f"/proc/{k}/cmdline").read_text())
+        os.kill(worker, signal.SIGKILL)
+        wait_for(printed("starting it again"), 30, 0, what="the restart message")
+        url = f"http://127.0.0.1:{port}"
+        points = "".join(f"{x:.4f} {y:.4f} {z:.4f}\n" for x, y, z in trimesh.creation.icosphere(2).vertices)
+        job = httpx.post(f"{url}/v1/jobs", files={"file": ("ball.xyz", points)}, data={"max_vertices": "16"},
+                         timeout=30).json()
+        result = httpx.get(f"{url}/v1/jobs/{job['id']}/result", params={"wait": 120}, timeout=150)
+        assert result.status_code == 200, result.text  # the new worker ran it
+        assert proc.poll() is None and worker not in children(proc.pid)
+        assert len(children(proc.pid)) == 3
+    finally:
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, "".join(lines) + rest
+
+
 def test_make_run_without_redis_says_what_to_install(tmp_path):
     r = subprocess.run([sys.executable, "-m", "service.run"], capture_output=True, text=True, timeout=60,
                        env=run_env(PATH=str(tmp_path), FASTMESH_PORT=str(free_port())))

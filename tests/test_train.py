@@ -27,6 +27,7 @@ TINY = {
     "enhancer": {"model": {"dim": 32, "depth": 1, "heads": 2, "n_freqs": 4, "encoder": ENC}, "batch_cost": 300},
     "face": {"model": {"dim": 32, "depth": 1, "heads": 2, "edge_heads": 4, "edge_mlp_hidden": 8, "pair_chunk": 32,
                        "n_freqs": 4, "encoder": ENC}, "batch_cost": 40000},
+    "cells": {"model": {"hidden": 16, "depth": 1, "n_points": 512}, "batch_cost": 2},
 }
 # warmup longer than any run here: the learning rate then does not depend on ``steps``, so
 # "3 steps, then resume to 6" and "6 steps" follow the same schedule.
@@ -78,7 +79,7 @@ def _log(out: Path) -> list[dict]:
     return [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
 
 
-@pytest.mark.parametrize("kind", ["vertex", "enhancer", "face"])
+@pytest.mark.parametrize("kind", ["vertex", "enhancer", "face", "cells"])
 def test_train_each_network(cache, tmp_path, kind):
     out = tmp_path / kind
     assert main(["train", kind, "--data", str(cache), "--out", str(out), "--config", str(_config(tmp_path, kind))]) == 0
@@ -89,6 +90,8 @@ def test_train_each_network(cache, tmp_path, kind):
     assert all(np.isfinite(r["loss"]) for r in steps) and len(vals) == 2
     if kind == "face":  # the task's own validation metrics are logged
         assert {"precision", "recall", "f1"} <= set(vals[-1])
+    if kind == "cells":
+        assert {"precision_1", "recall_1"} <= set(vals[-1])
     model, meta = load_model(out)
     assert meta["kind"] == kind and meta["train"]["step"] == 4
     assert (out / "best" / "model.safetensors").exists() and (out / "train_state.pt").exists()
@@ -171,3 +174,26 @@ def test_vertex_validation_reports_how_much_the_condition_helps(cache):
     assert np.isfinite(gain) and gain != 0.0
     same = np.full(4, every[0])  # the same mesh four times: swapping conditions changes nothing
     assert task.evaluate(model, ds, same, cfg, "cpu")["cond_gain"] == 0.0
+
+
+def test_decoder_reading_cell_evidence_trains_from_a_cell_cache(cache, tmp_path):
+    """`fastmesh data cells` stores each mesh's cell log-odds; a decoder with evidence_cells (and the face-count
+    token) trains on them, and refuses a cache without them."""
+    cells_dir = tmp_path / "cells"
+    assert main(["train", "cells", "--data", str(cache), "--out", str(cells_dir),
+                 "--config", str(_config(tmp_path, "cells", steps=1))]) == 0
+    cell_cache = tmp_path / "with_cells.npz"
+    assert main(["data", "cells", str(cache), "--weights", str(cells_dir), "-o", str(cell_cache),
+                 "--train", "3", "--val", "1"]) == 0
+    ds = load_dataset(cell_cache)
+    assert len(ds) == 4 and len(ds.indices("val")) == 1
+    grid = ds.cell_logits(0)
+    assert grid.shape == (128 ** 3,) and (grid > -12).sum() > 0
+    model = {**TINY["vertex"]["model"], "evidence": True, "evidence_normals": True, "evidence_cells": True,
+             "count_condition": True}
+    cfg = _config(tmp_path, "vertex", model=model, steps=2)
+    out = tmp_path / "vertex"
+    assert main(["train", "vertex", "--data", str(cell_cache), "--out", str(out), "--config", str(cfg)]) == 0
+    assert all(np.isfinite(r["loss"]) for r in _log(out) if "loss" in r)
+    assert load_model(out)[0].evidence.cell_gain is not None
+    assert main(["train", "vertex", "--data", str(cache), "--out", str(tmp_path / "no"), "--config", str(cfg)]) == 2

@@ -194,6 +194,27 @@ def test_sigkill_on_every_attempt_fails_clearly(env):
     assert_error(httpx.get(f"{app.url}/v1/jobs/{job_id}/result"), 409, "job_failed")
 
 
+def test_a_worker_killed_mid_job_comes_back_under_its_own_name(env):
+    """As systemd, compose or Kubernetes restart it: same --name right after kill -9.  RQ keeps the dead
+    worker's registration for minutes; its stale heartbeat says it is dead, so the new one takes the name,
+    runs the requeued job, and a second live worker of that name is still refused."""
+    app = env.app
+    doomed = env.start("same", FASTMESH_DEBUG_STEP_DELAY=DOOMED)
+    job_id = submit(app.url, max_vertices=20).json()["id"]
+    wait_running(app, job_id)
+    doomed.proc.send_signal(signal.SIGKILL)
+    doomed.proc.wait()
+    again = env.start("same")  # the same name
+    assert again.name == doomed.name
+    final = wait_final(app.url, job_id, timeout=30)
+    assert final["status"] == "succeeded", final
+    assert "clearing the registration of a dead worker" in again.log()
+    twin = env.spawn("same")
+    assert twin.proc.wait(30) == 1
+    assert "is alive" in twin.log()
+    assert again.proc.poll() is None
+
+
 def test_job_timeout(env):
     env.start("w", FASTMESH_DEBUG_STEP_DELAY=SLOW, FASTMESH_JOB_TIMEOUT="0.5")
     final = wait_final(env.app.url, submit(env.app.url, max_vertices=64).json()["id"], timeout=20)

@@ -55,6 +55,32 @@ def _heartbeat(store: Store, stop: threading.Event) -> None:
             return
 
 
+class NameTaken(RuntimeError):
+    """A live worker heart-beats under the name asked for."""
+
+
+def take_name(store: Store, rq_conn: redis.Redis, name: str) -> None:
+    """Make ``name`` this process's, as a restarted worker (systemd, compose, Kubernetes) needs.
+
+    A registration whose heartbeat has stopped is stale: a worker killed moments ago (kill -9, OOM)
+    left a recent beat, so this waits until the beat is ``heartbeat_ttl`` old while watching that it
+    does not move; a beat that moves is a live worker (:class:`NameTaken`).  Then RQ's record of the
+    dead worker, which RQ itself would keep for minutes, is marked dead so RQ accepts the name.
+    """
+    s = store.settings
+    last = store.worker_last_beat(name)
+    while last is not None and time.time() - last < s.heartbeat_ttl:
+        time.sleep(min(s.heartbeat_interval, max(0.05, last + s.heartbeat_ttl - time.time())))
+        now_last = store.worker_last_beat(name)
+        if now_last != last:
+            raise NameTaken(f"a worker named {name!r} is alive (its heartbeat moved); give this one another --name")
+    stale = FastMeshWorker.find_by_key(FastMeshWorker.redis_worker_namespace_prefix + name, connection=rq_conn)
+    if stale is not None and stale.death_date is None:
+        log.warning("worker name %s: clearing the registration of a dead worker (no heartbeat for %.0f s)",
+                    name, time.time() - last if last else float("nan"))
+        stale.register_death()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="fastmesh-worker", description=__doc__.split("\n\n")[0])
     parser.add_argument("--burst", action="store_true", help="exit when the queue is empty")
@@ -77,6 +103,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fastmesh-worker: cannot reach Redis at {settings.redis_url}: {e}", file=sys.stderr)
         return 1
     STATE.configure(settings, store)
+    # RQ tunes the socket timeout of the connection it is given for its long BLMOVE: give it its own.
+    rq_conn = redis.Redis.from_url(settings.redis_url)
+    try:
+        take_name(store, rq_conn, STATE.name)
+    except NameTaken as e:
+        print(f"fastmesh-worker: {e}", file=sys.stderr)
+        return 1
     try:
         STATE.ensure()  # load the model now: a worker is only "alive" once it can take a job
     except (FileNotFoundError, ValueError, RuntimeError) as e:
@@ -86,8 +119,6 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     beat = threading.Thread(target=_heartbeat, args=(store, stop), name="fastmesh-heartbeat", daemon=True)
     beat.start()
-    # RQ tunes the socket timeout of the connection it is given for its long BLMOVE: give it its own.
-    rq_conn = redis.Redis.from_url(settings.redis_url)
     worker = FastMeshWorker([store.queue.name], connection=rq_conn, name=STATE.name)
     log.info("worker %s ready on queue %s (%s)", STATE.name, settings.queue_name, settings.redis_url)
     try:

@@ -17,7 +17,7 @@ import uuid
 import redis
 from rq.timeouts import JobTimeoutException
 
-from fastmesh.io import ShapeError
+from fastmesh.io import ShapeError, with_normals
 from service.processes import wait_for
 from service.settings import Settings
 from service.store import Store, mesh_to_bytes, shape_from_bytes, timeout_error
@@ -165,7 +165,9 @@ def _run(store: Store, job_id: str, attempt: int) -> None:
     params = GenerateParams(**{k: v for k, v in job["params"].items() if k in names})
     formats = job["params"].get("formats") or store.settings.default_formats
     try:
-        shape = shape_from_bytes(blob)
+        t0 = time.perf_counter()
+        shape = with_normals(shape_from_bytes(blob))  # the API leaves a cloud's normal estimation to us
+        timings["load"] = float(job["timings"].get("load") or 0.0) + time.perf_counter() - t0
         result = STATE.pipeline.generate(shape, params, progress=ctl.progress, should_cancel=ctl.should_cancel)
         ctl.progress("export", 1.0)  # the pipeline reports overall fractions; it ended at 1
         t0 = time.perf_counter()

@@ -27,6 +27,8 @@ def add_sampling_args(p) -> None:
     p.add_argument("--top-k", type=int, default=d.top_k, help="0 disables")
     p.add_argument("--top-p", type=float, default=d.top_p)
     p.add_argument("--max-vertices", type=int, default=None, help="default: the model's limit")
+    p.add_argument("--target-faces", type=int, default=None, metavar="N",
+                   help="faces to aim for (default: the model chooses the count from the shape)")
     p.add_argument("--candidates", type=int, default=d.candidates,
                    help="meshes sampled (seeds SEED, SEED+1, ...); the one nearest the input is kept "
                         "(1 = fastest)")
@@ -44,7 +46,8 @@ def params_from_args(args):
 
     return GenerateParams(seed=args.seed, temperature=args.temperature, top_k=args.top_k, top_p=args.top_p,
                           max_vertices=args.max_vertices, enhancer=not args.no_enhancer,
-                          filtering=not args.no_filtering, candidates=args.candidates)
+                          filtering=not args.no_filtering, candidates=args.candidates,
+                          target_faces=args.target_faces)
 
 
 def load_pipeline(args):

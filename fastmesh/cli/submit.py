@@ -21,6 +21,8 @@ def register(sub) -> None:
     p.add_argument("--top-p", type=float, default=None)
     p.add_argument("--max-vertices", type=int, default=None)
     p.add_argument("--candidates", type=int, default=None, help="meshes sampled; the nearest the input is kept")
+    p.add_argument("--target-faces", type=int, default=None, metavar="N",
+                   help="faces to aim for (default: the model chooses)")
     p.add_argument("--no-enhancer", action="store_true", help="skip the fidelity enhancer")
     p.add_argument("--no-filtering", action="store_true", help="skip prediction filtering")
     p.add_argument("--timeout", type=float, default=None, help="give up after this many seconds")
@@ -53,6 +55,7 @@ def _submit(args) -> int:
         with Client(args.url, api_key=args.api_key) as client:
             job = client.submit(src, seed=args.seed, temperature=args.temperature, top_k=args.top_k,
                                 top_p=args.top_p, max_vertices=args.max_vertices, candidates=args.candidates,
+                                target_faces=args.target_faces,
                                 enhancer=False if args.no_enhancer else None,
                                 filtering=False if args.no_filtering else None, formats=fmt)
             job = client.wait(job["id"], progress=show, timeout=args.timeout)

@@ -28,7 +28,7 @@ from .filtering import FilterConfig, edges_from_logits, filter_predictions
 from .io import Normalization, Shape, export_mesh, input_surface, sample_surface
 from .models.checkpoint import load_model, save_model
 from .models.encoder import EncoderConfig
-from .models.generate import Cancelled, generate
+from .models.generate import Cancelled, StackedEvidence, generate
 from .models.onnx_decode import choose_decoder
 from .params import GenerateParams
 from .quality import mesh_quality
@@ -41,7 +41,8 @@ __all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "
 NETWORKS = ("vertex", "enhancer", "face")
 CELLS = "cells"  # the cell evidence network (models.cells), needed by a decoder trained with it
 CELL_SEED = 0  # of the input sample the cell evidence reads
-# Share of the overall progress bar each stage covers (decoding dominates).
+# Share of the overall progress bar each stage covers (decoding dominates).  The candidates are
+# encoded and decoded together; each then has its share of the stages from the enhancer on.
 _STAGE_SPAN = {"encode": (0.0, 0.03), "vertices": (0.03, 0.80), "enhancer": (0.80, 0.83), "faces": (0.83, 0.90),
                "filtering": (0.90, 1.0)}
 # torch CPU threads when neither the caller nor $FASTMESH_TORCH_THREADS says: decoding one sequence is a chain of
@@ -218,7 +219,8 @@ class Pipeline:
         """Turn a shape into an artist-style mesh in the shape's own frame.
 
         With ``params.candidates`` = K > 1 (and a temperature above 0) the meshes of seeds ``seed``
-        ... ``seed + K - 1`` are made and the one closest to the input surface is returned
+        ... ``seed + K - 1`` are made (their vertex tokens decoded together, as one batch) and the
+        one closest to the input surface is returned
         (:func:`fastmesh.support.surface_fit`): a sampled mesh sometimes leaves out a part or fills
         a flat region with vertices, and the input tells which.
 
@@ -253,13 +255,16 @@ class Pipeline:
         cells = self._cell_grid(shape, unit)
         timings["encode"] += time.perf_counter() - t
         best, fits, errors = None, [], []
-        for k in range(n_cand):
+        decoded = self._decode(shape, unit, params, n_cand, report, should_cancel, timings, cells)
+        rest = _STAGE_SPAN["enhancer"][0]
+        for k, (pts, nrm, tokens) in enumerate(decoded):
             def share(stage, fraction, k=k):
-                """Candidate k reports its stages inside the k-th of n_cand equal shares of 0..1."""
-                report(stage, (k + fraction) / n_cand)
+                """Candidate k reports its stages after decoding inside the k-th of n_cand equal shares."""
+                report(stage, rest + (1.0 - rest) * (k + (fraction - rest) / (1.0 - rest)) / n_cand)
 
             try:
-                cand = self._candidate(shape, unit, params, params.seed + k, share, should_cancel, timings, cells)
+                cand = self._candidate(shape, unit, params, params.seed + k, pts, nrm, tokens, share,
+                                       should_cancel, timings)
             except GenerationError as err:
                 errors.append(err)
                 fits.append(None)
@@ -300,46 +305,71 @@ class Pipeline:
         pts, nrm = sample_surface(shape, self.cells.cfg.n_points, seed=CELL_SEED, vertices=unit)
         return self.cells.grid(pts, nrm)[None].to(self.device)
 
-    def _candidate(self, shape: Shape, unit: np.ndarray, params: GenerateParams, seed: int,
-                   report: Callable[[str, float], None], should_cancel, timings: dict,
-                   cells: torch.Tensor | None = None) -> dict:
-        """One mesh from ``seed``, in the normalised frame (``unit``: the shape's vertices there); adds its
-        stage times to ``timings``."""
+    def _encode(self, shape: Shape, unit: np.ndarray, seed: int, params: GenerateParams,
+                cells: torch.Tensor | None = None) -> tuple:
+        """The surface sample of ``seed`` (points, normals: (n, 3) float32 in the normalised frame ``unit``)
+        and the vertex decoder's condition on it: (points, normals, prefix (1, M, dim), evidence); ``cells``
+        from :meth:`_cell_grid`."""
+        pts, nrm = sample_surface(shape, self._n_points(), seed=seed, vertices=unit)
+        n_vp = self.vertex.cfg.encoder.n_points
+        pts_t = torch.from_numpy(pts).to(self.device)[None, :n_vp]
+        nrm_t = torch.from_numpy(nrm).to(self.device)[None, :n_vp]
+        with torch.inference_mode():
+            prefix = self.vertex.condition(pts_t, nrm_t, self._target(params))
+            evidence = self.vertex.point_evidence(pts_t, nrm_t, cells)
+        return pts, nrm, prefix, evidence
 
-        def check_cancel():
-            if should_cancel is not None and should_cancel():
-                raise Cancelled("generation cancelled")
+    def _decode(self, shape: Shape, unit: np.ndarray, params: GenerateParams, n_cand: int,
+                report: Callable[[str, float], None], should_cancel, timings: dict,
+                cells: torch.Tensor | None = None) -> list[tuple]:
+        """Vertex tokens of candidates ``params.seed`` ... ``params.seed + n_cand - 1``, decoded as one batch.
 
+        Candidate k reads its own surface sample (seed + k) and samples with seed + k: it is what that
+        seed gives alone.  Returns per candidate its (points, normals, tokens); adds the stage times
+        to ``timings``.
+        """
+        if should_cancel is not None and should_cancel():
+            raise Cancelled("generation cancelled")
         # Encode: sample the surface; each network reads its share.
-        check_cancel()
         t = time.perf_counter()
         report("encode", 0.0)
-        pts, nrm = sample_surface(shape, self._n_points(), seed=seed, vertices=unit)
-        pts_t = torch.from_numpy(pts).to(self.device)[None]
-        nrm_t = torch.from_numpy(nrm).to(self.device)[None]
-        n_vp = self.vertex.cfg.encoder.n_points
-        with torch.inference_mode():
-            prefix = self.vertex.condition(pts_t[:, :n_vp], nrm_t[:, :n_vp], self._target(params))
-            evidence = self.vertex.point_evidence(pts_t[:, :n_vp], nrm_t[:, :n_vp], cells)
+        samples, prefixes, evidence = [], [], []
+        for k in range(n_cand):
+            pts, nrm, prefix, ev = self._encode(shape, unit, params.seed + k, params, cells)
+            samples.append((pts, nrm))
+            prefixes.append(prefix)
+            evidence.append(ev)
         timings["encode"] += time.perf_counter() - t
-        check_cancel()
+        if should_cancel is not None and should_cancel():
+            raise Cancelled("generation cancelled")
 
         # Stage I: vertex tokens.
         t = time.perf_counter()
         lo, hi = _STAGE_SPAN["vertices"]
         sampling = params.sampling(self.max_vertices)
-        sampling.seed = seed
         max_v = sampling.max_vertices
 
         def on_step(step: int, n_vert: int) -> None:
             report("vertices", lo + (hi - lo) * min(1.0, n_vert / max_v))
 
         report("vertices", lo)
-        tokens = generate(self.decoder, prefix, sampling, progress=on_step, should_cancel=should_cancel,
-                          evidence=evidence)[0]
-        tokens = tokens.cpu().numpy()
-        q = vt.decode(tokens, strict=True)
+        ev = None if evidence[0] is None else evidence[0] if n_cand == 1 else StackedEvidence(evidence)
+        seqs = generate(self.decoder, torch.cat(prefixes), sampling, progress=on_step, should_cancel=should_cancel,
+                        evidence=ev)
         timings["vertices"] += time.perf_counter() - t
+        return [(pts, nrm, seq.cpu().numpy()) for (pts, nrm), seq in zip(samples, seqs, strict=True)]
+
+    def _candidate(self, shape: Shape, unit: np.ndarray, params: GenerateParams, seed: int, pts: np.ndarray,
+                   nrm: np.ndarray, tokens: np.ndarray, report: Callable[[str, float], None], should_cancel,
+                   timings: dict) -> dict:
+        """One mesh from the vertex ``tokens`` decoded for ``seed`` on the surface sample ``pts``/``nrm``,
+        in the normalised frame (``unit``: the shape's vertices there); adds its stage times to ``timings``."""
+
+        def check_cancel():
+            if should_cancel is not None and should_cancel():
+                raise Cancelled("generation cancelled")
+
+        q = vt.decode(tokens, strict=True)
         if len(q) < 3:
             raise GenerationError("no_vertices", f"the vertex decoder produced {len(q)} vertices; try another seed")
         check_cancel()

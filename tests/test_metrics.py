@@ -8,13 +8,16 @@ import trimesh
 
 from fastmesh.io import ShapeError, sample_triangles
 from fastmesh.metrics import (
+    CELL,
     chamfer,
+    distance_to_triangles,
     edge_metrics,
     edges_from_faces,
     hausdorff,
     nearest_distances,
     normalized_samples,
     surface_distance,
+    vertex_metrics,
 )
 
 
@@ -111,3 +114,70 @@ def test_edge_metrics():
     assert edge_metrics(empty, true)["recall"] == 0 and edge_metrics(empty, true)["f1"] == 0
     assert edge_metrics(empty, empty)["f1"] == 1.0
     assert edge_metrics(true, true)["f1"] == 1.0
+
+
+# --------------------------------------------------------------------------- vertex metrics
+
+CORNERS = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+SQUARE = (np.array([[-0.5, -0.5, 0.0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]]),
+          np.array([[0, 1, 2], [0, 2, 3]]))
+
+
+def test_vertex_precision_recall_and_count_in_cells():
+    gen = np.array([
+        CORNERS[0],  # exact
+        CORNERS[7] - [CELL, 0, 0],  # exactly one cell: within 1 (<=)
+        CORNERS[3] + [0, 1.5 * CELL, 0],  # within 2, not 1
+        [0.0, 0.0, 0.0],  # far from every corner
+    ])
+    m = vertex_metrics(gen, CORNERS)
+    assert (m["precision_1"], m["precision_2"]) == (2 / 4, 3 / 4)
+    assert (m["recall_1"], m["recall_2"]) == (2 / 8, 3 / 8)
+    assert (m["count_ratio"], m["generated"], m["reference"]) == (0.5, 4, 8)
+    assert "on_surface" not in m  # no surface given
+    # Two generated vertices on one corner: both precise, the corner recalled once.
+    m = vertex_metrics(np.stack([CORNERS[0], CORNERS[0] + 0.5 * CELL]), CORNERS)
+    assert (m["precision_1"], m["recall_1"], m["count_ratio"]) == (1.0, 1 / 8, 2 / 8)
+
+
+def test_vertex_metrics_edge_cases():
+    m = vertex_metrics(np.zeros((0, 3)), CORNERS, *SQUARE)
+    assert m["precision_1"] == 0 and m["recall_2"] == 0 and m["on_surface"] == 0 and m["count_ratio"] == 0
+    with pytest.raises(ValueError, match="reference"):
+        vertex_metrics(CORNERS, np.zeros((0, 3)))
+
+
+def test_on_surface_share_uses_the_distance_to_the_triangles():
+    gen = np.array([
+        [0.1, 0.2, 1.4 * CELL],  # above the square: 1.4 cells
+        [0.1, 0.2, -1.6 * CELL],  # below it: 1.6 cells, off
+        [0.5 + CELL, 0.0, CELL],  # beside an edge: sqrt(2) cells, on
+        [0.5 + 1.1 * CELL, 0.5 + 1.1 * CELL, 0.0],  # beyond a corner: 1.56 cells, off
+    ])
+    m = vertex_metrics(gen, CORNERS, *SQUARE)
+    assert m["on_surface"] == 0.5
+
+
+def test_distance_to_triangles_known_cases():
+    v, f = SQUARE
+    pts = np.array([[0.1, 0.2, 0.3], [0.5 + 0.3, 0.0, 0.4], [0.8, 0.9, 0.0], [-0.5, -0.5, 0.0], [0.0, 0.0, 0.0]])
+    want = [0.3, 0.5, np.hypot(0.3, 0.4), 0.0, 0.0]
+    assert np.allclose(distance_to_triangles(pts, v, f), want, atol=1e-12)
+
+
+def test_distance_to_triangles_matches_dense_sampling():
+    # Exact distances are never above those to points sampled on the surface, and close to them.
+    s = trimesh.creation.icosphere(subdivisions=1)
+    v, f = np.asarray(s.vertices), np.asarray(s.faces)
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(200, 3)) * 0.8
+    samples, _ = sample_triangles(v, f, 400_000, rng)
+    approx, _ = nearest_distances(pts, samples.astype(np.float64))
+    exact = distance_to_triangles(pts, v, f, chunk=64)  # small chunks: several rows per step
+    assert (exact <= approx + 1e-6).all()
+    assert np.abs(exact - approx).max() < 0.02
+    # Brute force over every triangle agrees with the pruned search.
+    from fastmesh.metrics import _point_triangle
+
+    brute = _point_triangle(np.repeat(pts, len(f), 0), np.tile(v[f], (len(pts), 1, 1))).reshape(len(pts), -1)
+    assert np.allclose(exact, brute.min(1), atol=1e-12)

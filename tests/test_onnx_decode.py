@@ -83,9 +83,10 @@ def test_decode_step_logits_agree_along_a_sequence():
             dec.decode_step(t, b, n, ort_cache)
 
 
-def test_batch_above_one_runs_eager_and_matches():
+def test_batch_above_one_runs_in_onnx_and_matches_eager():
     m = _model(0)
     dec = OrtDecoder(m)
+    assert not isinstance(dec.new_cache(3, 8, "cpu", torch.float32), KVCache)  # the batched ONNX step runs it
     prefix = _prefix(m, 3, 0)
     cfg = SamplingConfig(temperature=0, max_vertices=12)
     got, ref = generate(dec, prefix, cfg), generate(m, prefix, cfg)
@@ -118,14 +119,16 @@ def test_export_failure_falls_back_to_eager_with_a_warning(monkeypatch, caplog):
     assert pipe.info()["decoder"] == "torch"
 
 
-def test_a_wrong_export_is_caught_by_the_load_time_check(monkeypatch, caplog):
+@pytest.mark.parametrize("batch", [1, 2])
+def test_a_wrong_export_is_caught_by_the_load_time_check(monkeypatch, caplog, batch):
     m = _model(0)
     real_init = OrtDecoder.__init__
 
     def init_then_break(self, model, threads=None):
         real_init(self, model, threads)
-        run = self.session.run
-        self.session = type("S", (), {"run": lambda s, o, f: [x + 1.0 for x in run(o, f)]})()
+        assert sorted(self.sessions) == [1, 2]  # the default batch of candidates is exported at load
+        run = self.sessions[batch].run
+        self.sessions[batch] = type("S", (), {"run": lambda s, o, f: [x + 1.0 for x in run(o, f)]})()
 
     monkeypatch.setattr(OrtDecoder, "__init__", init_then_break)
     with caplog.at_level(logging.WARNING, logger="fastmesh.models.onnx_decode"):

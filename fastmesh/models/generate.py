@@ -4,6 +4,12 @@ Grammar-constrained: every step masks the logits to the tokens the vertex gramma
 allows (block then offsets, strictly increasing, EOS only after a vertex), so
 every sequence decodes to distinct, valid vertices.  ``max_vertices`` forces EOS
 once the budget is spent.  Temperature 0 is greedy decoding.
+
+A batch of sequences is decoded in lockstep, one decode step for all of them (the step
+is bound by reading the weights, so B sequences cost little more than one).  Each row
+keeps its own grammar state, evidence and random generator (row k draws from seed
+``cfg.seed + k``), so row k is the sequence that prefix row k gives decoded alone with
+that seed; a finished row leaves the batch.
 """
 
 from __future__ import annotations
@@ -25,6 +31,21 @@ if TYPE_CHECKING:
 
 class Cancelled(Exception):
     """Raised when a ``should_cancel`` callback asks generation to stop."""
+
+
+class StackedEvidence:
+    """The evidence of B shapes, each computed alone, read as one batch.
+
+    Row i's bias is exactly what its own evidence gives, however that evidence computes it
+    (a batched computation may round differently from a single one).
+    """
+
+    def __init__(self, rows: list[Evidence]):
+        self.rows = rows
+
+    def logit_bias(self, block: torch.Tensor) -> torch.Tensor:
+        """(B, T) current block ids -> (B, T, VOCAB) bias, row i from ``rows[i]``."""
+        return torch.cat([e.logit_bias(block[i:i + 1]) for i, e in enumerate(self.rows)])
 
 
 def filter_logits(logits: torch.Tensor, top_k: int, top_p: float) -> torch.Tensor:
@@ -53,20 +74,36 @@ def token_probs(logits: torch.Tensor, cfg: SamplingConfig) -> tuple[torch.Tensor
     return filter_logits(logits / cfg.temperature, 0, cfg.top_p).softmax(-1), ids
 
 
-def sample_next(logits: torch.Tensor, cfg: SamplingConfig, gen: torch.Generator | None) -> torch.Tensor:
-    """(B, V) masked logits -> (B,) token ids."""
+def sample_next(logits: torch.Tensor, cfg: SamplingConfig,
+                gen: torch.Generator | list[torch.Generator] | None) -> torch.Tensor:
+    """(B, V) masked logits -> (B,) token ids.
+
+    ``gen``: one generator for the batch, or one per row (row i draws from ``gen[i]`` alone, as it
+    would in a batch of one).
+    """
     if cfg.temperature == 0:
         return logits.argmax(-1)
     probs, ids = token_probs(logits, cfg)
-    return ids.gather(-1, torch.multinomial(probs, 1, generator=gen)).squeeze(-1)
+    if isinstance(gen, list):
+        draw = torch.cat([torch.multinomial(probs[i:i + 1], 1, generator=g) for i, g in enumerate(gen)])
+    else:
+        draw = torch.multinomial(probs, 1, generator=gen)
+    return ids.gather(-1, draw).squeeze(-1)
 
 
 @torch.inference_mode()
 def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: SamplingConfig,
              progress: Callable[[int, int], None] | None = None,
              should_cancel: Callable[[], bool] | None = None, progress_every: int = 16,
-             evidence: Evidence | None = None) -> list[torch.Tensor]:
-    """Sample one vertex-token sequence per prefix row.
+             evidence: Evidence | StackedEvidence | None = None) -> list[torch.Tensor]:
+    """Sample one vertex-token sequence per prefix row, all rows decoded as one batch.
+
+    Row k samples with its own generator seeded ``cfg.seed + k`` and reads row k of
+    ``evidence``: it is the sequence ``generate(model, prefix[k:k+1], cfg with seed cfg.seed + k,
+    evidence of that row)`` gives.  Token for token with the ONNX Runtime decoder (its batched
+    step computes each row as it does alone); with eager PyTorch up to the rounding of batched
+    matrix products, which changes a sampled token only when a draw falls within ~1e-6 of a
+    boundary between two tokens.
 
     Parameters
     ----------
@@ -75,7 +112,8 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
     cfg : sampling settings.
     progress : called as ``progress(step, max_vertices_so_far)`` every ``progress_every`` steps.
     should_cancel : polled at the same cadence; ``True`` raises :class:`Cancelled`.
-    evidence : from ``model.point_evidence(points, normals)`` when the decoder was trained with it.
+    evidence : from ``model.point_evidence(points, normals)`` of the B shapes when the decoder was
+        trained with it.
 
     Returns
     -------
@@ -91,40 +129,47 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
     else:
         cache = KVCache(model.cfg.depth, b, model.cfg.heads, m + max_tokens, model.cfg.head_dim,
                         device=device, dtype=prefix.dtype)
-    gen = torch.Generator(device=device).manual_seed(cfg.seed)
+    gens = [torch.Generator(device=device).manual_seed(cfg.seed + k) for k in range(b)]
     tokens = torch.full((b, 1), vt.BOS, dtype=torch.long, device=device)
     logits = model.prefill(prefix, tokens, cache)
     out = [tokens[:, 0]]
+    # Grammar state of every row; `live` indexes the rows still in the batch (those of `logits`
+    # and of the cache), in order.
     block = torch.full((b,), -1, dtype=torch.long, device=device)
     offset = torch.full((b,), -1, dtype=torch.long, device=device)
     prev = tokens[:, 0]
     n_vert = torch.zeros(b, dtype=torch.long, device=device)
-    done = torch.zeros(b, dtype=torch.bool, device=device)
+    live = torch.arange(b, device=device)
     ev_block = ev_bias = None
     for step in range(1, max_tokens):
         if evidence is not None:  # the bias changes only when a sequence enters a new block
             if ev_block is None or not torch.equal(block, ev_block):
                 ev_bias, ev_block = evidence.logit_bias(block[:, None])[:, 0], block.clone()
-            logits = logits + ev_bias
-        mask = grammar_mask(prev, block, offset, eos_only=n_vert >= cfg.max_vertices)
-        nxt = sample_next(logits.masked_fill(~mask, float("-inf")), cfg, gen)
-        nxt = torch.where(done, torch.full_like(nxt, vt.PAD), nxt)
+            logits = logits + ev_bias[live]
+        mask = grammar_mask(prev[live], block[live], offset[live], eos_only=n_vert[live] >= cfg.max_vertices)
+        picked = sample_next(logits.masked_fill(~mask, float("-inf")), cfg, [gens[int(k)] for k in live])
+        nxt = torch.full((b,), vt.PAD, dtype=torch.long, device=device)
+        nxt[live] = picked
         out.append(nxt)
         is_block = (nxt >= vt.BLOCK0) & (nxt < vt.OFFSET0)
         is_off = nxt >= vt.OFFSET0
         block = torch.where(is_block, nxt - vt.BLOCK0, block)
         offset = torch.where(is_off, nxt - vt.OFFSET0, torch.where(is_block, -1, offset))
         n_vert += is_off.long()
-        done |= (nxt == vt.EOS) | (nxt == vt.PAD)
         prev = nxt
         if step % progress_every == 0:
             if should_cancel is not None and should_cancel():
                 raise Cancelled("generation cancelled")
             if progress is not None:
                 progress(step, int(n_vert.max()))
-        if bool(done.all()):
+        going = picked != vt.EOS
+        if not bool(going.any()):
             break
-        logits = model.decode_step(nxt[:, None], block[:, None], m + step, cache)
+        if not bool(going.all()):  # finished rows stop costing: out of the batch and its cache
+            keep = going.nonzero()[:, 0]
+            cache.select(keep)
+            live = live[keep]
+        logits = model.decode_step(nxt[live, None], block[live, None], m + step, cache)
     seqs = torch.stack(out, dim=1)
     result = []
     for row in seqs:

@@ -1,0 +1,133 @@
+"""A ladder of simple shapes whose artist vertices are known exactly.
+
+Box, L-shaped block, box with a square through-hole, cylinder (16 sides), cone (16 sides),
+icosphere (subdivisions 1 and 2) and torus (16 x 8 sections): the shapes a modeller builds in
+a minute, each a closed mesh with the fewest vertices that describe it.  A vertex stage that
+works must find these vertices (``benchmarks/primitives.py`` measures it).
+
+The L and the holed box are prisms over a polygon (:func:`prism`) with their caps triangulated
+by hand: trimesh's polygon extrusion needs shapely, which FastMesh does not depend on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from .io import Shape, sample_surface
+
+SIDES = 16  # sections of the cylinder and the cone
+N_POINTS = 8192  # points sampled on a primitive for the ladder's input
+
+
+def prism(outline: np.ndarray, rings: list[list[int]], cap: np.ndarray, height: float) -> Shape:
+    """Extrude a polygon (with holes) along +z into a closed mesh.
+
+    Parameters
+    ----------
+    outline : (P, 2) float
+        The polygon's corners (outer boundary and holes together).
+    rings : list of int lists
+        Each boundary as indices into ``outline``, walked with the solid on the left: the outer
+        boundary counter-clockwise, holes clockwise (seen from +z).
+    cap : (T, 3) int
+        Triangles of the polygon, counter-clockwise seen from +z.
+    height : float
+
+    Returns
+    -------
+    Shape : 2P vertices (bottom at z = 0, then top), 2T + 2 * (ring edges) outward-facing faces.
+    """
+    p = len(outline)
+    xy = np.asarray(outline, dtype=np.float64)
+    vertices = np.concatenate([np.c_[xy, np.zeros(p)], np.c_[xy, np.full(p, float(height))]])
+    cap = np.asarray(cap, dtype=np.int64)
+    faces = [cap[:, ::-1], cap + p]  # bottom faces -z, top faces +z
+    for ring in rings:
+        a = np.asarray(ring, dtype=np.int64)
+        b = np.roll(a, -1)
+        faces += [np.c_[a, b, b + p], np.c_[a, b + p, a + p]]  # the wall of each edge, facing outwards
+    return Shape(vertices=vertices, faces=np.concatenate(faces))
+
+
+def _from_trimesh(mesh) -> Shape:
+    return Shape(vertices=np.asarray(mesh.vertices, dtype=np.float64), faces=np.asarray(mesh.faces, dtype=np.int64))
+
+
+def box() -> Shape:
+    """Unit cube: 8 vertices, 12 faces."""
+    import trimesh
+
+    return _from_trimesh(trimesh.creation.box(extents=(1.0, 1.0, 1.0)))
+
+
+def l_block() -> Shape:
+    """An L-shaped block (a 1 x 1 square less a 0.5 x 0.5 corner, 0.4 high): 12 vertices."""
+    outline = np.array([[0, 0], [1, 0], [1, 0.5], [0.5, 0.5], [0.5, 1], [0, 1]])
+    cap = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 5], [3, 4, 5]])
+    return prism(outline, [[0, 1, 2, 3, 4, 5]], cap, 0.4)
+
+
+def holed_box() -> Shape:
+    """A 1 x 1 x 0.4 box with a 0.4 x 0.4 square hole through it: 16 vertices."""
+    outer = [[0, 0], [1, 0], [1, 1], [0, 1]]
+    inner = [[0.3, 0.3], [0.7, 0.3], [0.7, 0.7], [0.3, 0.7]]
+    # Each side of the frame between outer edge k and inner edge k: one quad, two triangles.
+    cap = [t for k in range(4) for t in ([k, (k + 1) % 4, 4 + (k + 1) % 4], [k, 4 + (k + 1) % 4, 4 + k])]
+    return prism(np.array(outer + inner, dtype=np.float64), [[0, 1, 2, 3], [4, 7, 6, 5]], np.array(cap), 0.4)
+
+
+def cylinder() -> Shape:
+    """Radius 0.5, height 1, 16 sides (trimesh's: with a centre vertex on each cap, 34 vertices)."""
+    import trimesh
+
+    return _from_trimesh(trimesh.creation.cylinder(radius=0.5, height=1.0, sections=SIDES))
+
+
+def cone() -> Shape:
+    """Radius 0.5, height 1, 16 sides (trimesh's: tip, base centre and rim, 18 vertices)."""
+    import trimesh
+
+    return _from_trimesh(trimesh.creation.cone(radius=0.5, height=1.0, sections=SIDES))
+
+
+def icosphere(subdivisions: int) -> Shape:
+    """Unit icosphere: 42 vertices at 1 subdivision, 162 at 2."""
+    import trimesh
+
+    return _from_trimesh(trimesh.creation.icosphere(subdivisions=subdivisions))
+
+
+def torus() -> Shape:
+    """Major radius 1, minor 0.3, 16 x 8 sections: 128 vertices."""
+    import trimesh
+
+    return _from_trimesh(trimesh.creation.torus(major_radius=1.0, minor_radius=0.3, major_sections=16,
+                                                minor_sections=8))
+
+
+# The ladder, simplest first.
+LADDER: dict[str, Callable[[], Shape]] = {
+    "box": box,
+    "l_block": l_block,
+    "holed_box": holed_box,
+    "cylinder": cylinder,
+    "cone": cone,
+    "icosphere1": lambda: icosphere(1),
+    "icosphere2": lambda: icosphere(2),
+    "torus": torus,
+}
+
+
+def primitive(name: str) -> Shape:
+    """The mesh of the ladder's shape ``name`` (one of ``LADDER``)."""
+    if name not in LADDER:
+        raise ValueError(f"unknown primitive {name!r}; one of {', '.join(LADDER)}")
+    return LADDER[name]()
+
+
+def point_cloud(mesh: Shape, n: int = N_POINTS, seed: int = 0) -> Shape:
+    """``n`` area-weighted samples of ``mesh`` with their face normals, as a point-cloud Shape."""
+    pts, nrm = sample_surface(mesh, n, seed=seed)
+    return Shape(vertices=pts.astype(np.float64), normals=nrm.astype(np.float64))

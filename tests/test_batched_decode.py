@@ -1,0 +1,142 @@
+"""Candidates decoded as one batch: row k is exactly what seed + k gives decoded alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from test_cells import _cell_grids
+
+from fastmesh.io import Normalization, input_surface
+from fastmesh.models.encoder import EncoderConfig
+from fastmesh.models.evidence import GAIN
+from fastmesh.models.generate import SamplingConfig, StackedEvidence, generate
+from fastmesh.models.onnx_decode import NumpyCache, OrtDecoder
+from fastmesh.models.vertex import VertexConfig, VertexDecoder
+from fastmesh.params import GenerateParams
+from fastmesh.pipeline import Pipeline
+from fastmesh.primitives import primitive
+from fastmesh.support import surface_fit
+from fastmesh.tokenizer import vertex as vt
+
+torch.set_num_threads(1)
+B = 4
+
+
+def _model(seed: int = 0, cells: bool = False) -> VertexDecoder:
+    torch.manual_seed(seed)
+    enc = EncoderConfig(n_points=64, n_latents=4, dim=32, depth=1, heads=2, n_freqs=4, anchors=8)
+    m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, evidence=True, evidence_normals=True,
+                                   evidence_cells=cells))
+    with torch.no_grad():  # spread the logits and make the evidence matter, as if trained
+        m.head.weight.normal_(0, 1.0)
+        m.tok_emb.weight.normal_(0, 0.5)
+        tables = (m.evidence.cell_block_table, m.evidence.cell_skip_table, m.evidence.cell_eos_table) if cells else (
+            m.evidence.table, m.evidence.block_table, m.evidence.skip_table, m.evidence.eos_table,
+            m.evidence.corner_table)
+        for t in tables:
+            t.weight.normal_(0, 3.0 / GAIN)
+    return m.eval()
+
+
+def _inputs(m: VertexDecoder, seed: int = 0):
+    """B different shapes' prefixes and evidences (with their own cell log-odds if the decoder reads them),
+    each computed alone."""
+    g = torch.Generator().manual_seed(seed)
+    pts = torch.rand(B, 64, 3, generator=g) - 0.5
+    nrm = torch.nn.functional.normalize(torch.randn(B, 64, 3, generator=g), dim=-1)
+    grids = _cell_grids(B, seed)[:, None] if m.cfg.evidence_cells else [None] * B
+    with torch.inference_mode():
+        prefix = [m.condition(pts[i:i + 1], nrm[i:i + 1]) for i in range(B)]
+        evidence = [m.point_evidence(pts[i:i + 1], nrm[i:i + 1], grids[i]) for i in range(B)]
+    return prefix, evidence
+
+
+class _Spy:
+    """A decoder that records the batch of every decode step."""
+
+    def __init__(self, dec):
+        self.dec, self.cfg, self.batches = dec, dec.cfg, []
+        if hasattr(dec, "new_cache"):
+            self.new_cache = dec.new_cache
+
+    def prefill(self, *a):
+        return self.dec.prefill(*a)
+
+    def decode_step(self, tokens, block, pos, cache):
+        self.batches.append(tokens.shape[0])
+        return self.dec.decode_step(tokens, block, pos, cache)
+
+
+@pytest.mark.parametrize("backend", ["torch", "onnx"])
+@pytest.mark.parametrize("temperature,top_k,cells", [(1.0, 0, False), (0.7, 20, False), (1.0, 0, True)])
+def test_batch_rows_equal_each_seed_decoded_alone(backend, temperature, top_k, cells):
+    m = _model(1, cells)
+    dec = _Spy(OrtDecoder(m) if backend == "onnx" else m)
+    prefix, evidence = _inputs(m, 1)
+    cfg = SamplingConfig(temperature=temperature, top_k=top_k, top_p=0.95, max_vertices=12, seed=7)
+    batch = generate(dec, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
+    steps = list(dec.batches)
+    alone = [generate(dec, prefix[k], SamplingConfig(**{**cfg.__dict__, "seed": 7 + k}), evidence=evidence[k])[0]
+             for k in range(B)]
+    assert [r.tolist() for r in batch] == [r.tolist() for r in alone]
+    lengths = [len(r) for r in alone]
+    assert len(set(lengths)) > 1 and all(r[-1] == vt.EOS for r in alone)  # rows finish at different steps
+    # A finished row leaves the batch: a row of L tokens is in L - 2 decode steps (BOS is prefilled,
+    # nothing is decoded after EOS).
+    assert steps[0] == B and steps == sorted(steps, reverse=True)
+    assert sum(steps) == sum(lengths) - 2 * B and len(steps) == max(lengths) - 2
+
+
+def test_onnx_batch_rows_are_computed_as_alone_before_and_after_finished_rows_leave():
+    m = _model(2)
+    dec = OrtDecoder(m)
+    assert sorted(dec.sessions) == [1, 2]  # batch 1 and the default candidates' batch, exported at load
+    cache = dec.new_cache(4, 40, "cpu", torch.float32)
+    assert sorted(dec.sessions) == [1, 2, 4] and isinstance(cache, NumpyCache)
+    assert cache.buf.shape == (2 * m.cfg.depth, 40, 4 * m.cfg.dim)
+    prefix, _ = _inputs(m, 2)
+    alone = [dec.new_cache(1, 40, "cpu", torch.float32) for _ in range(4)]
+    tok = torch.tensor([[vt.BLOCK0 + 9], [vt.OFFSET0 + 99], [vt.BLOCK0 + 300], [vt.OFFSET0 + 7]])
+    blk = torch.tensor([[9], [5], [300], [40]])
+    pos = prefix[0].shape[1] + 1
+
+    def step(rows, at):
+        """(batched logits of the sequences `rows`, the same decoded alone) at position `at`."""
+        got = dec.decode_step(tok[rows], blk[rows], at, cache)
+        want = torch.cat([dec.decode_step(tok[k:k + 1], blk[k:k + 1], at, alone[k]) for k in rows])
+        return got, want
+
+    with torch.inference_mode():
+        first = torch.full((4, 1), vt.BOS)
+        dec.prefill(torch.cat(prefix), first, cache)
+        for k in range(4):
+            dec.prefill(prefix[k], first[k:k + 1], alone[k])
+        got, want = step([0, 1, 2, 3], pos)
+        assert torch.equal(got, want)  # bit for bit: each row computed as it is alone
+        cache.select(torch.tensor([3, 0, 2]))  # no graph of 3: the slot of sequence 1 stays, unread
+        assert cache.slots == 4
+        got, want = step([3, 0, 2], pos + 1)
+        assert torch.equal(got, want)
+        cache.select(torch.tensor([2, 1]))  # positions in (3, 0, 2): sequences 2 and 0, down to the graph of 2
+        assert cache.slots == 2 and cache.buf.shape[-1] == 2 * m.cfg.dim
+        got, want = step([2, 0], pos + 2)
+        assert torch.equal(got, want)
+
+
+def test_pipeline_candidates_are_each_seed_alone():
+    """Every candidate (not only the chosen one) is the mesh its seed gives alone, scored as before."""
+    pipe = Pipeline.random(seed=0)
+    shape = primitive("l_block")
+    params = dict(max_vertices=24, temperature=1.0)
+    both = pipe.generate(shape, GenerateParams(seed=11, candidates=2, **params))
+    norm = Normalization.fit(shape.vertices)
+    reference = input_surface(shape, norm.apply(shape.vertices), pipe.face_config.support_points, 11)
+    fits = []
+    for k in range(2):
+        alone = pipe.generate(shape, GenerateParams(seed=11 + k, candidates=1, **params))
+        fits.append(round(surface_fit(norm.apply(alone.vertices), alone.faces, reference, 11), 6))
+        if both.info["chosen_seed"] == 11 + k:
+            assert np.allclose(both.vertices, alone.vertices) and np.array_equal(both.faces, alone.faces)
+            assert both.tokens == alone.tokens
+    assert both.info["fits"] == pytest.approx(fits, abs=2e-6)

@@ -1,0 +1,63 @@
+"""``fastmesh.eval`` end to end: the vertex-stage metrics in the per-mesh rows and the summary."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from fastmesh.eval import artist_vertices, evaluate_end_to_end, pair_inputs
+from fastmesh.io import load_shape, sample_surface
+from fastmesh.params import GenerateParams
+from fastmesh.pipeline import Pipeline
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture()
+def box_set(tmp_path):
+    """A box (not at the origin, not a cube) as a mesh input, a point-cloud input and a reference."""
+    box = trimesh.creation.box(extents=(4.0, 2.0, 1.0))
+    box.apply_translation((10.0, -3.0, 5.0))
+    (tmp_path / "inputs").mkdir()
+    (tmp_path / "reference").mkdir()
+    box.export(tmp_path / "inputs" / "mesh.ply")
+    pts, nrm = sample_surface(load_shape(tmp_path / "inputs" / "mesh.ply"), 2048, seed=0)
+    np.savez(tmp_path / "inputs" / "cloud.npz", points=pts, normals=nrm)
+    for name in ("mesh", "cloud"):
+        box.export(tmp_path / "reference" / f"{name}.ply")
+    return tmp_path
+
+
+def test_convex_hull_of_a_box_finds_every_artist_vertex(box_set):
+    pairs = pair_inputs(box_set / "inputs", box_set / "reference")
+    assert [p[0].name for p in pairs] == ["cloud.npz", "mesh.ply"]
+    report = evaluate_end_to_end(Pipeline.random(seed=0), pairs, GenerateParams(max_vertices=16),
+                                 systems=("fastmesh", "convex_hull"))
+    hull = report["meshes"][1]["convex_hull"]["vertex_metrics"]  # the hull of the box mesh is its 8 corners
+    assert hull == {"precision_1": 1.0, "precision_2": 1.0, "recall_1": 1.0, "recall_2": 1.0, "on_surface": 1.0,
+                    "count_ratio": 1.0, "generated": 8, "reference": 8}
+    cloud = report["meshes"][0]["convex_hull"]["vertex_metrics"]  # hull of samples: on the surface
+    assert cloud["on_surface"] == 1.0 and cloud["reference"] == 8
+    summary = report["summary"]["convex_hull"]["vertex_metrics"]
+    assert summary["mean_recall_1"] == pytest.approx((1.0 + cloud["recall_1"]) / 2)
+    assert summary["median_count_ratio"] == pytest.approx((1.0 + cloud["count_ratio"]) / 2)
+    for row in report["meshes"]:  # the pipeline's own result is scored the same way
+        vm = row["fastmesh"]["vertex_metrics"]
+        assert vm["generated"] == row["fastmesh"]["vertices"]
+        assert all(0.0 <= vm[k] <= 1.0 for k in ("precision_1", "precision_2", "recall_1", "recall_2", "on_surface"))
+    assert set(report["summary"]["fastmesh"]["vertex_metrics"]) == {
+        "mean_precision_1", "mean_precision_2", "mean_recall_1", "mean_recall_2", "mean_on_surface",
+        "mean_count_ratio", "median_count_ratio"}
+
+
+def test_artist_vertices_merge_per_cell_in_the_reference_frame(box_set):
+    ref = load_shape(box_set / "reference" / "mesh.ply")
+    # A second copy of each corner (a seam splits vertices): one artist vertex each.
+    v = np.concatenate([ref.vertices, ref.vertices])
+    dup = ref.__class__(vertices=v, faces=np.concatenate([ref.faces, ref.faces + 8]))
+    a = artist_vertices(dup, load_shape(box_set / "inputs" / "cloud.npz"))
+    assert len(a["reference"]) == 8
+    assert np.allclose(np.abs(a["norm"].apply(ref.vertices)).max(0), [0.5, 0.25, 0.125])
+    assert a["surface"][1] is not None  # a point-cloud input: the reference's triangles are the surface

@@ -1,10 +1,12 @@
 """Copy trained checkpoints into the package as the default weights (float16).
 
     python scripts/pack_weights.py --vertex runs/vertex/best --enhancer runs/enhancer/best \
-        --face runs/face/best -o fastmesh/weights
+        --face runs/face/best [--cells runs/cells] -o fastmesh/weights
 
 Each source is a folder with model.safetensors + config.json (as ``fastmesh train`` writes).
-Training metadata (step, validation loss) is kept in each config.json.
+Training metadata (step, validation loss) is kept in each config.json.  The cell evidence network
+(needed by a decoder trained with it) is small and kept in float32: the decoder learned the exact
+log-odds it gives.
 """
 
 from __future__ import annotations
@@ -26,15 +28,18 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     for n in ("vertex", "enhancer", "face"):
         ap.add_argument(f"--{n}", required=True, metavar="DIR")
+    ap.add_argument("--cells", metavar="DIR", help="the cell evidence network, for a decoder that reads it")
     ap.add_argument("-o", "--out", default="fastmesh/weights")
     args = ap.parse_args()
     out = Path(args.out)
-    for n in ("vertex", "enhancer", "face"):
+    for n in ("vertex", "enhancer", "face", "cells"):
+        if getattr(args, n) is None:
+            continue
         model, meta = load_model(getattr(args, n))
         if meta["kind"] != n:
             raise SystemExit(f"{getattr(args, n)} holds a {meta['kind']} network, not {n}")
         extra = {k: v for k, v in meta.items() if k not in ("kind", "config")}
-        save_model(model, n, out / n, extra=extra, dtype=torch.float16)
+        save_model(model, n, out / n, extra=extra, dtype=None if n == "cells" else torch.float16)
         size = (out / n / "model.safetensors").stat().st_size
         print(f"{n}: {sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters, {size / 1e6:.1f} MB")
     pj = out / "pipeline.json"

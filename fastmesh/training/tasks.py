@@ -284,13 +284,13 @@ class CellTask:
         return np.ones(len(ds), dtype=np.int64)  # batch_cost = meshes per batch
 
     def make_batch(self, ds, indices, rng: np.random.Generator, cfg, train: bool) -> dict[str, torch.Tensor]:
-        from ..models.cells import candidate_cells, cell_features, flat_index
+        from ..models.cells import CellNetConfig, candidate_cells, cell_features, flat_index
 
+        n_points = int(cfg.model.get("n_points", CellNetConfig.n_points))
         feats, labels, weights = [], [], []
         for i in indices:
             rec = ds[int(i)]
-            q, _, _, pts, nrm = prepare_sample(rec.continuous, rec.faces, int(cfg.model.get("n_points", 8192)),
-                                               cfg.augment if train else None, rng)
+            q, _, _, pts, nrm = prepare_sample(rec.continuous, rec.faces, n_points, cfg.augment if train else None, rng)
             cells, nearest = candidate_cells(torch.from_numpy(pts))
             label = np.isin(flat_index(cells).numpy(), flat_index(torch.from_numpy(q)).numpy())
             keep = label | (rng.random(len(label)) < CELL_NEGATIVES)

@@ -24,13 +24,13 @@ import argparse
 import io
 import json
 import os
-import struct
 import subprocess
 import sys
 import tempfile
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -38,6 +38,9 @@ import trimesh
 
 from service.processes import RedisServer, WorkerProcess, free_port, settings_env, wait_for
 from service.settings import Settings
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from hostile import instanced_glb  # noqa: E402
 
 
 def rss_mib(pid: int) -> float:
@@ -95,18 +98,6 @@ def npy(arr: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def instanced_glb(nodes: int = 1200, subdivisions: int = 3) -> bytes:
-    glb = trimesh.creation.icosphere(subdivisions).export(file_type="glb")
-    (jlen,) = struct.unpack_from("<I", glb, 12)
-    doc = json.loads(glb[20:20 + jlen])
-    mesh = next(n["mesh"] for n in doc["nodes"] if "mesh" in n)
-    doc["nodes"] = [{"mesh": mesh, "translation": [3.0 * i, 0.0, 0.0]} for i in range(nodes)]
-    doc["scenes"], doc["scene"] = [{"nodes": list(range(nodes))}], 0
-    j = json.dumps(doc).encode()
-    j += b" " * (-len(j) % 4)
-    rest = glb[20 + jlen:]
-    return (struct.pack("<4sII", b"glTF", 2, 20 + len(j) + len(rest)) + struct.pack("<I4s", len(j), b"JSON") + j
-            + rest)
 
 
 def cube_points(n: int = 500, normals: bool = False) -> bytes:
@@ -167,7 +158,7 @@ def attack_previews(url: str, api: int, out: dict) -> None:
 
 
 def attack_gltf(url: str, api: int, out: dict) -> None:
-    data = instanced_glb()
+    data = instanced_glb(1200)
     with Peak(api) as p:
         t0 = time.perf_counter()
         r = post(url, "instanced.glb", data)

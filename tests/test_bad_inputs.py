@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 import schemathesis
 import trimesh
+from hostile import instanced_glb
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.errors import Unsatisfiable
@@ -115,21 +116,6 @@ def npy_header(shape: tuple, tail: int = 96) -> bytes:
     buf = io.BytesIO()
     np.lib.format.write_array_header_1_0(buf, {"descr": "<f8", "fortran_order": False, "shape": shape})
     return buf.getvalue() + b"\0" * tail
-
-
-def instanced_glb(nodes: int, subdivisions: int = 3) -> bytes:
-    """A GLB holding one icosphere mesh shown by ``nodes`` nodes: flattened, each node is one more copy."""
-    glb = trimesh.creation.icosphere(subdivisions).export(file_type="glb")
-    (jlen,) = struct.unpack_from("<I", glb, 12)
-    doc = json.loads(glb[20:20 + jlen])
-    mesh = next(n["mesh"] for n in doc["nodes"] if "mesh" in n)
-    doc["nodes"] = [{"mesh": mesh, "translation": [3.0 * i, 0.0, 0.0]} for i in range(nodes)]
-    doc["scenes"], doc["scene"] = [{"nodes": list(range(nodes))}], 0
-    j = json.dumps(doc).encode()
-    j += b" " * (-len(j) % 4)
-    rest = glb[20 + jlen:]
-    return (struct.pack("<4sII", b"glTF", 2, 20 + len(j) + len(rest)) + struct.pack("<I4s", len(j), b"JSON") + j
-            + rest)
 
 
 def valid_samples() -> dict[str, bytes]:

@@ -159,7 +159,7 @@ def test_decoder_reads_the_cell_log_odds():
                 continue
             o = torch.arange(vt.N_OFFSETS)
             cell = torch.stack([b // 64 * 16 + o // 256, (b // 8) % 8 * 16 + (o // 16) % 16, b % 8 * 16 + o % 16], 1)
-            want = GAIN * m.evidence.cell_gain * (grid[r, flat_index(cell)] - FLOOR)
+            want = m.evidence.cell_gain * (grid[r, flat_index(cell)] - FLOOR)
             assert torch.allclose(diff[r, t, vt.OFFSET0:], want, atol=1e-4)
     # The expected vertex count of a block is the sum of its cells' probabilities.
     p = torch.sigmoid(grid[0]).reshape(128, 128, 128)

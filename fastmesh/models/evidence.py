@@ -44,7 +44,7 @@ With ``PointEvidence(cells=True)`` the decoder also reads the *cell log-odds* of
 (a network that scores every cell near the surface for "an artist vertex lies here" from its
 local geometry), given as a dense (B, 128^3) grid:
 
-    offset token (cell c):      GAIN * cell_gain * logodds(c)   (cell_gain starts at 1 / GAIN)
+    offset token (cell c):      cell_gain * logodds(c)   (cell_gain starts at 1)
     block token b:              cell_block_table[level(expected vertices in b)]
                                 + cell_skip_table[level(expected vertices in the blocks it skips)]
     EOS:                        cell_eos_table[level(expected vertices in the blocks still ahead)]
@@ -168,7 +168,7 @@ class Evidence:
         bias = GAIN * bias
         if self.cells is not None:
             cell = _flat(bxyz * 16, CELLS)[:, None] + self.cell_part  # (U, 4096) flat cells of the offsets
-            bias = bias + GAIN * self.m.cell_gain * self.cells[rows[:, None], cell]
+            bias = bias + self.m.cell_gain * self.cells[rows[:, None], cell]
         return bias * (block >= 0)[:, None]  # no block yet: no evidence
 
 
@@ -204,9 +204,10 @@ class PointEvidence(nn.Module):
         self.skip_table = nn.Embedding(SEQ_LEVELS, 1)
         self.eos_table = nn.Embedding(SEQ_LEVELS, 1)
         self.corner_table = nn.Embedding(SPREAD_STATES ** len(NORMAL_SHIFTS), 1) if normals else None
-        # The cell log-odds are calibrated: added at full weight from the start (a product of experts); the
-        # weight is GAIN * cell_gain like the tables, so training can move it by whole units.
-        self.cell_gain = nn.Parameter(torch.full((), 1.0 / GAIN)) if cells else None
+        # The cell log-odds are calibrated: added at full weight from the start (a product of experts).  Not
+        # scaled by GAIN like the tables: its gradient (a mean of log-odds, several nats) would then dominate
+        # the clipped gradient norm (56 against ~3) and stall the transformer.
+        self.cell_gain = nn.Parameter(torch.ones(())) if cells else None
         self.cell_block_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
         self.cell_skip_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
         self.cell_eos_table = nn.Embedding(CELL_LEVELS, 1) if cells else None

@@ -109,6 +109,9 @@ def main() -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, stop)
+    # Also Ctrl-C, explicitly: a process started with SIGINT ignored (a parent that ignores it, as some
+    # launchers and test runners leave it) would otherwise never see KeyboardInterrupt and never stop.
+    signal.signal(signal.SIGINT, stop)
     try:
         if "FASTMESH_REDIS_URL" in os.environ:
             try:

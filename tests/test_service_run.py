@@ -123,3 +123,28 @@ def test_make_run_with_unreachable_redis_url(tmp_path):
     r = subprocess.run([sys.executable, "-m", "service.run"], capture_output=True, text=True, timeout=60,
                        env=run_env(FASTMESH_REDIS_URL=url, FASTMESH_PORT=str(free_port())))
     assert r.returncode == 1 and "cannot reach Redis" in r.stdout
+
+
+def test_make_run_stops_on_ctrl_c_even_when_started_with_sigint_ignored(weights):
+    """A parent that ignores SIGINT (some launchers, and this test suite after some modules) passes that on:
+    `make run` must still stop on Ctrl-C, not wait forever."""
+    proc = subprocess.Popen([sys.executable, "-m", "service.run"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, env=run_env(FASTMESH_PORT=str(free_port()), FASTMESH_WEIGHTS=weights),
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        def printed():
+            line = proc.stdout.readline()
+            if not line and proc.poll() is not None:
+                raise RuntimeError("service.run exited")
+            return "Ctrl-C stops everything" in line
+
+        wait_for(printed, 120, 0, what="the service to be ready")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            rest, _ = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+            raise
+    assert proc.returncode == 0 and "stopping" in rest

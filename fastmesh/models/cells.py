@@ -34,6 +34,7 @@ import torch
 from torch import nn
 
 from ..tokenizer.quantize import LEVELS as CELLS
+from .evidence import _flat
 
 SHIFTS = (1, 2, 3, 4)  # coarse cells of 2, 4, 8, 16 cells: neighbourhoods 6 to 48 cells wide
 CANDIDATE_RADIUS = 2  # cells within this Chebyshev distance of a point's cell are candidates
@@ -42,13 +43,9 @@ N_FEATURES = PER_SCALE * len(SHIFTS) + 1
 _NEIGHBOURS = torch.tensor([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
 
 
-def _key(c: torch.Tensor, res: int) -> torch.Tensor:
-    return (c[..., 0] * res + c[..., 1]) * res + c[..., 2]
-
-
 def flat_index(cells: torch.Tensor) -> torch.Tensor:
     """(…, 3) int cells -> (…) flat index in the 128^3 grid (x major), as ``dense_grid`` lays it out."""
-    return _key(cells.long(), CELLS)
+    return _flat(cells.long(), CELLS)
 
 
 def candidate_cells(points: torch.Tensor, radius: int = CANDIDATE_RADIUS) -> tuple[torch.Tensor, torch.Tensor]:
@@ -70,7 +67,7 @@ def candidate_cells(points: torch.Tensor, radius: int = CANDIDATE_RADIUS) -> tup
     around = (own[:, None] + offs[None]).reshape(-1, 3)
     dist = (u[:, None] - (around.reshape(len(u), -1, 3) + 0.5)).norm(dim=-1).reshape(-1)
     ok = ((around >= 0) & (around < CELLS)).all(-1)
-    flat, inv = torch.unique(_key(around[ok], CELLS), return_inverse=True)
+    flat, inv = torch.unique(_flat(around[ok], CELLS), return_inverse=True)
     nearest = torch.full((len(flat),), float("inf"), dtype=dist.dtype).scatter_reduce(0, inv, dist[ok], "amin")
     return torch.stack([flat // (CELLS * CELLS), (flat // CELLS) % CELLS, flat % CELLS], -1), nearest
 
@@ -102,11 +99,11 @@ def cell_features(points: torch.Tensor, normals: torch.Tensor, cells: torch.Tens
         coarse = u.floor().long().clamp(0, CELLS - 1) >> s
         around = (coarse[:, None] + _NEIGHBOURS[None]).reshape(-1, 3)  # (P*27, 3)
         ok = ((around >= 0) & (around < res)).all(-1)
-        keys, inv = torch.unique(_key(around[ok], res), return_inverse=True)
+        keys, inv = torch.unique(_flat(around[ok], res), return_inverse=True)
         sums = torch.zeros(len(keys), mom.shape[1], dtype=u.dtype)
         sums.index_add_(0, inv, mom.repeat_interleave(27, 0)[ok])
         shape = _key_features(sums)  # per coarse key: what does not depend on the cell
-        ck = _key(cells >> s, res)
+        ck = _flat(cells >> s, res)
         pos = torch.searchsorted(keys, ck).clamp(max=len(keys) - 1)
         hit = keys[pos] == ck
         feats.append(_cell_features(shape, pos, hit, centre, float(1 << s)))

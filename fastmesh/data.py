@@ -123,12 +123,13 @@ CELL_KEEP = -6.0  # cells scored below these log-odds are stored as models.cells
 
 
 def build_cell_cache(ds: MeshDataset, net, out: str | os.PathLike, per_split: dict[str, int], seed: int = 0,
-                     progress=None) -> int:
+                     progress=None, workers: int = 1) -> int:
     """A dataset of some meshes plus the cell evidence network's log-odds for each (unaugmented).
 
     The vertex decoder reads these log-odds (``VertexConfig.evidence_cells``); scoring a mesh's
     cells costs about a second on a CPU core, too slow to do per training batch, so they are
-    computed once per mesh, from ``net.cfg.n_points`` surface samples drawn with ``seed``.
+    computed once per mesh, from ``net.cfg.n_points`` surface samples drawn with ``seed``
+    (the same whatever ``workers``, processes that score meshes side by side).
 
     Parameters
     ----------
@@ -137,28 +138,57 @@ def build_cell_cache(ds: MeshDataset, net, out: str | os.PathLike, per_split: di
     Returns the number of meshes written.  The cache holds ``cell_flat`` (int32 flat cell index),
     ``cell_logit`` (float16) and ``c_off`` (offsets per mesh) beside the usual arrays.
     """
-    from .io import sample_triangles
-    from .models.cells import flat_index
+    import multiprocessing as mp
 
     rng = np.random.default_rng(seed)
     chosen = np.concatenate([rng.permutation(ds.indices(split))[:n] for split, n in per_split.items()])
-    flats, logits = [], []
-    for k, i in enumerate(chosen):
-        rec = ds[int(i)]
-        pts, nrm = sample_triangles(rec.continuous, rec.faces, net.cfg.n_points, np.random.default_rng([seed, int(i)]))
-        cells, lo = net.score(pts, nrm)
-        keep = lo >= CELL_KEEP
-        flats.append(flat_index(cells[keep]).numpy().astype(np.int32))
-        logits.append(lo[keep].numpy().astype(np.float16))
-        if progress:
-            progress(k + 1, len(chosen))
+    _CELL_JOB.update(ds=ds, net=net, seed=seed)
+    try:
+        if workers > 1:
+            with mp.get_context("fork").Pool(workers, initializer=_one_thread) as pool:
+                scored = list(_progress(pool.imap(_score_mesh, chosen.tolist(), chunksize=4), len(chosen), progress))
+        else:
+            scored = list(_progress(map(_score_mesh, chosen.tolist()), len(chosen), progress))
+    finally:
+        _CELL_JOB.clear()
+    flats, logits = zip(*scored, strict=True) if scored else ((), ())
     arrays = subset_arrays(ds, chosen)
-    arrays.update(cell_flat=np.concatenate(flats), cell_logit=np.concatenate(logits),
+    arrays.update(cell_flat=np.concatenate([np.zeros(0, np.int32), *flats]),
+                  cell_logit=np.concatenate([np.zeros(0, np.float16), *logits]),
                   c_off=np.concatenate([[0], np.cumsum([len(f) for f in flats])]).astype(np.int64))
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     with open(out, "wb") as fh:
         np.savez(fh, **arrays)
     return len(chosen)
+
+
+_CELL_JOB: dict = {}  # dataset, network and seed of build_cell_cache (inherited by forked workers)
+
+
+def _one_thread() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _score_mesh(i: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices (int32) and log-odds (float16) of mesh ``i``'s cells at or above ``CELL_KEEP``."""
+    from .io import sample_triangles
+    from .models.cells import flat_index
+
+    ds, net, seed = _CELL_JOB["ds"], _CELL_JOB["net"], _CELL_JOB["seed"]
+    rec = ds[int(i)]
+    pts, nrm = sample_triangles(rec.continuous, rec.faces, net.cfg.n_points, np.random.default_rng([seed, int(i)]))
+    cells, lo = net.score(pts, nrm)
+    keep = lo >= CELL_KEEP
+    return flat_index(cells[keep]).numpy().astype(np.int32), lo[keep].numpy().astype(np.float16)
+
+
+def _progress(items, total: int, progress):
+    for k, item in enumerate(items):
+        if progress:
+            progress(k + 1, total)
+        yield item
 
 
 def load_dataset(path: str | os.PathLike) -> MeshDataset:

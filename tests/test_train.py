@@ -12,11 +12,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from safetensors.numpy import load_file
 
 from fastmesh.cli import main
 from fastmesh.data import build_dataset, load_dataset
 from fastmesh.models.checkpoint import load_model
+from fastmesh.tokenizer import quantize
+from fastmesh.training.augment import apply_symmetry, grid_symmetry, symmetric_cells
+from fastmesh.training.tasks import dense_cells, sparse_cells
 
 CORPUS = Path(__file__).resolve().parents[2] / "shared" / "corpus"
 N_MESHES = 10
@@ -189,6 +193,17 @@ def test_decoder_reading_cell_evidence_trains_from_a_cell_cache(cache, tmp_path)
     assert len(ds) == 4 and len(ds.indices("val")) == 1
     grid = ds.cell_logits(0)
     assert grid.shape == (128 ** 3,) and (grid > -12).sum() > 0
+    # worker processes score the same meshes from the same samples
+    pooled = tmp_path / "pooled.npz"
+    assert main(["data", "cells", str(cache), "--weights", str(cells_dir), "-o", str(pooled),
+                 "--train", "3", "--val", "1", "--workers", "2"]) == 0
+    twin = load_dataset(pooled)
+    for k in ("cell_flat", "cell_logit", "c_off", "q"):
+        np.testing.assert_array_equal(ds.a[k], twin.a[k], err_msg=k)
+    # a batch carries them sparse; spread out they are the stored grids
+    sparse = sparse_cells(ds, [0, 2])
+    dense = dense_cells(sparse["cell_flat"], sparse["cell_logit"])
+    torch.testing.assert_close(dense, torch.stack([ds.cell_logits(0), ds.cell_logits(2)]), rtol=0, atol=0)
     model = {**TINY["vertex"]["model"], "evidence": True, "evidence_normals": True, "evidence_cells": True,
              "count_condition": True}
     cfg = _config(tmp_path, "vertex", model=model, steps=2)
@@ -197,3 +212,32 @@ def test_decoder_reading_cell_evidence_trains_from_a_cell_cache(cache, tmp_path)
     assert all(np.isfinite(r["loss"]) for r in _log(out) if "loss" in r)
     assert load_model(out)[0].evidence.cell_gain is not None
     assert main(["train", "vertex", "--data", str(cache), "--out", str(tmp_path / "no"), "--config", str(cfg)]) == 2
+
+
+@pytest.mark.parametrize("kind", ["face", "vertex"])
+def test_worker_processes_make_the_batches_of_an_in_process_run(cache, tmp_path, kind):
+    """Batches made ahead by workers (``workers``) draw the same random numbers: the same weights come out."""
+    cfg = _config(tmp_path, kind)
+    outs = []
+    for workers in (0, 2):
+        out = tmp_path / f"w{workers}"
+        assert main(["train", kind, "--data", str(cache), "--config", str(cfg), "--out", str(out),
+                     "--set", f"workers={workers}", "--set", "steps=5"]) == 0
+        outs.append(load_file(str(out / "model.safetensors")))
+    for k in outs[0]:
+        np.testing.assert_array_equal(outs[0][k], outs[1][k], err_msg=k)
+
+
+def test_cube_symmetries_carry_cells_with_the_mesh():
+    """A mesh under a symmetry of ``grid_symmetry`` quantises to the moved cells of the original: the stored cell
+    evidence of a mesh is valid for its moved copy."""
+    rng = np.random.default_rng(3)
+    v = rng.uniform(-0.5, 0.5, (500, 3))
+    frac = (v + 0.5) * 128 % 1
+    v = v[((frac > 0.01) & (frac < 0.99)).all(1)]  # not on a cell boundary, where rounding may go either way
+    seen = set()
+    for _ in range(40):
+        sym = grid_symmetry(rng)
+        seen.add((tuple(sym[0]), tuple(sym[1])))
+        np.testing.assert_array_equal(quantize(apply_symmetry(v, sym)), symmetric_cells(quantize(v), sym, 128))
+    assert len(seen) > 20  # many of the 48, not one

@@ -48,6 +48,7 @@ def register(sub) -> None:
     c.add_argument("--train", type=int, default=1000, metavar="N", help="training meshes to take")
     c.add_argument("--val", type=int, default=64, metavar="N", help="validation meshes to take")
     c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--workers", type=int, default=1, metavar="N", help="processes scoring meshes side by side")
     c.set_defaults(func=_cells)
 
 
@@ -85,13 +86,16 @@ def _cells(args) -> int:
     from fastmesh.data import build_cell_cache, load_dataset
     from fastmesh.models.checkpoint import load_model
 
-    net = load_model(args.weights)[0]
+    net = load_model(args.weights, device="cpu")[0]  # forked workers score on the CPU
     if net.cfg.__class__.__name__ != "CellNetConfig":
         raise ValueError(f"{args.weights} holds no cell evidence network")
     t = time.perf_counter()
+    def progress(i: int, n: int) -> None:
+        if i % 100 == 0:
+            print(f"  {i}/{n}", file=sys.stderr, flush=True)
+
     n = build_cell_cache(load_dataset(args.file), net, args.out, {"train": args.train, "val": args.val},
-                         seed=args.seed, progress=lambda i, n: i % 100 == 0 and print(f"  {i}/{n}", file=sys.stderr,
-                                                                                      flush=True))
+                         seed=args.seed, workers=args.workers, progress=progress)
     print(f"wrote {n} meshes with cell log-odds to {args.out} in {time.perf_counter() - t:.0f} s")
     return 0
 

@@ -56,3 +56,26 @@ def prepare_sample(v: np.ndarray, faces: np.ndarray, n_points: int, cfg: Augment
         nrm = nrm + rng.normal(0, cfg.normal_jitter, nrm.shape).astype(np.float32)
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-8)
     return q, f, cont, pts, nrm
+
+
+def grid_symmetry(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """One of the 48 symmetries of the cube: an axis permutation (3,) and per-axis signs (3,).
+
+    They map the 7-bit grid onto itself (cell c <-> 127 - c), so the cell evidence of a mesh,
+    computed once and stored (``fastmesh data cells``), moves with the mesh: the augmentation a
+    decoder reading stored evidence can have, where a rotation by any angle would need new evidence.
+    """
+    return rng.permutation(3), rng.choice([-1.0, 1.0], size=3)
+
+
+def apply_symmetry(v: np.ndarray, sym: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(V, 3) positions in the unit cube centred at 0 -> the same under ``sym``."""
+    perm, signs = sym
+    return v[:, perm] * signs
+
+
+def symmetric_cells(cells: np.ndarray, sym: tuple[np.ndarray, np.ndarray], levels: int) -> np.ndarray:
+    """(C, 3) int cells -> their cells under ``sym`` (a sign of -1 maps cell c to levels - 1 - c)."""
+    perm, signs = sym
+    c = cells[:, perm]
+    return np.where(signs < 0, levels - 1 - c, c)

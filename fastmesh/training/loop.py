@@ -29,6 +29,7 @@ import torch.distributed as dist
 from ..data import MeshDataset, load_dataset
 from ..models.checkpoint import config_from_dict, load_model, save_model
 from .augment import AugmentConfig
+from .prefetch import BatchMaker
 
 
 @dataclass
@@ -52,6 +53,7 @@ class TrainConfig:
     amp: str = "auto"  # "auto" (GPU: bf16 or fp16, CPU: off) | "bf16" | "fp16" | "off"
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     max_vertices: int = 0  # skip training meshes above this (0 = all); the face task's N^2 cost needs it
+    workers: int = 0  # processes making training batches ahead of the step (0 = in the training process)
 
 
 def load_train_config(path: str | None, overrides: dict | None = None) -> TrainConfig:
@@ -163,55 +165,55 @@ def train(task, data: str | MeshDataset, out: str, cfg: TrainConfig, resume: boo
         (outdir / "train_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
     logf = open(outdir / "log.jsonl", "a") if _is_main() else None
     stop = False
-    while not stop:
-        batches = make_batches(costs, train_idx, cfg.batch_cost, cfg.max_batch,
-                               np.random.default_rng([cfg.seed, epoch]))
-        batches = batches[rank::world]
-        while pos < len(batches):
-            for g in opt.param_groups:
-                g["lr"] = lr_at(step)
-            rng = np.random.default_rng([cfg.seed, epoch, pos, rank])
-            batch = {k: v.to(device) for k, v in task.make_batch(ds, batches[pos], rng, cfg, train=True).items()}
-            with _autocast(device, cfg.amp):
-                loss, n = task.loss(ddp_model, batch)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-            opt.step()
-            step, pos, items = step + 1, pos + 1, items + n
-            if step % cfg.log_every == 0 and _is_main():
-                now = time.time()
-                record = {"step": step, "epoch": epoch, "loss": round(loss.item(), 5), "lr": lr_at(step),
-                          "grad_norm": round(float(gnorm), 4),
-                          "items_per_s": round(items * world / (now - last_log), 1),
-                          "elapsed_s": round(now - t0, 1)}
-                last_log, items = now, 0
-                logf.write(json.dumps(record) + "\n")
-                logf.flush()
-                log(json.dumps(record))
-            out_of_time = cfg.max_minutes and (time.time() - t0) > cfg.max_minutes * 60
-            finished = step >= cfg.steps or out_of_time
-            if step % cfg.eval_every == 0 or finished:
-                val = evaluate(task, ddp_model, ds, val_idx, costs, cfg, device)
-                model.train()
-                if _is_main():
-                    record = {"step": step, "epoch": epoch, "val": val, "elapsed_s": round(time.time() - t0, 1)}
+    with BatchMaker(task, ds, cfg, cfg.workers) as maker:
+        while not stop:
+            batches = make_batches(costs, train_idx, cfg.batch_cost, cfg.max_batch,
+                                   np.random.default_rng([cfg.seed, epoch]))
+            batches = batches[rank::world]
+            for batch in maker.epoch(batches, epoch, pos, rank):
+                for g in opt.param_groups:
+                    g["lr"] = lr_at(step)
+                batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+                with _autocast(device, cfg.amp):
+                    loss, n = task.loss(ddp_model, batch)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+                opt.step()
+                step, pos, items = step + 1, pos + 1, items + n
+                if step % cfg.log_every == 0 and _is_main():
+                    now = time.time()
+                    record = {"step": step, "epoch": epoch, "loss": round(loss.item(), 5), "lr": lr_at(step),
+                              "grad_norm": round(float(gnorm), 4),
+                              "items_per_s": round(items * world / (now - last_log), 1),
+                              "elapsed_s": round(now - t0, 1)}
+                    last_log, items = now, 0
                     logf.write(json.dumps(record) + "\n")
                     logf.flush()
                     log(json.dumps(record))
-                    if val["loss"] < best:
-                        best = val["loss"]
-                        save(outdir / "best", {"step": step, "val": val})
-            if (step % cfg.ckpt_every == 0 or finished) and _is_main():
-                save(outdir, {"step": step})
-                torch.save({"optimizer": opt.state_dict(), "step": step, "epoch": epoch, "pos": pos, "best": best},
-                           str(state_path) + ".tmp")
-                os.replace(str(state_path) + ".tmp", state_path)
-            if finished:
-                stop = True
-                break
-        if not stop:
-            epoch, pos = epoch + 1, 0
+                out_of_time = cfg.max_minutes and (time.time() - t0) > cfg.max_minutes * 60
+                finished = step >= cfg.steps or out_of_time
+                if step % cfg.eval_every == 0 or finished:
+                    val = evaluate(task, ddp_model, ds, val_idx, costs, cfg, device)
+                    model.train()
+                    if _is_main():
+                        record = {"step": step, "epoch": epoch, "val": val, "elapsed_s": round(time.time() - t0, 1)}
+                        logf.write(json.dumps(record) + "\n")
+                        logf.flush()
+                        log(json.dumps(record))
+                        if val["loss"] < best:
+                            best = val["loss"]
+                            save(outdir / "best", {"step": step, "val": val})
+                if (step % cfg.ckpt_every == 0 or finished) and _is_main():
+                    save(outdir, {"step": step})
+                    torch.save({"optimizer": opt.state_dict(), "step": step, "epoch": epoch, "pos": pos, "best": best},
+                               str(state_path) + ".tmp")
+                    os.replace(str(state_path) + ".tmp", state_path)
+                if finished:
+                    stop = True
+                    break
+            if not stop:
+                epoch, pos = epoch + 1, 0
     if logf:
         logf.close()
     if world > 1:

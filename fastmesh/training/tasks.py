@@ -8,6 +8,8 @@ does the rest.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -17,7 +19,8 @@ from ..metrics import edge_metrics, edges_from_faces
 from ..models.checkpoint import config_from_dict, registry
 from ..tokenizer import dequantize
 from ..tokenizer import vertex as vt
-from .augment import prepare_sample
+from ..tokenizer.quantize import LEVELS
+from .augment import apply_symmetry, grid_symmetry, prepare_sample, symmetric_cells
 
 
 def _points_tensors(samples) -> dict[str, torch.Tensor]:
@@ -40,23 +43,31 @@ class VertexTask:
     def make_batch(self, ds, indices, rng: np.random.Generator, cfg, train: bool) -> dict[str, torch.Tensor]:
         """Tokens, condition points and (for a decoder that reads them) the stored cell log-odds.
 
-        The log-odds in a cell cache (``fastmesh data cells``) are those of the unaugmented mesh,
-        so a decoder that reads them trains on unaugmented meshes.
+        The log-odds in a cell cache (``fastmesh data cells``) are those of the unaugmented mesh, so
+        a decoder that reads them trains on the mesh under one of the cube's 48 symmetries (which
+        carry the stored log-odds along) and jittered points, not under free rotations and scales.
         """
         n_points = _n_points(cfg)
         reads_cells = bool(cfg.model.get("evidence_cells"))
-        augment = cfg.augment if train and not reads_cells else None
-        samples = []
+        augment = cfg.augment if train else None
+        if reads_cells and train:
+            augment = dataclasses.replace(cfg.augment, rotate=False, scale_min=1.0)
+        samples, syms = [], []
         for i in indices:
             rec = ds[int(i)]
-            samples.append(prepare_sample(rec.continuous, rec.faces, n_points, augment, rng))
+            v = rec.continuous
+            sym = grid_symmetry(rng) if reads_cells and train else None
+            if sym is not None:
+                v = apply_symmetry(v, sym)
+            syms.append(sym)
+            samples.append(prepare_sample(v, rec.faces, n_points, augment, rng))
         seqs = [vt.encode(s[0]) for s in samples]
         tokens = np.full((len(seqs), max(map(len, seqs))), vt.PAD, dtype=np.int64)
         for r, s in enumerate(seqs):
             tokens[r, : len(s)] = s
         batch = {"tokens": torch.from_numpy(tokens), **_points_tensors(samples)}
         if reads_cells:
-            batch["cells"] = torch.stack([ds.cell_logits(int(i)) for i in indices])
+            batch.update(sparse_cells(ds, indices, syms))
         if cfg.model.get("count_condition"):
             # The true face count as the condition, dropped at random so "the model's choice" is trained
             # (and validated) too.
@@ -66,7 +77,8 @@ class VertexTask:
         return batch
 
     def loss(self, model, batch):
-        loss = model.loss(batch["tokens"], points=batch["points"], normals=batch["normals"], cells=batch.get("cells"),
+        cells = dense_cells(batch["cell_flat"], batch["cell_logit"]) if "cell_flat" in batch else None
+        loss = model.loss(batch["tokens"], points=batch["points"], normals=batch["normals"], cells=cells,
                           target_faces=batch.get("target_faces"))
         return loss, int((batch["tokens"][:, 1:] != vt.PAD).sum())
 
@@ -87,6 +99,41 @@ class VertexTask:
 
 
 COUNT_DROP = 0.5  # share of training sequences whose face count is not given
+
+
+def sparse_cells(ds, indices, syms=None) -> dict[str, torch.Tensor]:
+    """The stored cell log-odds of some meshes as padded (B, K) flat cell indices and log-odds.
+
+    A batch carries them sparse (a dense grid is 8 MB per mesh) and ``dense_cells`` spreads them
+    where the model runs; padding points at an extra cell past the grid.  ``syms`` (one per mesh,
+    or None) moves each mesh's cells by a symmetry of ``augment.grid_symmetry``.
+    """
+    from ..models.cells import FLOOR
+
+    a, n_cells = ds.a, LEVELS ** 3
+    if "c_off" not in a:
+        raise ValueError("this dataset holds no cell log-odds: build it with `fastmesh data cells`")
+    spans = [(int(a["c_off"][i]), int(a["c_off"][i + 1])) for i in indices]
+    k = max(1, max(c1 - c0 for c0, c1 in spans))
+    flat = torch.full((len(spans), k), n_cells, dtype=torch.long)
+    logit = torch.full((len(spans), k), FLOOR)
+    for r, (c0, c1) in enumerate(spans):
+        f = a["cell_flat"][c0:c1].astype(np.int64)
+        if syms is not None and syms[r] is not None:
+            cells = np.stack([f // (LEVELS * LEVELS), (f // LEVELS) % LEVELS, f % LEVELS], -1)
+            c = symmetric_cells(cells, syms[r], LEVELS)
+            f = (c[:, 0] * LEVELS + c[:, 1]) * LEVELS + c[:, 2]
+        flat[r, : c1 - c0] = torch.from_numpy(f)
+        logit[r, : c1 - c0] = torch.from_numpy(a["cell_logit"][c0:c1].astype(np.float32))
+    return {"cell_flat": flat, "cell_logit": logit}
+
+
+def dense_cells(flat: torch.Tensor, logit: torch.Tensor) -> torch.Tensor:
+    """(B, K) from ``sparse_cells`` -> (B, 128^3) float32 log-odds grids, ``FLOOR`` off the candidates."""
+    from ..models.cells import FLOOR
+
+    grid = torch.full((len(flat), LEVELS ** 3 + 1), FLOOR, device=flat.device)
+    return grid.scatter_(1, flat, logit.float().clamp(min=FLOOR))[:, :-1]
 
 
 def _n_points(cfg) -> int:

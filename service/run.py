@@ -134,7 +134,8 @@ def main() -> int:
             return 1
         worker = WorkerProcess(settings, f"fastmesh-run-{os.getpid()}", log_path="-")
         api = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory",
-                                "--host", settings.host, "--port", str(settings.port), "--no-access-log"],
+                                "--host", settings.host, "--port", str(settings.port), "--no-access-log",
+                                "--http", "service.http:Protocol"],
                                env=settings_env(settings), start_new_session=True)
         url = f"http://{settings.host}:{settings.port}"
         _say("loading the model and starting the API ...")

@@ -49,6 +49,9 @@ class Settings(BaseSettings):
                                        description="Formats exported by the worker when a job names none.")
     body_timeout_seconds: float = Field(30.0, gt=0, description="A request body with no bytes arriving for this "
                                         "long is answered 408 (slow or stalled clients).")
+    header_timeout_seconds: float = Field(10.0, gt=0, description="A request line and headers not complete this "
+                                          "long after their first byte are answered 408 (with "
+                                          "`--http service.http:Protocol`, as `make run` and the image serve).")
     max_concurrent_parses: int = Field(2, ge=1, description="Uploads read and parsed at once by one API process; "
                                        "further ones wait up to parse_wait_seconds, then get 429 (busy).")
     parse_wait_seconds: float = Field(1.0, ge=0, description="Longest wait of an upload for a parsing slot.")

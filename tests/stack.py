@@ -121,7 +121,7 @@ class ApiProcess:
         log = open(self.log_path, "ab")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory", "--host", "127.0.0.1",
-             "--port", str(self.port), "--log-level", "warning"],
+             "--port", str(self.port), "--log-level", "warning", "--http", "service.http:Protocol"],
             env=settings_env(self.settings), stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         log.close()
 

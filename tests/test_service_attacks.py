@@ -9,6 +9,7 @@ stored compactly; the Redis of ``make run`` capped without eviction.
 from __future__ import annotations
 
 import io
+import json
 import socket
 import threading
 import time
@@ -19,6 +20,7 @@ import pytest
 import redis
 from stack import assert_error, make_settings, sphere_points, xyz_bytes
 
+import service.http
 from service.processes import RedisServer
 from service.store import Store, shape_from_bytes
 from service.testing import ServedApp
@@ -97,6 +99,33 @@ def test_a_stalled_upload_gets_408(redis_url):
         assert b'"timeout"' in reply and b"body_timeout_seconds" in reply
     finally:
         app.stop()
+
+
+def test_a_malformed_request_gets_the_json_error_shape(open_api):
+    """uvicorn's own answer to a request it cannot parse is plain text; ours is the JSON error of every route."""
+    with socket.create_connection(("127.0.0.1", open_api.port)) as s:
+        s.sendall(b"NOT AN HTTP REQUEST\r\n\r\n")
+        reply = reply_of(s)
+    head, _, body = reply.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 400") and b"content-type: application/json" in head.lower(), reply[:300]
+    assert json.loads(body)["error"]["code"] == "bad_request"
+
+
+def test_headers_that_never_finish_get_408(open_api, monkeypatch):
+    """A client dripping its request line and headers is answered 408 once ``header_timeout_seconds`` pass after
+    their first byte; a prompt request on another connection meanwhile, and keep-alive requests, are not touched."""
+    monkeypatch.setattr(service.http, "header_timeout", lambda: 0.5)
+    with httpx.Client(base_url=open_api.url, timeout=10) as client, \
+            socket.create_connection(("127.0.0.1", open_api.port)) as s:
+        s.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Slow: a")
+        t0 = time.monotonic()
+        for _ in range(3):  # two requests on one kept-alive connection, spaced past the header timeout
+            assert client.get("/healthz").status_code == 200
+            time.sleep(0.3)
+        reply = reply_of(s)
+    assert reply.startswith(b"HTTP/1.1 408"), reply[:200]
+    assert json.loads(reply.partition(b"\r\n\r\n")[2])["error"]["code"] == "timeout"
+    assert time.monotonic() - t0 < 5
 
 
 def test_failed_authentication_is_rate_limited_per_address(redis_url):

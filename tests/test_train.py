@@ -241,3 +241,22 @@ def test_cube_symmetries_carry_cells_with_the_mesh():
         seen.add((tuple(sym[0]), tuple(sym[1])))
         np.testing.assert_array_equal(quantize(apply_symmetry(v, sym)), symmetric_cells(quantize(v), sym, 128))
     assert len(seen) > 20  # many of the 48, not one
+
+
+def test_sparse_cells_move_with_the_mesh_under_a_symmetry(cache, tmp_path):
+    """A batch's cells under a symmetry are the stored grid with its cells moved by it."""
+    cells_dir = tmp_path / "cells"
+    assert main(["train", "cells", "--data", str(cache), "--out", str(cells_dir),
+                 "--config", str(_config(tmp_path, "cells", steps=1))]) == 0
+    cell_cache = tmp_path / "with_cells.npz"
+    assert main(["data", "cells", str(cache), "--weights", str(cells_dir), "-o", str(cell_cache),
+                 "--train", "1", "--val", "0"]) == 0
+    ds = load_dataset(cell_cache)
+    sym = grid_symmetry(np.random.default_rng(5))
+    moved = sparse_cells(ds, [0], [sym])
+    grid = dense_cells(moved["cell_flat"], moved["cell_logit"])[0].reshape(128, 128, 128)
+    stored = ds.cell_logits(0).reshape(128, 128, 128)
+    hot = torch.nonzero(stored > -12)
+    to = torch.from_numpy(symmetric_cells(hot.numpy(), sym, 128))
+    torch.testing.assert_close(grid[to[:, 0], to[:, 1], to[:, 2]], stored[hot[:, 0], hot[:, 1], hot[:, 2]])
+    assert int((grid > -12).sum()) == len(hot)

@@ -48,6 +48,12 @@ def flat_index(cells: torch.Tensor) -> torch.Tensor:
     return _flat(cells.long(), CELLS)
 
 
+def unflat_index(flat: torch.Tensor) -> torch.Tensor:
+    """(…) flat index in the 128^3 grid -> (…, 3) int64 cells: the inverse of ``flat_index``."""
+    flat = flat.long()
+    return torch.stack([flat // (CELLS * CELLS), (flat // CELLS) % CELLS, flat % CELLS], -1)
+
+
 def candidate_cells(points: torch.Tensor, radius: int = CANDIDATE_RADIUS) -> tuple[torch.Tensor, torch.Tensor]:
     """Cells within ``radius`` cells (Chebyshev, between cells) of an input point's cell.
 
@@ -69,7 +75,7 @@ def candidate_cells(points: torch.Tensor, radius: int = CANDIDATE_RADIUS) -> tup
     ok = ((around >= 0) & (around < CELLS)).all(-1)
     flat, inv = torch.unique(_flat(around[ok], CELLS), return_inverse=True)
     nearest = torch.full((len(flat),), float("inf"), dtype=dist.dtype).scatter_reduce(0, inv, dist[ok], "amin")
-    return torch.stack([flat // (CELLS * CELLS), (flat // CELLS) % CELLS, flat % CELLS], -1), nearest
+    return unflat_index(flat), nearest
 
 
 def cell_features(points: torch.Tensor, normals: torch.Tensor, cells: torch.Tensor,

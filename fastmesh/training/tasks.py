@@ -108,7 +108,7 @@ def sparse_cells(ds, indices, syms=None) -> dict[str, torch.Tensor]:
     where the model runs; padding points at an extra cell past the grid.  ``syms`` (one per mesh,
     or None) moves each mesh's cells by a symmetry of ``augment.grid_symmetry``.
     """
-    from ..models.cells import FLOOR
+    from ..models.cells import FLOOR, flat_index, unflat_index
 
     a, n_cells = ds.a, LEVELS ** 3
     if "c_off" not in a:
@@ -118,12 +118,10 @@ def sparse_cells(ds, indices, syms=None) -> dict[str, torch.Tensor]:
     flat = torch.full((len(spans), k), n_cells, dtype=torch.long)
     logit = torch.full((len(spans), k), FLOOR)
     for r, (c0, c1) in enumerate(spans):
-        f = a["cell_flat"][c0:c1].astype(np.int64)
+        f = torch.from_numpy(a["cell_flat"][c0:c1].astype(np.int64))
         if syms is not None and syms[r] is not None:
-            cells = np.stack([f // (LEVELS * LEVELS), (f // LEVELS) % LEVELS, f % LEVELS], -1)
-            c = symmetric_cells(cells, syms[r], LEVELS)
-            f = (c[:, 0] * LEVELS + c[:, 1]) * LEVELS + c[:, 2]
-        flat[r, : c1 - c0] = torch.from_numpy(f)
+            f = flat_index(torch.from_numpy(symmetric_cells(unflat_index(f).numpy(), syms[r], LEVELS)))
+        flat[r, : c1 - c0] = f
         logit[r, : c1 - c0] = torch.from_numpy(a["cell_logit"][c0:c1].astype(np.float32))
     return {"cell_flat": flat, "cell_logit": logit}
 

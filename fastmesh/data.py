@@ -83,14 +83,19 @@ class MeshDataset:
                           residual=a["residual"][v0:v1].astype(np.float32), name=str(a["name"][i]),
                           group=str(a["group"][i]), category=str(a["category"][i]), package=str(a["package"][i]))
 
-    def cell_logits(self, i: int):
-        """(128^3,) float32 torch grid of mesh ``i``'s stored cell log-odds (a cache of ``build_cell_cache``)."""
-        from .models.cells import dense_grid_flat
-
+    def cells(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Mesh ``i``'s stored cells (a cache of ``build_cell_cache``): flat indices (K,) int32 and
+        log-odds (K,) float16."""
         if "c_off" not in self.a:
             raise ValueError("this dataset holds no cell log-odds: build it with `fastmesh data cells`")
         c0, c1 = self.a["c_off"][i], self.a["c_off"][i + 1]
-        return dense_grid_flat(self.a["cell_flat"][c0:c1], self.a["cell_logit"][c0:c1])
+        return self.a["cell_flat"][c0:c1], self.a["cell_logit"][c0:c1]
+
+    def cell_logits(self, i: int):
+        """(128^3,) float32 torch grid of mesh ``i``'s stored cell log-odds."""
+        from .models.cells import dense_grid_flat
+
+        return dense_grid_flat(*self.cells(i))
 
     def num_vertices(self) -> np.ndarray:
         return np.diff(self.a["v_off"])
@@ -145,7 +150,7 @@ def build_cell_cache(ds: MeshDataset, net, out: str | os.PathLike, per_split: di
     _CELL_JOB.update(ds=ds, net=net, seed=seed)
     try:
         if workers > 1:
-            with mp.get_context("fork").Pool(workers, initializer=_one_thread) as pool:
+            with mp.get_context("fork").Pool(workers, initializer=one_thread) as pool:
                 scored = list(_progress(pool.imap(_score_mesh, chosen.tolist(), chunksize=4), len(chosen), progress))
         else:
             scored = list(_progress(map(_score_mesh, chosen.tolist()), len(chosen), progress))
@@ -165,7 +170,8 @@ def build_cell_cache(ds: MeshDataset, net, out: str | os.PathLike, per_split: di
 _CELL_JOB: dict = {}  # dataset, network and seed of build_cell_cache (inherited by forked workers)
 
 
-def _one_thread() -> None:
+def one_thread() -> None:
+    """Initializer of a worker process: one torch thread, so that the workers together use the machine."""
     import torch
 
     torch.set_num_threads(1)

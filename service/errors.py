@@ -6,6 +6,7 @@ validation (422), Redis outages (503) and, as a last resort, anything else (500,
 
 from __future__ import annotations
 
+import json
 import logging
 
 import redis
@@ -31,6 +32,11 @@ class ApiError(Exception):
     def __init__(self, status: int, code: str, message: str, headers: dict[str, str] | None = None):
         super().__init__(message)
         self.status, self.code, self.message, self.headers = status, code, message, headers
+
+
+def error_body(code: str, message: str) -> bytes:
+    """The JSON body of every error answer, for the layers below FastAPI (ASGI middleware, the HTTP protocol)."""
+    return json.dumps({"error": {"code": code, "message": message}}).encode()
 
 
 def error_response(status: int, code: str, message: str, headers: dict | None = None) -> JSONResponse:

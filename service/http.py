@@ -12,10 +12,11 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import json
 
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
+
+from .errors import error_body
 
 
 @functools.cache
@@ -27,7 +28,7 @@ def header_timeout() -> float:
 
 def error_bytes(status: int, reason: str, code: str, message: str) -> bytes:
     """A whole HTTP/1.1 error response in the service's JSON shape, closing the connection."""
-    body = json.dumps({"error": {"code": code, "message": message}}).encode()
+    body = error_body(code, message)
     head = (f"HTTP/1.1 {status} {reason}\r\ncontent-type: application/json\r\ncontent-length: {len(body)}\r\n"
             "connection: close\r\n\r\n")
     return head.encode() + body

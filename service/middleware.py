@@ -5,7 +5,6 @@ All are plain ASGI (no BaseHTTPMiddleware) so they add microseconds, not a task 
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 
@@ -13,8 +12,9 @@ import anyio
 import redis
 from starlette.datastructures import Headers
 from starlette.middleware.cors import CORSMiddleware
-from starlette.responses import JSONResponse, Response
+from starlette.responses import Response
 
+from .errors import error_body, error_response
 from .metrics import Metrics
 
 # Room for the multipart framing and the small form fields around the file.
@@ -22,7 +22,7 @@ MULTIPART_OVERHEAD = 64 * 1024
 
 
 def _json_error(status: int, code: str, message: str, headers: dict[str, str] | None = None) -> tuple[dict, dict]:
-    body = json.dumps({"error": {"code": code, "message": message}}).encode()
+    body = error_body(code, message)
     start = {"type": "http.response.start", "status": status,
              "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
                          (b"connection", b"close"), *((k.lower().encode(), v.encode()) for k, v in
@@ -172,6 +172,5 @@ class JsonCORS(CORSMiddleware):
             return response
         headers = {k: v for k, v in response.headers.items() if k not in ("content-type", "content-length")}
         refused = bytes(response.body).decode().removeprefix("Disallowed CORS ")
-        return JSONResponse({"error": {"code": "cors_refused", "message": f"this cross-origin request is not "
-                                                                         f"allowed: its {refused}"}},
-                            status_code=response.status_code, headers=headers)
+        return error_response(response.status_code, "cors_refused",
+                              f"this cross-origin request is not allowed: its {refused}", headers)

@@ -180,24 +180,32 @@ def test_vertex_validation_reports_how_much_the_condition_helps(cache):
     assert task.evaluate(model, ds, same, cfg, "cpu")["cond_gain"] == 0.0
 
 
+def _cell_net(cache: Path, tmp_path: Path) -> Path:
+    """A cell evidence network trained one step (its log-odds are what a cell cache stores)."""
+    out = tmp_path / "cells"
+    assert main(["train", "cells", "--data", str(cache), "--out", str(out),
+                 "--config", str(_config(tmp_path, "cells", steps=1))]) == 0
+    return out
+
+
+def _cell_cache(cache: Path, cells_dir: Path, out: Path, *args: str) -> Path:
+    """``fastmesh data cells`` of ``cache`` with ``cells_dir``'s network into ``out``."""
+    assert main(["data", "cells", str(cache), "--weights", str(cells_dir), "-o", str(out), *args]) == 0
+    return out
+
+
 def test_decoder_reading_cell_evidence_trains_from_a_cell_cache(cache, tmp_path):
     """`fastmesh data cells` stores each mesh's cell log-odds; a decoder with evidence_cells (and the face-count
     token) trains on them, and refuses a cache without them."""
-    cells_dir = tmp_path / "cells"
-    assert main(["train", "cells", "--data", str(cache), "--out", str(cells_dir),
-                 "--config", str(_config(tmp_path, "cells", steps=1))]) == 0
-    cell_cache = tmp_path / "with_cells.npz"
-    assert main(["data", "cells", str(cache), "--weights", str(cells_dir), "-o", str(cell_cache),
-                 "--train", "3", "--val", "1"]) == 0
+    cells_dir = _cell_net(cache, tmp_path)
+    cell_cache = _cell_cache(cache, cells_dir, tmp_path / "with_cells.npz", "--train", "3", "--val", "1")
     ds = load_dataset(cell_cache)
     assert len(ds) == 4 and len(ds.indices("val")) == 1
     grid = ds.cell_logits(0)
     assert grid.shape == (128 ** 3,) and (grid > -12).sum() > 0
     # worker processes score the same meshes from the same samples
-    pooled = tmp_path / "pooled.npz"
-    assert main(["data", "cells", str(cache), "--weights", str(cells_dir), "-o", str(pooled),
-                 "--train", "3", "--val", "1", "--workers", "2"]) == 0
-    twin = load_dataset(pooled)
+    twin = load_dataset(_cell_cache(cache, cells_dir, tmp_path / "pooled.npz", "--train", "3", "--val", "1",
+                                    "--workers", "2"))
     for k in ("cell_flat", "cell_logit", "c_off", "q"):
         np.testing.assert_array_equal(ds.a[k], twin.a[k], err_msg=k)
     # a batch carries them sparse; spread out they are the stored grids
@@ -245,13 +253,8 @@ def test_cube_symmetries_carry_cells_with_the_mesh():
 
 def test_sparse_cells_move_with_the_mesh_under_a_symmetry(cache, tmp_path):
     """A batch's cells under a symmetry are the stored grid with its cells moved by it."""
-    cells_dir = tmp_path / "cells"
-    assert main(["train", "cells", "--data", str(cache), "--out", str(cells_dir),
-                 "--config", str(_config(tmp_path, "cells", steps=1))]) == 0
-    cell_cache = tmp_path / "with_cells.npz"
-    assert main(["data", "cells", str(cache), "--weights", str(cells_dir), "-o", str(cell_cache),
-                 "--train", "1", "--val", "0"]) == 0
-    ds = load_dataset(cell_cache)
+    ds = load_dataset(_cell_cache(cache, _cell_net(cache, tmp_path), tmp_path / "with_cells.npz", "--train", "1",
+                                  "--val", "0"))
     sym = grid_symmetry(np.random.default_rng(5))
     moved = sparse_cells(ds, [0], [sym])
     grid = dense_cells(moved["cell_flat"], moved["cell_logit"])[0].reshape(128, 128, 128)

@@ -17,6 +17,8 @@ from collections.abc import Iterator
 import numpy as np
 import torch
 
+from ..data import one_thread
+
 AHEAD = 3  # batches in flight per worker: enough to hide the variance of batch cost, bounded in memory
 
 _STATE: dict = {}  # what a forked worker makes batches from (inherited, never pickled)
@@ -25,10 +27,6 @@ _STATE: dict = {}  # what a forked worker makes batches from (inherited, never p
 def _make(task, ds, cfg, batch: np.ndarray, seed: list[int], train: bool) -> dict:
     rng = np.random.default_rng(seed)
     return task.make_batch(ds, batch, rng, cfg, train=train)
-
-
-def _worker_init() -> None:
-    torch.set_num_threads(1)  # one core per worker: the workers together use the machine
 
 
 def _worker_make(batch: np.ndarray, seed: list[int]) -> dict:
@@ -53,7 +51,7 @@ class BatchMaker:
         if self.workers > 0:
             _STATE.update(task=self.task, ds=self.ds, cfg=self.cfg)
             # fork: the workers share the dataset's arrays with this process instead of copying them.
-            self.pool = mp.get_context("fork").Pool(self.workers, initializer=_worker_init)
+            self.pool = mp.get_context("fork").Pool(self.workers, initializer=one_thread)
         return self
 
     def __exit__(self, *exc) -> None:

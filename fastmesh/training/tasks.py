@@ -110,19 +110,16 @@ def sparse_cells(ds, indices, syms=None) -> dict[str, torch.Tensor]:
     """
     from ..models.cells import FLOOR, flat_index, unflat_index
 
-    a, n_cells = ds.a, LEVELS ** 3
-    if "c_off" not in a:
-        raise ValueError("this dataset holds no cell log-odds: build it with `fastmesh data cells`")
-    spans = [(int(a["c_off"][i]), int(a["c_off"][i + 1])) for i in indices]
-    k = max(1, max(c1 - c0 for c0, c1 in spans))
-    flat = torch.full((len(spans), k), n_cells, dtype=torch.long)
-    logit = torch.full((len(spans), k), FLOOR)
-    for r, (c0, c1) in enumerate(spans):
-        f = torch.from_numpy(a["cell_flat"][c0:c1].astype(np.int64))
+    stored = [ds.cells(int(i)) for i in indices]
+    k = max(1, max(len(f) for f, _ in stored))
+    flat = torch.full((len(stored), k), LEVELS ** 3, dtype=torch.long)
+    logit = torch.full((len(stored), k), FLOOR)
+    for r, (f, lo) in enumerate(stored):
+        f = torch.from_numpy(f.astype(np.int64))
         if syms is not None and syms[r] is not None:
             f = flat_index(torch.from_numpy(symmetric_cells(unflat_index(f).numpy(), syms[r], LEVELS)))
-        flat[r, : c1 - c0] = f
-        logit[r, : c1 - c0] = torch.from_numpy(a["cell_logit"][c0:c1].astype(np.float32))
+        flat[r, : len(f)] = f
+        logit[r, : len(f)] = torch.from_numpy(lo.astype(np.float32))
     return {"cell_flat": flat, "cell_logit": logit}
 
 

@@ -14,8 +14,8 @@ attack (baseline and peak RSS in MiB, answers, latencies) and one JSON object at
 5. zero normals: 500 points of a cube with all normals ``0 0 0``, and the same points without normals
    (the worker's peak for each job).
 
-Only HTTP and processes are used, so the same script measures an older checkout
-(``PYTHONPATH=/path/to/old/checkout python benchmarks/attack_memory.py``).
+Only HTTP and the processes of :mod:`service.processes` are used, so the same script measures another
+checkout that has them (``PYTHONPATH=/path/to/other/checkout python benchmarks/attack_memory.py``).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import httpx
 import numpy as np
 import trimesh
 
-from service.processes import RedisServer, WorkerProcess, free_port, settings_env, wait_for
+from service.processes import ApiProcess, RedisServer, WorkerProcess, free_port, wait_for
 from service.settings import Settings
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
@@ -205,13 +205,11 @@ def main() -> None:
     settings = Settings(redis_url=redis_server.url, weights=args.weights, rate_limit_per_minute=0,
                         submit_rate_limit_per_minute=0, port=free_port())
     url = f"http://127.0.0.1:{settings.port}"
-    api = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory", "--host",
-                            "127.0.0.1", "--port", str(settings.port), "--log-level", "warning"],
-                           env=settings_env(settings), start_new_session=True)
+    api = ApiProcess(settings, port=settings.port, log_path="-")
     worker = None
     out: dict = {"python_path": os.environ.get("PYTHONPATH", "")}
     try:
-        wait_for(lambda: _up(url), 60, 0.2, what="the API")
+        api.wait_ready()
         for attack in (attack_gltf, attack_parsing, attack_previews):
             known = set(out)
             attack(url, api.pid, out)
@@ -221,19 +219,11 @@ def main() -> None:
             attack_normals(url, worker.pid, out)
             print(json.dumps(out["5_zero_normals"]), flush=True)
     finally:
-        api.terminate()
-        api.wait(10)
+        api.stop()
         if worker is not None:
             worker.stop()
         redis_server.stop()
     print(json.dumps(out, indent=1))
-
-
-def _up(url: str) -> bool:
-    try:
-        return httpx.get(f"{url}/healthz", timeout=1).status_code == 200
-    except httpx.HTTPError:
-        return False
 
 
 if __name__ == "__main__":

@@ -22,8 +22,8 @@ import httpx
 import numpy as np
 import redis
 
+from service.processes import ServedApp, WorkerProcess, local_redis, wait_for
 from service.settings import Settings
-from service.testing import ServedApp, WorkerProcess, redis_for_tests, wait_for
 
 
 def pct(xs: list[float], q: float) -> float:
@@ -51,7 +51,7 @@ def main() -> None:
 
         weights = tempfile.mkdtemp(prefix="fastmesh-bench-weights-")
         Pipeline.random("tiny", seed=0).save(weights)
-    url, server = redis_for_tests(11)
+    url, server = local_redis(11)
     client = redis.Redis.from_url(url)
     client.flushdb()
     s = Settings(redis_url=url, redis_prefix="bench", queue_name="bench", weights=weights,

@@ -4,10 +4,11 @@
     python benchmarks/throughput.py --tiny --duration 20 # the tiny random model: the service's own overhead
 
 Starts everything it measures and stops it at the end: a private ``redis-server`` on a free port, the
-API (``uvicorn service.app:create_app --factory``, one process) and ``fastmesh-worker`` processes.  For
-each worker count it runs ``fastmesh loadtest`` (:mod:`fastmesh.loadtest`) for ``--duration`` seconds with
-more simulated users than workers, so the queue never drains, while a separate poller process times
-``GET /v1/jobs/{id}`` every ``--poll-interval`` seconds.  Prints a table (``--json``: every report).
+API (:class:`service.processes.ApiProcess`: a uvicorn process of its own, as in production, sharing no GIL
+with the load) and ``fastmesh-worker`` processes.  For each worker count it runs ``fastmesh loadtest``
+(:mod:`fastmesh.loadtest`) for ``--duration`` seconds with more simulated users than workers, so the queue
+never drains, while a separate poller process times ``GET /v1/jobs/{id}`` every ``--poll-interval`` seconds.
+Prints a table (``--json``: every report).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import httpx
 import numpy as np
 
 from fastmesh.loadtest import LoadConfig, percentiles, run
-from service.processes import RedisServer, WorkerProcess, free_port, settings_env, wait_for
+from service.processes import ApiProcess, RedisServer, WorkerProcess
 from service.settings import Settings
 
 
@@ -56,37 +57,6 @@ def poller(url: str, seconds: float, interval: float, sample: str, params: dict)
             statuses[key] = statuses.get(key, 0) + 1
             time.sleep(interval)
     return {"ms": percentiles(lat), "answers": statuses}
-
-
-class Api:
-    """The API as a uvicorn subprocess (its own interpreter, as in production: no GIL shared with the load)."""
-
-    def __init__(self, settings: Settings, log: Path):
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.log = open(log, "wb")
-        self.proc = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory",
-                                      "--host", "127.0.0.1", "--port", str(self.port), "--log-level", "warning"],
-                                     env=settings_env(settings), stdout=self.log, stderr=subprocess.STDOUT,
-                                     start_new_session=True)
-
-        def up():
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"the API exited; see {log}")
-            try:
-                return httpx.get(f"{self.url}/healthz", timeout=1).status_code == 200
-            except httpx.HTTPError:
-                return False
-
-        wait_for(up, 60, 0.1, what="the API")
-
-    def stop(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-        self.log.close()
 
 
 def main() -> int:
@@ -129,7 +99,7 @@ def main() -> int:
     s = Settings(redis_url=redis_server.url, weights=weights, torch_threads=args.torch_threads,
                  rate_limit_per_minute=0, submit_rate_limit_per_minute=0, max_queue_depth=10_000)
     print(f"[throughput] redis {redis_server.url}, logs and inputs in {work}", file=sys.stderr)
-    api = Api(s, work / "api.log")
+    api = ApiProcess(s, log_path=work / "api.log").wait_ready()
     workers: list[WorkerProcess] = []
     rows, reports = [], {}
     params = {"max_vertices": str(max_vertices)} if max_vertices else {}

@@ -10,33 +10,30 @@ render (single flight), whose PNG is cached in Redis for ``cache_seconds`` (at m
 retention).  Sizes are snapped up to a few steps, so a job has at most a few dozen cached variants.
 The stored input is read only once a render slot is free, and when more distinct renders are
 pending than ``max_pending``, a request is answered 503 + Retry-After at once.  Access is that of
-the other ``/v1`` routes: the same ``owner`` dependency (API key, rate limit) and ``job_of`` lookup
-(another key's job is a 404).
+the other ``/v1`` routes: the same :data:`service.deps.Owner` dependency (API key, rate limit) and
+:func:`service.deps.owned_job` lookup (another key's job is a 404).
 
-Installed by ``create_app`` with ``app.include_router(preview_router(store, owner, job_of, pool))``.
+Installed by ``create_app`` with ``app.include_router(preview_router(store, pool))``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from concurrent.futures import TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
 import anyio
 import numpy as np
-from fastapi import APIRouter, Depends, Path, Query
+from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
 from fastmesh.io import ShapeError, sample_triangles
 
+from .deps import JobId, Owner, owned_job
 from .errors import ApiError
 from .render_pool import RenderPool
 from .schemas import error_responses
 from .store import Store, shape_from_bytes
-
-JOB_ID = Path(..., description="Job id as returned by POST /v1/jobs.",
-              examples=["3f2b9c1d4e5f40718293a4b5c6d7e8f9"])
 
 
 @dataclass(frozen=True)
@@ -120,10 +117,9 @@ def points_ply(points: np.ndarray) -> bytes:
     return header.encode("ascii") + p.tobytes()
 
 
-def preview_router(store: Store, owner: Callable, job_of: Callable[[str, str], dict], pool: RenderPool,
-                   config: PreviewConfig = DEFAULT_PREVIEW) -> APIRouter:
-    """Routes for previews.  ``owner`` is the app's auth dependency, ``job_of(id, who)`` its job lookup,
-    ``pool`` the render processes (``config.max_concurrent_renders`` of them)."""
+def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAULT_PREVIEW) -> APIRouter:
+    """Routes for previews of the jobs in ``store``; ``pool`` holds the render processes
+    (``config.max_concurrent_renders`` of them)."""
     router = APIRouter(tags=["jobs"])
     # The route is async and its waiting is on the event loop: requests queued for a render hold no
     # thread of the pool that every other route (and /healthz) runs in.  Event-loop state only.
@@ -174,14 +170,13 @@ def preview_router(store: Store, owner: Callable, job_of: Callable[[str, str], d
                                  "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
                                  "headers": {"X-Preview-Of": {"schema": {"type": "string",
                                                                          "enum": ["result", "input"]}}}}})
-    async def preview(job_id: str = JOB_ID,
+    async def preview(job_id: JobId, who: Owner,
                       size: int = Query(config.default_size, ge=config.min_size, le=config.max_size,
                                         description="Image side in pixels (snapped up to a rendered size).",
                                         examples=[512]),
                       wireframe: bool = Query(False, description="Overlay the edges of the visible faces.",
-                                              examples=[True]),
-                      who: str = Depends(owner)) -> Response:
-        job = await anyio.to_thread.run_sync(job_of, job_id, who)
+                                              examples=[True])) -> Response:
+        job = await anyio.to_thread.run_sync(owned_job, store, job_id, who)
         size = snap_size(size, config.sizes)
         of = "result" if job["status"] == "succeeded" else "input"
         field = cache_field(of, size, wireframe)
@@ -220,11 +215,11 @@ def preview_router(store: Store, owner: Callable, job_of: Callable[[str, str], d
                            200: {"description": "Binary PLY point cloud in the input's original frame",
                                  "content": {"application/ply": {"schema": {"type": "string",
                                                                             "format": "binary"}}}}})
-    def input_points(job_id: str = JOB_ID,
+    def input_points(job_id: JobId, who: Owner,
                      points: int = Query(config.overlay_points, ge=1, le=config.max_overlay_points,
-                                         description="At most this many points (evenly picked or sampled)."),
-                     who: str = Depends(owner)) -> Response:
-        job_of(job_id, who)
+                                         description="At most this many points (evenly picked or sampled).")
+                     ) -> Response:
+        owned_job(store, job_id, who)
         blob = store.get_input(job_id)
         if blob is None:
             raise ApiError(404, "not_found", "the job's input is no longer stored")

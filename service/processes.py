@@ -1,6 +1,9 @@
-"""Processes the service is made of, started from Python: ``redis-server`` and ``fastmesh-worker``.
+"""The service's parts, started from Python: ``redis-server``, ``fastmesh-worker`` and the API.
 
-Used by ``make run`` (:mod:`service.run`), the tests and the benchmarks.
+Used by ``make run`` (:mod:`service.run`), the tests and the benchmarks.  The API runs as a uvicorn
+subprocess (:class:`ApiProcess`, as in production: it can be killed and started again) or served in a
+thread of the calling process (:class:`ServedApp`: several differently configured apps start in
+milliseconds, and the app object stays at hand).
 """
 
 from __future__ import annotations
@@ -11,10 +14,12 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
+import httpx
 import redis
 
 from .settings import Settings
@@ -91,6 +96,16 @@ class RedisServer:
                 self.proc.wait()
 
 
+def local_redis(db: int) -> tuple[str, RedisServer | None]:
+    """``(url, own server or None)``: database ``db`` of 127.0.0.1:6379 if it answers, else a new server."""
+    try:
+        redis.Redis(host="127.0.0.1", port=6379, socket_connect_timeout=1).ping()
+        return f"redis://127.0.0.1:6379/{db}", None
+    except redis.RedisError:
+        server = RedisServer()
+        return server.url.rsplit("/", 1)[0] + f"/{db}", server
+
+
 def worker_command() -> list[str]:
     """The installed ``fastmesh-worker`` script next to this interpreter (a real console-script process)."""
     exe = Path(sys.executable).with_name("fastmesh-worker")
@@ -158,3 +173,93 @@ class WorkerProcess:
         if self._log:
             self._log.close()
         return self.proc.returncode
+
+
+class ApiProcess:
+    """The API as production serves it (``uvicorn service.app:create_app --factory``, with the HTTP protocol
+    :class:`service.http.Protocol`) in a subprocess reading ``settings``; :meth:`wait_ready` returns once
+    it answers.  It can be killed and started again on the same port, where clients expect it."""
+
+    def __init__(self, settings: Settings, host: str = "127.0.0.1", port: int | None = None,
+                 log_path: str | os.PathLike | None = None, args: tuple[str, ...] = ("--log-level", "warning")):
+        """``log_path`` "-" keeps the API's output on this terminal; None logs to a temporary file.  ``args``
+        go to uvicorn."""
+        self.settings, self.host, self.port, self.args = settings, host, port or free_port(), args
+        self.url = f"http://{host}:{self.port}"
+        self.log_path = None if log_path == "-" else Path(
+            log_path or tempfile.mkstemp(prefix="fastmesh-api-", suffix=".log")[1])
+        self.proc: subprocess.Popen | None = None
+        self.start()
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def start(self) -> ApiProcess:
+        """Start the process; its output is appended to the log, so a restart keeps the earlier lines."""
+        log = open(self.log_path, "ab") if self.log_path else None
+        # Own session: a Ctrl-C meant for the parent does not reach the API; the parent stops it in order.
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory", "--host", self.host,
+             "--port", str(self.port), "--http", "service.http:Protocol", *self.args],
+            env=settings_env(self.settings), stdout=log, stderr=subprocess.STDOUT if log else None,
+            start_new_session=True)
+        if log:
+            log.close()  # the child holds its own descriptor
+        return self
+
+    def answers(self, path: str = "/healthz") -> bool:
+        """Whether ``path`` answers 200 now; RuntimeError (with the log's end) once the process has exited."""
+        if self.proc.poll() is not None:
+            where = f":\n{self.log()[-3000:]}" if self.log_path else " (its messages are above)"
+            raise RuntimeError(f"the API exited with code {self.proc.returncode}{where}")
+        try:
+            return httpx.get(f"{self.url}{path}", timeout=2).status_code == 200
+        except httpx.HTTPError:
+            return False
+
+    def wait_ready(self, timeout: float = 60.0) -> ApiProcess:
+        wait_for(self.answers, timeout, 0.1, what=f"the API on port {self.port}")
+        return self
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace") if self.log_path else ""
+
+    def kill(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+    def stop(self, timeout: float = 10.0) -> int | None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.kill()
+        return self.proc.returncode if self.proc else None
+
+
+class ServedApp:
+    """``create_app(settings)`` served by uvicorn in a background thread of this process, on a free port."""
+
+    def __init__(self, settings: Settings):
+        import uvicorn  # the workers import this module too, and need neither uvicorn nor the app
+
+        from .app import create_app
+        from .http import Protocol
+
+        self.settings = settings
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.app = create_app(settings)
+        config = uvicorn.Config(self.app, host="127.0.0.1", port=self.port, log_level="warning", lifespan="on",
+                                http=Protocol)
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, name=f"uvicorn-{self.port}", daemon=True)
+        self.thread.start()
+        wait_for(lambda: self.server.started, 15, what="uvicorn to start")
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(10)

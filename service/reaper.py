@@ -1,14 +1,34 @@
 """The reaper: what happens to jobs whose worker died, hung, or vanished between queue and start.
 
-Run every ``reaper_interval`` seconds by each API process and each worker's heartbeat thread.  Any
-number of reapers may run at once: every decision is a compare-and-set on the job's (status, attempt).
+Run every ``reaper_interval`` seconds by each API process (:func:`reap_loop`) and each worker's heartbeat
+thread (:func:`reap_logged`).  Any number of reapers may run at once: every decision is a compare-and-set
+on the job's (status, attempt).  It works on :class:`service.store.Store`; the store knows nothing of it.
 """
 
 from __future__ import annotations
 
+import logging
+import threading
 import time
 
 from .store import Store, timeout_error
+
+log = logging.getLogger("fastmesh.reaper")
+
+
+def reap_logged(store: Store) -> None:
+    """:func:`reap` once, logging what it did to each job."""
+    for job_id, action in reap(store):
+        log.warning("reaper: job %s %s", job_id, action)
+
+
+def reap_loop(store: Store, stop: threading.Event) -> None:
+    """:func:`reap_logged` every ``reaper_interval`` seconds until ``stop`` is set."""
+    while not stop.wait(store.settings.reaper_interval):
+        try:
+            reap_logged(store)
+        except Exception as e:  # Redis down: try again next tick
+            log.warning("reaper: %s", e)
 
 
 def reap(store: Store) -> list[tuple[str, str]]:
@@ -49,6 +69,7 @@ def reap(store: Store) -> list[tuple[str, str]]:
                 actions.append((job_id, "lost"))
     actions += _reap_queued(store)
     return actions
+
 
 def _reap_queued(store: Store) -> list[tuple[str, str]]:
     """Requeue queued jobs whose RQ entry vanished without the job starting.

@@ -13,17 +13,15 @@ import shlex
 import shutil
 import signal
 import socket
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 import redis
 
-from .processes import RedisServer, WorkerProcess, settings_env, wait_for
+from .processes import ApiProcess, RedisServer, WorkerProcess, wait_for
 from .settings import Settings
 
 # A worker that dies (OOM, kill -9) is started again, after 1, 2, 4, ... s; one that keeps dying is a
@@ -103,7 +101,7 @@ def main() -> int:
     workdir = Path(tempfile.mkdtemp(prefix="fastmesh-run-"))
     server: RedisServer | None = None
     worker: WorkerProcess | None = None
-    api: subprocess.Popen | None = None
+    api: ApiProcess | None = None
 
     def stop(*_):
         raise KeyboardInterrupt
@@ -133,21 +131,14 @@ def main() -> int:
             _say(f"port {settings.port} on {settings.host} is in use; choose another with FASTMESH_PORT=8001 make run")
             return 1
         worker = WorkerProcess(settings, f"fastmesh-run-{os.getpid()}", log_path="-")
-        api = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory",
-                                "--host", settings.host, "--port", str(settings.port), "--no-access-log",
-                                "--http", "service.http:Protocol"],
-                               env=settings_env(settings), start_new_session=True)
-        url = f"http://{settings.host}:{settings.port}"
+        api = ApiProcess(settings, settings.host, settings.port, log_path="-", args=("--no-access-log",))
+        url = api.url
         _say("loading the model and starting the API ...")
 
         def ready():
-            for name, p in (("worker", worker.proc), ("API", api)):
-                if p.poll() is not None:
-                    raise RuntimeError(f"the {name} exited with code {p.returncode} (its messages are above)")
-            try:
-                return httpx.get(f"{url}/readyz", timeout=2).status_code == 200
-            except httpx.HTTPError:
-                return False
+            if worker.proc.poll() is not None:
+                raise RuntimeError(f"the worker exited with code {worker.proc.returncode} (its messages are above)")
+            return api.answers("/readyz")
 
         wait_for(ready, 300, 0.25, what="the worker and the API to be ready")
         example = example_input(workdir / "example.xyz")
@@ -159,8 +150,8 @@ def main() -> int:
               f"{' --api-key ' + shlex.quote(key) if key else ''}\n\nCtrl-C stops everything.\n", flush=True)
         restarts: list[float] = []
         while True:
-            if api.poll() is not None:
-                _say(f"the API exited with code {api.returncode}; stopping")
+            if api.proc.poll() is not None:
+                _say(f"the API exited with code {api.proc.returncode}; stopping")
                 return 1
             if worker.proc.poll() is not None:
                 worker = _restart(worker, restarts)
@@ -175,12 +166,8 @@ def main() -> int:
         return 1
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not leave orphans behind
-        if api is not None and api.poll() is None:
-            api.terminate()
-            try:
-                api.wait(10)
-            except subprocess.TimeoutExpired:
-                api.kill()
+        if api is not None:
+            api.stop()
         if worker is not None:
             worker.stop(15)
         if server is not None:

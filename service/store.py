@@ -467,7 +467,7 @@ class Store:
         count = int(self.r.get(f"{self.p}:rate:{kind}:{owner}:{window}") or 0)
         return 0 if count < limit else max(1, int(math.ceil((window + 1) * 60 - now)))
 
-    # ------------------------------------------------------------------ workers and the reaper
+    # ------------------------------------------------------------------ workers
     def worker_beat(self, name: str, info: dict | None = None) -> None:
         ttl = int(math.ceil(max(self.settings.heartbeat_ttl * 3, 60)))
         with self.r.pipeline() as pipe:
@@ -504,12 +504,6 @@ class Store:
 
     def worker_info(self, name: str) -> dict:
         return {k.decode(): json.loads(v) for k, v in self.r.hgetall(f"{self.p}:worker:{name}").items()}
-
-    def reap(self) -> list[tuple[str, str]]:
-        """Requeue or fail the jobs of dead workers, fail overdue ones (see :mod:`service.reaper`)."""
-        from .reaper import reap
-
-        return reap(self)
 
 
 def timeout_error(seconds: float) -> dict:

@@ -23,9 +23,9 @@ def redis_url():
     """
     from stack import DB, forget_run
 
-    from service.testing import redis_for_tests
+    from service.processes import local_redis
 
-    url, server = redis_for_tests(DB)
+    url, server = local_redis(DB)
     yield url
     forget_run(url)
     if server:

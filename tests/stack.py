@@ -1,9 +1,9 @@
 """The real service stack for the load, fault, bad-input and corpus tests.
 
 Redis database ``FASTMESH_TEST_STACK_DB`` (default 12) of 127.0.0.1:6379, or a private
-redis-server when none answers there; an API served in-process (:class:`service.testing.ServedApp`)
-or as a restartable uvicorn subprocess (:class:`ApiProcess`); ``fastmesh-worker`` subprocesses with
-the tiny random model.  Small, finite inputs made here.
+redis-server when none answers there; an API served in-process (:class:`service.processes.ServedApp`)
+or as a restartable uvicorn subprocess (:class:`service.processes.ApiProcess`); ``fastmesh-worker``
+subprocesses with the tiny random model.  Small, finite inputs made here.
 """
 
 from __future__ import annotations
@@ -11,9 +11,6 @@ from __future__ import annotations
 import contextlib
 import io
 import os
-import subprocess
-import sys
-import tempfile
 import uuid
 from pathlib import Path
 
@@ -21,8 +18,8 @@ import httpx
 import numpy as np
 import redis
 
+from service.processes import WorkerProcess, local_redis, wait_for
 from service.settings import Settings
-from service.testing import WorkerProcess, free_port, redis_for_tests, settings_env, wait_for
 
 DB = int(os.environ.get("FASTMESH_TEST_STACK_DB", "12"))
 # Fast failure detection and no rate limits: the tests make hundreds of requests in seconds.
@@ -37,7 +34,7 @@ RUN = uuid.uuid4().hex[:8]
 @contextlib.contextmanager
 def flushed_redis(db: int):
     """URL of Redis database ``db``, emptied before and after: for modules that count every key in it."""
-    url, server = redis_for_tests(db)
+    url, server = local_redis(db)
     client = redis.Redis.from_url(url)
     client.flushdb()
     try:
@@ -104,53 +101,6 @@ def assert_error(r: httpx.Response, status: int | tuple[int, ...], code: str | N
     if code:
         assert body["error"]["code"] == code, body
     return body["error"]
-
-
-class ApiProcess:
-    """``uvicorn service.app:create_app --factory`` as a subprocess on a fixed port: it can be killed and
-    started again where clients expect it (the in-process :class:`ServedApp` cannot be restarted)."""
-
-    def __init__(self, settings: Settings, port: int | None = None, log_path: str | os.PathLike | None = None):
-        self.settings, self.port = settings, port or free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.log_path = Path(log_path or tempfile.mkstemp(prefix="fastmesh-api-", suffix=".log")[1])
-        self.proc: subprocess.Popen | None = None
-        self.start()
-
-    def start(self, timeout: float = 60.0) -> ApiProcess:
-        log = open(self.log_path, "ab")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory", "--host", "127.0.0.1",
-             "--port", str(self.port), "--log-level", "warning", "--http", "service.http:Protocol"],
-            env=settings_env(self.settings), stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-        log.close()
-
-        def up():
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"API exited ({self.proc.returncode}):\n{self.log()[-3000:]}")
-            try:
-                return httpx.get(f"{self.url}/healthz", timeout=1).status_code == 200
-            except httpx.HTTPError:
-                return False
-
-        wait_for(up, timeout, 0.1, what=f"the API on port {self.port}")
-        return self
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-    def kill(self) -> None:
-        if self.proc and self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
-
-    def stop(self) -> None:
-        if self.proc and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.kill()
 
 
 def forget_run(url: str) -> None:

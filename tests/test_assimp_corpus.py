@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from stack import DB, forget_run, make_settings, wp
 
-from service.testing import ServedApp, redis_for_tests
+from service.processes import ServedApp, local_redis
 
 ROOT = Path(os.environ.get("FASTMESH_ASSIMP_MODELS", "/usr/share/assimp/models"))
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "assimp_corpus.py"
@@ -27,7 +27,7 @@ def corpus_module():
 
 @pytest.fixture(scope="module")
 def served(weights, tmp_path_factory):
-    url, server = redis_for_tests(DB)
+    url, server = local_redis(DB)
     s = make_settings(url, "assimp", weights=weights, max_queue_depth=1000)
     app = ServedApp(s)
     worker = wp(s, "assimp-w", tmp_path_factory.mktemp("logs") / "w.log").wait_ready()

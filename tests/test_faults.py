@@ -15,10 +15,10 @@ import time
 
 import pytest
 import redis
-from stack import DB, ApiProcess, forget_run, make_settings, wp, write_inputs
+from stack import DB, forget_run, make_settings, wp, write_inputs
 
 from fastmesh.loadtest import LoadConfig, run
-from service.testing import RedisServer, ServedApp, redis_for_tests, wait_for
+from service.processes import ApiProcess, RedisServer, ServedApp, local_redis, wait_for
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -30,7 +30,7 @@ def inputs(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def shared_redis():
-    url, server = redis_for_tests(DB)
+    url, server = local_redis(DB)
     yield url
     forget_run(url)
     if server:
@@ -155,7 +155,7 @@ def test_redis_restart_with_jobs_queued(weights, inputs, tmp_path):
 def test_api_restart_while_jobs_run(shared_redis, weights, inputs, tmp_path):
     """The API process is killed and started again on the same port: clients keep polling and get results."""
     s = make_settings(shared_redis, "apirestart", weights=weights)
-    api = ApiProcess(s, log_path=tmp_path / "api.log")
+    api = ApiProcess(s, log_path=tmp_path / "api.log").wait_ready()
     worker = wp(s, "apirestart-w", tmp_path / "w.log", FASTMESH_DEBUG_STEP_DELAY="0.05")
     try:
         worker.wait_ready()
@@ -165,7 +165,7 @@ def test_api_restart_while_jobs_run(shared_redis, weights, inputs, tmp_path):
         wait_for(lambda: client.scard(f"{s.redis_prefix}:running") >= 1, 30, 0.02, what="a job to run")
         api.kill()
         time.sleep(1.0)
-        api.start()
+        api.start().wait_ready()
         rep = load.result(120)
         assert rep["jobs"]["succeeded"] == 6 and rep["jobs"]["lost"] == 0, (rep["jobs"], rep["job_errors"])
         assert rep["http_errors"].get("transport", 0) >= 1, rep["http_errors"]  # they did see it go away
@@ -180,7 +180,7 @@ def test_200_jobs_at_once_two_workers(shared_redis, weights, inputs, tmp_path):
     """200 uploads at once against a queue limit of 50: the excess gets 429 + Retry-After, is retried, and
     every one of the 200 jobs finishes; nothing lost, no job created twice."""
     s = make_settings(shared_redis, "burst", weights=weights, max_queue_depth=50)
-    api = ApiProcess(s, log_path=tmp_path / "api.log")
+    api = ApiProcess(s, log_path=tmp_path / "api.log").wait_ready()
     workers = [wp(s, f"burst-w{i}", tmp_path / f"w{i}.log") for i in (1, 2)]
     try:
         for w in workers:

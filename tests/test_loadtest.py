@@ -12,7 +12,7 @@ import pytest
 from stack import make_settings, wp, write_inputs
 
 from fastmesh.loadtest import LoadConfig, format_report, percentiles, run, summarize
-from service.testing import ServedApp, free_port
+from service.processes import ServedApp, free_port
 
 
 @pytest.fixture(scope="module")

@@ -24,9 +24,9 @@ import trimesh
 from test_render import decode_png
 
 from service.preview import cache_field, cache_key
+from service.processes import ServedApp, local_redis
 from service.settings import Settings
 from service.store import Store, mesh_to_bytes
-from service.testing import ServedApp, redis_for_tests
 
 DB = int(os.environ.get("FASTMESH_TEST_WEB_REDIS_DB", "9"))
 BACKGROUND = np.round(np.array([0.965, 0.968, 0.975]) * 255)  # fastmesh.render.RenderConfig.background
@@ -51,7 +51,7 @@ RUN = uuid.uuid4().hex[:8]  # this test run's mark in every key prefix, queue an
 
 @pytest.fixture(scope="module")
 def redis_url():
-    url, server = redis_for_tests(DB)
+    url, server = local_redis(DB)
     yield url
     if server:
         server.stop()

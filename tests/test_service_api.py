@@ -19,9 +19,9 @@ from scipy.spatial import cKDTree
 from stack import flushed_redis
 
 from service import store as store_module
+from service.processes import ServedApp, WorkerProcess, wait_for
 from service.settings import Settings
 from service.store import Store
-from service.testing import ServedApp, WorkerProcess, wait_for
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -336,7 +336,7 @@ def test_rate_limit_429_with_retry_after(redis_url):
 
 
 def test_redis_down_is_503_not_500():
-    from service.testing import free_port
+    from service.processes import free_port
 
     app = ServedApp(Settings(redis_url=f"redis://127.0.0.1:{free_port()}/0", **FAST))
     try:

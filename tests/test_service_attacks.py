@@ -21,9 +21,8 @@ import redis
 from stack import assert_error, make_settings, sphere_points, xyz_bytes
 
 import service.http
-from service.processes import RedisServer
+from service.processes import RedisServer, ServedApp
 from service.store import Store, shape_from_bytes
-from service.testing import ServedApp
 
 KEY = "attack-test-key"
 

@@ -15,7 +15,7 @@ import trimesh
 from test_service_api import make_settings, sphere_xyz
 
 from fastmesh.client import Client, JobFailed, ServiceError
-from service.testing import ServedApp, WorkerProcess, free_port, redis_for_tests
+from service.processes import ServedApp, WorkerProcess, free_port, local_redis
 
 DB = int(os.environ.get("FASTMESH_TEST_REDIS_DB", "13"))
 
@@ -24,7 +24,7 @@ DB = int(os.environ.get("FASTMESH_TEST_REDIS_DB", "13"))
 def served(tmp_path_factory):
     from fastmesh.pipeline import Pipeline
 
-    url, server = redis_for_tests(DB)
+    url, server = local_redis(DB)
     client = redis.Redis.from_url(url)
     client.flushdb()
     weights = tmp_path_factory.mktemp("weights")

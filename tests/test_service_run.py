@@ -13,7 +13,7 @@ from pathlib import Path
 
 import trimesh
 
-from service.testing import free_port, wait_for
+from service.processes import free_port, wait_for
 
 
 def children(pid: int) -> list[int]:

@@ -15,7 +15,7 @@ import httpx
 import pytest
 from test_preview import served, settings_for
 
-from service.testing import redis_for_tests
+from service.processes import local_redis
 from service.web.routes import THREE_DIR, WEB_DIR
 
 # Static `import ... from 'x'` / `export ... from 'x'` and dynamic `import('x')` specifiers.
@@ -25,7 +25,7 @@ DB = int(os.environ.get("FASTMESH_TEST_WEB_REDIS_DB", "9"))
 
 @pytest.fixture(scope="module")
 def client():
-    url, server = redis_for_tests(DB)
+    url, server = local_redis(DB)
     s = settings_for(url, "routes", api_keys=["k1"], max_upload_bytes=123456, default_formats=["glb", "obj"])
     with served(s) as app:
         yield httpx.Client(base_url=app.url)

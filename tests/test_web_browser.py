@@ -21,7 +21,7 @@ import pytest
 import trimesh
 from test_preview import served, settings_for
 
-from service.testing import WorkerProcess, redis_for_tests
+from service.processes import WorkerProcess, local_redis
 
 DB = int(os.environ.get("FASTMESH_TEST_WEB_REDIS_DB", "9"))
 CHROMIUM = os.environ.get("FASTMESH_CHROMIUM", "/usr/bin/chromium")
@@ -84,7 +84,7 @@ def box_cloud(n: int = 1500) -> bytes:
 
 @pytest.fixture(scope="module")
 def redis_url():
-    url, server = redis_for_tests(DB)
+    url, server = local_redis(DB)
     yield url
     if server:
         server.stop()

@@ -19,6 +19,7 @@ import time
 import redis
 from rq import SimpleWorker
 
+from service.reaper import reap_logged
 from service.settings import Settings
 from service.store import Store
 
@@ -47,8 +48,7 @@ def _heartbeat(store: Store, stop: threading.Event) -> None:
                 store.heartbeat(*cur)
             if time.monotonic() - last_reap >= s.reaper_interval:
                 last_reap = time.monotonic()
-                for job_id, action in store.reap():
-                    log.warning("reaper: job %s %s", job_id, action)
+                reap_logged(store)
         except Exception as e:  # Redis away: keep trying; the job's own writes will fail loudly enough
             log.warning("heartbeat: %s", e)
         if stop.wait(s.heartbeat_interval):

@@ -1,0 +1,218 @@
+"""The jobs resource: ``/v1/jobs`` to submit a shape, ``/v1/jobs/{id}`` to watch, download, cancel or delete it.
+
+Routes are thin: checks and answers here, state in :mod:`service.store`, the ``Idempotency-Key`` protocol in
+:mod:`service.idempotency`, access (API key, rate limit, a job's owner) in :mod:`service.deps`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import PurePath
+
+import anyio
+from fastapi import APIRouter, File, Form, Header, Query, Request, Response, UploadFile
+from fastapi.responses import JSONResponse
+
+from fastmesh.io import EXPORT_FORMATS, ShapeError, export_mesh, load_shape
+from fastmesh.params import MAX_CANDIDATES, TARGET_FACES
+
+from ..deps import JobId, Owner, StoreDep, owned_job
+from ..errors import SHAPE_STATUS, ApiError
+from ..idempotency import Idempotency
+from ..params import build_params, generation_defaults, input_info, safe_filename
+from ..schemas import Job, error_responses
+from ..settings import Settings
+from ..store import FINAL, QueueFull, Store, mesh_from_bytes, shape_to_bytes
+
+MEDIA = {"glb": "model/gltf-binary", "obj": "model/obj", "ply": "application/ply"}
+
+
+def jobs_router(settings: Settings) -> APIRouter:
+    """The routes of one app.  They are built per ``settings`` because the OpenAPI schema shows them (the
+    long-poll limit, the default formats) and the upload-parsing slots are counted per app."""
+    router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+    defaults = generation_defaults()
+    parse_slots = threading.BoundedSemaphore(settings.max_concurrent_parses)
+
+    def d(name: str) -> str:
+        return f"default {defaults.get(name)!r}"
+
+    @router.post("", status_code=202, response_model=Job, summary="Submit a shape; returns the queued job",
+                 responses={**error_responses(401, 409, 413, 415, 422, 429, 503),
+                            202: {"description": "Accepted; `Location` names the job",
+                                  "headers": {"Location": {"schema": {"type": "string"}}}},
+                            200: {"model": Job, "description": "A retry with the same Idempotency-Key: the job "
+                                                               "that request created"}})
+    def submit(request: Request, who: Owner, store: StoreDep,
+               file: UploadFile = File(..., description="Mesh or point cloud; the extension names the format."),
+               seed: int | None = Form(None, ge=0, le=2**32 - 1, description=f"Sampling seed ({d('seed')}).",
+                                       examples=[0]),
+               temperature: float | None = Form(None, allow_inf_nan=False,
+                                                description=f"Sampling temperature ({d('temperature')}).",
+                                                examples=[defaults.get("temperature")]),
+               top_k: int | None = Form(None, ge=0, le=1_000_000,
+                                        description=f"Top-k sampling, 0 = off ({d('top_k')}).",
+                                        examples=[defaults.get("top_k")]),
+               top_p: float | None = Form(None, allow_inf_nan=False, description=f"Nucleus sampling ({d('top_p')}).",
+                                          examples=[defaults.get("top_p")]),
+               max_vertices: int | None = Form(None, ge=3, le=1_000_000,
+                                               description=f"Vertex budget; unset = the model's limit "
+                                                           f"({d('max_vertices')}).",
+                                               examples=[defaults.get("max_vertices")]),
+               enhancer: bool | None = Form(None, description=f"Run the vertex enhancer ({d('enhancer')})."),
+               filtering: bool | None = Form(None, description=f"Filter bad faces ({d('filtering')})."),
+               candidates: int | None = Form(None, ge=1, le=MAX_CANDIDATES,
+                                             description="Meshes sampled (seeds seed, seed+1, ...); the one "
+                                                         "nearest the input is returned; 1 is fastest "
+                                                         f"({d('candidates')}).",
+                                             examples=[defaults.get("candidates")]),
+               target_faces: int | None = Form(None, ge=TARGET_FACES[0], le=TARGET_FACES[1],
+                                               description="Faces to aim for; unset = the model chooses the count "
+                                                           "from the shape.", examples=[300]),
+               formats: str | None = Form(None, description="Comma list of glb, obj, ply exported with the job "
+                                                            f"(default {','.join(settings.default_formats)}).",
+                                          examples=["glb,obj"]),
+               idempotency_key: str | None = Header(None, alias="Idempotency-Key", max_length=200,
+                                                    description="Retrying with the same key returns the same job.")
+               ) -> JSONResponse:
+        wait = store.rate_hit("submit", request.state.bucket, settings.submit_rate_limit_per_minute)
+        if wait:
+            raise ApiError(429, "rate_limited", f"more than {settings.submit_rate_limit_per_minute} submissions "
+                                                "per minute for this key", {"Retry-After": str(wait)})
+        params = build_params({"seed": seed, "temperature": temperature, "top_k": top_k, "top_p": top_p,
+                               "max_vertices": max_vertices, "enhancer": enhancer, "filtering": filtering,
+                               "candidates": candidates, "target_faces": target_faces},
+                              formats, settings.default_formats, store.vertex_limit())
+        # Reading and parsing hold up to a few times the upload in memory: a fixed number at once keeps the
+        # API's peak a known multiple of the limits; beyond it the client is told to come back.
+        if not parse_slots.acquire(timeout=settings.parse_wait_seconds):
+            raise ApiError(429, "busy", f"{settings.max_concurrent_parses} uploads are being read; retry shortly",
+                           {"Retry-After": "2"})
+        try:
+            data = file.file.read(settings.max_upload_bytes + 1)
+            if len(data) > settings.max_upload_bytes:
+                raise ApiError(413, "too_large", f"upload larger than the {settings.max_upload_bytes} byte limit")
+            filename = safe_filename(file.filename)
+            idem = Idempotency(store, who, idempotency_key, data, params)
+            existing = idem.existing()
+            if existing is not None:
+                return job_response(store, existing, 200)
+            depth = store.queue_depth()
+            if depth >= settings.max_queue_depth:
+                raise queue_full(store, settings, depth)
+            t0 = time.perf_counter()
+            try:
+                # A point cloud's normals are estimated by the worker, outside the request path.
+                shape = load_shape(data, filename=filename, max_points=settings.max_points,
+                                   max_faces=settings.max_faces, normals=False)
+            except ShapeError as e:
+                raise ApiError(SHAPE_STATUS.get(e.code, 422), e.code, e.message) from None
+            del data
+            load_seconds = time.perf_counter() - t0
+            info = input_info(filename, shape)
+            blob = shape_to_bytes(shape)
+            del shape
+        finally:
+            parse_slots.release()
+        job_id = store.new_id()
+        existing = idem.claim(job_id)
+        if existing is not None:
+            return job_response(store, existing, 200)
+        try:
+            store.create(who, params, info, blob, load_seconds, max_queued=settings.max_queue_depth, job_id=job_id)
+        except BaseException as e:
+            idem.release()
+            if isinstance(e, QueueFull):  # the early check raced with concurrent submissions: the queue filled
+                raise queue_full(store, settings, store.queue_depth()) from None
+            raise
+        idem.confirm(job_id)
+        return job_response(store, store.get(job_id), 202)
+
+    @router.get("/{job_id}", response_model=Job, summary="A job's status, progress, timings",
+                responses={**error_responses(401, 404, 422, 429, 503),
+                           200: {"headers": {"X-Queue-Position": {"description": "0-based, while queued",
+                                                                  "schema": {"type": "integer"}}}}})
+    def get_job(job_id: JobId, who: Owner, store: StoreDep) -> JSONResponse:
+        return job_response(store, owned_job(store, job_id, who))
+
+    @router.get("/{job_id}/result", summary="Download the mesh (input's original frame)", response_class=Response,
+                responses={**error_responses(401, 404, 409, 422, 429, 503),
+                           200: {"description": "The mesh file",
+                                 "content": {m: {"schema": {"type": "string", "format": "binary"}}
+                                             for m in MEDIA.values()}}})
+    async def get_result(job_id: JobId, who: Owner, store: StoreDep,
+                         format: str = Query("glb", pattern=f"^({'|'.join(EXPORT_FORMATS)})$",
+                                             description="glb, obj or ply", examples=["glb"]),
+                         wait: float = Query(0, ge=0, le=settings.max_wait_seconds,
+                                             description="Seconds to wait for the job to finish (long poll).")
+                         ) -> Response:
+        job = await anyio.to_thread.run_sync(owned_job, store, job_id, who)
+        deadline = time.monotonic() + wait
+        step = 0.02  # short jobs answer fast; long waits settle at 5 Redis reads a second
+        while job["status"] not in FINAL and time.monotonic() < deadline:
+            await anyio.sleep(min(step, max(0.0, deadline - time.monotonic())))
+            step = min(0.2, step * 1.5)
+            job = await anyio.to_thread.run_sync(owned_job, store, job_id, who)
+        if job["status"] in ("queued", "running"):
+            raise ApiError(409, "not_ready", f"job is {job['status']}; poll GET /v1/jobs/{job_id} or add ?wait=",
+                           {"Retry-After": "1"})
+        if job["status"] != "succeeded":
+            err = job.get("error") or {}
+            raise ApiError(409, f"job_{job['status']}",
+                           f"job {job['status']}, no result: {err.get('message', 'no detail')}")
+        data = await anyio.to_thread.run_sync(result_bytes, store, job_id, format)
+        stem = PurePath(job["input"]["filename"]).stem or "result"
+        return Response(data, media_type=MEDIA[format],
+                        headers={"Content-Disposition": f'attachment; filename="{ascii_name(stem)}.{format}"'})
+
+    @router.delete("/{job_id}", summary="Cancel a queued/running job, or delete a finished one",
+                   responses={**error_responses(401, 404, 422, 429, 503),
+                              200: {"model": Job, "description": "Cancelled; the job as it is now"},
+                              204: {"description": "Deleted with its input and results"}})
+    def delete_job(job_id: JobId, who: Owner, store: StoreDep) -> Response:
+        job = owned_job(store, job_id, who)
+        if job["status"] in ("queued", "running") and store.cancel(job_id):
+            return job_response(store, store.get(job_id))
+        store.delete(job_id)
+        return Response(status_code=204)
+
+    return router
+
+
+def job_response(store: Store, job: dict, status: int = 200) -> JSONResponse:
+    """The job as JSON, with ``Location`` and, while it is queued, ``X-Queue-Position``."""
+    headers = {"Location": f"/v1/jobs/{job['id']}"}
+    pos = store.queue_position(job)
+    if pos is not None:
+        headers["X-Queue-Position"] = str(pos)
+    return JSONResponse(store.public(job), status_code=status, headers=headers)
+
+
+def queue_full(store: Store, settings: Settings, depth: int) -> ApiError:
+    """429 ``queue_full`` for ``depth`` queued jobs, with a ``Retry-After`` of about when a queue slot is likely
+    free: the mean job time over the live workers, within [1, 600] seconds."""
+    stats = store.stage_stats().get("total", {})
+    mean = stats.get("sum", 0.0) / stats["count"] if stats.get("count") else 5.0
+    workers = max(1, len(store.workers_alive()))
+    retry = int(min(600, max(1, round(mean / workers))))
+    return ApiError(429, "queue_full", f"{depth} jobs are waiting (limit {settings.max_queue_depth}); retry later",
+                    {"Retry-After": str(retry)})
+
+
+def result_bytes(store: Store, job_id: str, fmt: str) -> bytes:
+    """The result in ``fmt``; a format not exported with the job is converted once and kept."""
+    data = store.get_result(job_id, fmt)
+    if data is not None:
+        return data
+    mesh = store.get_result(job_id, "npz")
+    if mesh is None:
+        raise ApiError(404, "not_found", "the result is no longer stored (retention expired or deleted)")
+    data = export_mesh(*mesh_from_bytes(mesh), fmt)
+    store.put_result(job_id, fmt, data, ttl=store.ttl_of(job_id))
+    return data
+
+
+def ascii_name(name: str) -> str:
+    """``name`` safe inside a quoted Content-Disposition filename."""
+    return "".join(c if c.isascii() and c.isprintable() and c not in '"\\' else "_" for c in name)[:100] or "result"

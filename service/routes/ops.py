@@ -1,0 +1,35 @@
+"""Operations: ``/healthz`` (the process is up), ``/readyz`` (Redis reachable and a worker alive), ``/metrics``."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Response
+
+from ..deps import MetricsDep, StoreDep
+from ..errors import ApiError
+from ..schemas import Health, Ready, error_responses
+
+router = APIRouter(tags=["ops"])
+
+
+@router.get("/healthz", response_model=Health, summary="The process is up")
+async def healthz() -> dict:  # async: answers from the event loop even when every worker thread is busy
+    return {"status": "ok"}
+
+
+@router.get("/readyz", response_model=Ready, summary="Redis reachable and a worker alive",
+            responses=error_responses(503))
+def readyz(store: StoreDep) -> dict:
+    try:
+        store.r.ping()
+        workers, depth = len(store.workers_alive()), store.queue_depth()
+    except Exception as e:
+        raise ApiError(503, "not_ready", f"Redis unreachable: {type(e).__name__}") from None
+    if workers == 0:
+        raise ApiError(503, "not_ready", "Redis reachable but no worker alive")
+    return {"status": "ready", "redis": True, "workers": workers, "queue_depth": depth}
+
+
+@router.get("/metrics", summary="Prometheus metrics", response_class=Response,
+            responses={200: {"content": {"text/plain": {"example": "fastmesh_queue_depth 0.0\n"}}}})
+def prometheus(metrics: MetricsDep) -> Response:
+    return Response(metrics.render(), media_type="text/plain; version=0.0.4; charset=utf-8")

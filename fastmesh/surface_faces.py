@@ -29,8 +29,12 @@ _SECTOR_SLACK = 0.25
 _FLAT = 0.1
 # Candidates whose normal is farther than acos(this) from the input surface's are dropped.
 _MIN_FACING = 0.7
-# A vertex with a candidate face farther than acos(this) from its plane sits on a crease.
+# A face farther than acos(this) from a vertex's tangent plane is not compared in that plane.
 _CREASE = 0.5
+# Faces at a vertex without a usable tangent plane overlap only when closer than acos(this) in angle.
+_PARALLEL = 0.9
+# Rings of faces around a hole that :func:`fill_holes` may take out to close it.
+REPAIR_RINGS = 2
 # Edge probability given to a pair the model scores lower (log-probabilities stay finite).
 PROB_FLOOR = 1e-4
 
@@ -168,25 +172,14 @@ def facing(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, tree: cK
     return np.where(flat, np.abs((n * normal).sum(1)), 1.0)
 
 
-def vertex_frames(vertices: np.ndarray, points: np.ndarray, faces: np.ndarray, tree: cKDTree | None = None,
+def vertex_frames(vertices: np.ndarray, points: np.ndarray, tree: cKDTree | None = None,
                   k: int = 16) -> np.ndarray:
-    """(N, 2, 3) two orthonormal tangent directions of the input surface at each vertex; NaN where no
-    single plane shows every face there side by side: the ``k`` nearest input points do not lie near
-    one plane, or one of the vertex's ``faces`` (the candidates) faces away from it by more than
-    acos(``_CREASE``) (a crease or a corner the nearest points happen to miss).
+    """(N, 2, 3) two orthonormal tangent directions of the input surface at each vertex; NaN where the
+    ``k`` nearest input points do not lie near one plane (no tangent plane to compare faces in).
     """
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     pts = np.asarray(points, dtype=np.float64)
     normal, flat = _plane_fit(v, pts, tree if tree is not None else cKDTree(pts), k)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if len(f):
-        t = v[f]
-        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-        worst = np.ones(len(v))
-        for c in range(3):
-            np.minimum.at(worst, f[:, c], np.abs((n * normal[f[:, c]]).sum(1)))
-        flat &= worst >= _CREASE
     helper = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
     t1 = np.cross(normal, helper)
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
@@ -195,38 +188,94 @@ def vertex_frames(vertices: np.ndarray, points: np.ndarray, faces: np.ndarray, t
     return frames
 
 
+def _cross(a, b) -> list[float]:
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def _unit(a) -> list[float]:
+    n = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]) or 1e-300
+    return [a[0] / n, a[1] / n, a[2] / n]
+
+
+def _normal(v: list, a: int, b: int, c: int) -> list[float]:
+    """Unit normal of triangle (a, b, c) of the vertex list ``v``."""
+    return _unit(_cross([v[b][i] - v[a][i] for i in range(3)], [v[c][i] - v[a][i] for i in range(3)]))
+
+
+def _arc(v: list, a: int, b: int, c: int, frame) -> tuple[float, float]:
+    """(start, width) in radians of the corner at ``a`` of triangle (a, b, c), projected onto the plane
+    of ``frame`` (two orthonormal directions)."""
+    (ux, uy, uz), (wx, wy, wz) = frame
+    ax, ay, az = v[a]
+    ang = []
+    for x in (b, c):
+        px, py, pz = v[x][0] - ax, v[x][1] - ay, v[x][2] - az
+        ang.append(math.atan2(px * wx + py * wy + pz * wz, px * ux + py * uy + pz * uz))
+    lo, hi = min(ang), max(ang)
+    return (lo, hi - lo) if hi - lo <= math.pi else (hi, 2 * math.pi - (hi - lo))
+
+
+def _arcs_overlap(s0: float, w0: float, s1: float, w1: float) -> bool:
+    """Whether arcs [s0, s0 + w0] and [s1, s1 + w1] of the circle share more than ``_SECTOR_SLACK`` of
+    the narrower one."""
+    d = (s1 - s0) % (2 * math.pi)
+    inter = max(min(w0, d + w1) - d, 0.0) + max(min(w1, 2 * math.pi - d + w0) - (2 * math.pi - d), 0.0)
+    return inter > _SECTOR_SLACK * min(w0, w1)
+
+
 class _Selection:
     """The selected faces' bookkeeping: third vertices on each edge, and the angular sector each face
     covers around each of its corners in the tangent plane there (faces around a vertex must not
-    overlap)."""
+    overlap), and each face's normal.  A corner whose face lies farther than acos(``_CREASE``) from the
+    vertex's tangent plane (across a crease or a corner the nearest points miss) has no sector there:
+    see :meth:`_overlaps`."""
 
     def __init__(self, vertices: np.ndarray, frames: np.ndarray, fold_angle: float):
         self.v = np.asarray(vertices, dtype=np.float64).tolist()
-        self.frames = np.asarray(frames, dtype=np.float64).tolist()
+        fr = np.asarray(frames, dtype=np.float64)
+        self.frames = fr.tolist()
+        self.normals = np.cross(fr[:, 0], fr[:, 1]).tolist()
         self.min_cos = math.cos(math.radians(fold_angle))
         self.third: dict[tuple[int, int], list[int]] = {}
         self.sectors: dict[int, dict[tuple[int, int, int], tuple[float, float]]] = {}
+        self.face_normals: dict[tuple[int, int, int], list[float]] = {}
 
     def _sector(self, a: int, b: int, c: int) -> tuple[float, float]:
-        """(start, width) in radians of the corner of face (a, b, c) at ``a``, seen in a's tangent plane."""
-        (ux, uy, uz), (wx, wy, wz) = self.frames[a]
-        ax, ay, az = self.v[a]
-        ang = []
-        for x in (b, c):
-            px, py, pz = self.v[x][0] - ax, self.v[x][1] - ay, self.v[x][2] - az
-            ang.append(math.atan2(px * wx + py * wy + pz * wz, px * ux + py * uy + pz * uz))
-        lo, hi = min(ang), max(ang)
-        return (lo, hi - lo) if hi - lo <= math.pi else (hi, 2 * math.pi - (hi - lo))
+        """(start, width) in radians of the corner of face (a, b, c) at ``a``, seen in a's tangent plane;
+        NaN where a has no tangent plane or the face lies across it."""
+        n = self.normals[a]
+        f = _normal(self.v, a, b, c)
+        if not abs(f[0] * n[0] + f[1] * n[1] + f[2] * n[2]) >= _CREASE:  # also False with a NaN frame
+            return (math.nan, math.nan)
+        return _arc(self.v, a, b, c, self.frames[a])
 
-    def _overlaps(self, a: int, sector: tuple[float, float]) -> bool:
-        s0, w0 = sector
-        if math.isnan(s0):  # not a flat vertex: no tangent plane to compare in
-            return False
-        for s1, w1 in self.sectors.get(a, {}).values():
-            # overlap of the arcs [s0, s0 + w0] and [s1, s1 + w1] on the circle
-            d = (s1 - s0) % (2 * math.pi)
-            inter = max(min(w0, d + w1) - d, 0.0) + max(min(w1, 2 * math.pi - d + w0) - (2 * math.pi - d), 0.0)
-            if inter > _SECTOR_SLACK * min(w0, w1):
+    def _overlaps(self, a: int, b: int, c: int) -> bool:
+        """Whether the corner of face (a, b, c) at ``a`` overlaps a selected face's corner there.
+
+        In a's tangent plane where both corners have a sector there; otherwise (a crease, a corner, a
+        face across the plane) only a selected face nearly parallel to this one can overlap it, and the
+        two are compared in this face's own plane.
+        """
+        s0, w0 = self._sector(a, b, c)
+        own = None
+        for key, (s1, w1) in self.sectors.get(a, {}).items():
+            if not (math.isnan(s0) or math.isnan(s1)):
+                if _arcs_overlap(s0, w0, s1, w1):
+                    return True
+                continue
+            if own is None:
+                n = _normal(self.v, a, b, c)
+                e = [self.v[b][i] - self.v[a][i] for i in range(3)]
+                k = sum(e[i] * n[i] for i in range(3))
+                u = _unit([e[i] - k * n[i] for i in range(3)])
+                frame = (u, _cross(n, u))
+                own = (n, frame, _arc(self.v, a, b, c, frame))
+            n, frame, (s2, w2) = own
+            m = self.face_normals[key]
+            if abs(n[0] * m[0] + n[1] * m[1] + n[2] * m[2]) < _PARALLEL:
+                continue
+            y, z = (x for x in key if x != a)
+            if _arcs_overlap(s2, w2, *_arc(self.v, a, y, z, frame)):
                 return True
         return False
 
@@ -237,19 +286,23 @@ class _Selection:
             others = self.third.get((x, y) if x < y else (y, x), ())
             if len(others) >= 2 or any(_folded(self.v, x, y, o, z, self.min_cos) for o in others):
                 return False
-        return not any(self._overlaps(x, self._sector(x, y, z)) for x, y, z in ((a, b, c), (b, c, a), (c, a, b)))
+        return not any(self._overlaps(x, y, z) for x, y, z in ((a, b, c), (b, c, a), (c, a, b)))
 
     def add(self, a: int, b: int, c: int) -> None:
         for x, y, z in ((a, b, c), (b, c, a), (a, c, b)):
             self.third.setdefault((x, y) if x < y else (y, x), []).append(z)
+        key = tuple(sorted((a, b, c)))  # any winding of the face names it
+        self.face_normals[key] = _normal(self.v, a, b, c)
         for x, y, z in ((a, b, c), (b, c, a), (c, a, b)):
-            self.sectors.setdefault(x, {})[(a, b, c)] = self._sector(x, y, z)
+            self.sectors.setdefault(x, {})[key] = self._sector(x, y, z)
 
     def remove(self, a: int, b: int, c: int) -> None:
         for x, y, z in ((a, b, c), (b, c, a), (a, c, b)):
             self.third[(x, y) if x < y else (y, x)].remove(z)
+        key = tuple(sorted((a, b, c)))
+        del self.face_normals[key]
         for x in (a, b, c):
-            del self.sectors[x][(a, b, c)]
+            del self.sectors[x][key]
 
 
 def select_faces(vertices: np.ndarray, faces: np.ndarray, score: np.ndarray, frames: np.ndarray,
@@ -326,6 +379,89 @@ def _simple_loops(loop: list[int]) -> list[list[int]]:
     return out
 
 
+def _clip_loop(v: np.ndarray, loop: list[int], book: _Selection, points: np.ndarray, limit: float,
+               tree: cKDTree) -> list[tuple[int, int, int]] | None:
+    """Ear clipping of one boundary loop, best-supported ear first (see :func:`fill_holes`).
+
+    Returns the ears (already in ``book``), or None when some part of the loop cannot be closed
+    (``book`` is then as before)."""
+    poly, added = list(loop), []
+    while len(poly) >= 3:
+        k = len(poly)
+        ears = np.array([[poly[i - 1], poly[i], poly[(i + 1) % k]] for i in range(k)])
+        d = support_distance(v, ears, points, tree)
+        placed = False
+        for i in np.argsort(d, kind="stable"):
+            if d[i] > limit:
+                break
+            a, b, c = ears[i].tolist()
+            new_edge = (a, c) if a < c else (c, a)
+            if (k > 3 and book.third.get(new_edge)) or not book.fits(a, b, c):
+                continue
+            book.add(a, b, c)
+            added.append((a, b, c))
+            poly.pop(int(i))
+            placed = True
+            break
+        if not placed:
+            for t in added:
+                book.remove(*t)
+            return None
+    return added
+
+
+def _loop_edges(loop: list[int]) -> set[tuple[int, int]]:
+    return {(a, b) if a < b else (b, a) for a, b in zip(loop, loop[1:] + loop[:1], strict=True)}
+
+
+def _reclip(v: np.ndarray, loop: list[int], kept: dict, book: _Selection, points: np.ndarray, limit: float,
+            tree: cKDTree, max_loop: int) -> bool:
+    """Close a boundary ``loop`` no ear fits by clipping again without the faces along it.
+
+    Up to ``REPAIR_RINGS`` rings of faces around the hole are taken out, one ring at a time, until
+    the hole they leave closes; a closing is kept only if every vertex of the removed faces is still
+    in some face (one that drops a vertex has cut across the base of a spike the ring held).
+    Otherwise everything goes back.  ``kept`` (sorted face -> face) and ``book`` are updated in place.
+    """
+    edges = _loop_edges(loop)
+    if any(len(book.third.get(e, ())) != 1 for e in edges):  # changed by an earlier repair
+        return False
+    removed: list[tuple[int, int, int]] = []
+    opened = set(edges)
+    for _ in range(REPAIR_RINGS):
+        ring = [kept[key] for key in {tuple(sorted((a, b, *book.third[(a, b)]))) for a, b in edges
+                                      if len(book.third.get((a, b), ())) == 1}]
+        if not ring:
+            break
+        for t in ring:
+            book.remove(*t)
+            del kept[tuple(sorted(t))]
+        removed += ring
+        opened.update(tuple(sorted(e)) for a, b, c in ring for e in ((a, b), (b, c), (a, c)))
+        loops = [x for x in boundary_loops(np.asarray(list(kept.values()), dtype=np.int64).reshape(-1, 3))
+                 if _loop_edges(x) & opened]
+        if not loops or sum(map(len, loops)) > max_loop + 2 * len(loop):
+            break
+        done: list[tuple[int, int, int]] = []
+        for x in loops:
+            ears = _clip_loop(v, x, book, points, limit, tree)
+            if ears is None:
+                break
+            done.extend(ears)
+        else:
+            used = {x for t in done for x in t}.union(*[set(t) for t in kept.values()])
+            if used.issuperset(x for t in removed for x in t):
+                kept.update((tuple(sorted(t)), t) for t in done)
+                return True
+        for t in done:
+            book.remove(*t)
+        edges = set().union(*map(_loop_edges, loops))
+    for t in removed:
+        book.add(*t)
+        kept[tuple(sorted(t))] = t
+    return False
+
+
 def fill_holes(vertices: np.ndarray, faces: np.ndarray, book: _Selection, points: np.ndarray, limit: float,
                tree: cKDTree | None = None, max_loop: int = 64) -> np.ndarray:
     """Close boundary loops that lie on the input surface by ear clipping.
@@ -333,44 +469,30 @@ def fill_holes(vertices: np.ndarray, faces: np.ndarray, book: _Selection, points
     Each loop of at most ``max_loop`` edges is clipped ear by ear, best-supported ear first; an ear is
     allowed when it lies on the surface (support distance at most ``limit``), adds no edge that
     already exists, and fits the selection (:meth:`_Selection.fits`).  A loop with no allowed ear
-    left is given up and its ears removed (an open input stays open).
+    left is tried again without the faces along it (:func:`_reclip`): a wrong face beside a hole is
+    what most often blocks its ears (it folds onto them, or holds the edge they need), so the faces
+    bordering the loop are taken out and the larger hole they leave is clipped instead; if that does
+    not close either, the faces go back and the loop stays open (an open input stays open).
 
     Returns
     -------
-    (F + added, 3) int64 faces.
+    (F', 3) int64 faces: the selection, with at most the faces bordering re-clipped loops exchanged.
     """
     v = np.asarray(vertices, dtype=np.float64)
     tree = tree if tree is not None else cKDTree(np.asarray(points, dtype=np.float64))
-    out = [np.asarray(faces, dtype=np.int64).reshape(-1, 3)]
+    kept = {tuple(sorted(t)): tuple(t) for t in np.asarray(faces, dtype=np.int64).reshape(-1, 3).tolist()}
+    stuck = []
     for loop in boundary_loops(faces):
         if len(loop) > max_loop:
             continue
-        poly, added = list(loop), []
-        while len(poly) >= 3:
-            k = len(poly)
-            ears = np.array([[poly[i - 1], poly[i], poly[(i + 1) % k]] for i in range(k)])
-            d = support_distance(v, ears, points, tree)
-            placed = False
-            for i in np.argsort(d, kind="stable"):
-                if d[i] > limit:
-                    break
-                a, b, c = ears[i].tolist()
-                new_edge = (a, c) if a < c else (c, a)
-                if (k > 3 and book.third.get(new_edge)) or not book.fits(a, b, c):
-                    continue
-                book.add(a, b, c)
-                added.append((a, b, c))
-                poly.pop(int(i))
-                placed = True
-                break
-            if not placed:
-                break
-        if len(poly) < 3:
-            out.append(np.asarray(added, dtype=np.int64).reshape(-1, 3))
+        ears = _clip_loop(v, loop, book, points, limit, tree)
+        if ears is None:
+            stuck.append(loop)
         else:
-            for t in added:
-                book.remove(*t)
-    return np.concatenate(out)
+            kept.update((tuple(sorted(t)), t) for t in ears)
+    for loop in stuck:
+        _reclip(v, loop, kept, book, points, limit, tree, max_loop)
+    return np.asarray(list(kept.values()), dtype=np.int64).reshape(-1, 3)
 
 
 def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, config: FaceConfig | None = None,
@@ -409,7 +531,7 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
     if logits is not None and len(f):
         lp = edge_log_prob(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [0, 2]]]), logits, edges)
         score = score + cfg.model_weight * lp.reshape(3, -1).mean(0)
-    f, book = select_faces(v, f, score, vertex_frames(v, pts, f, tree), cfg.fold_angle)
+    f, book = select_faces(v, f, score, vertex_frames(v, pts, tree), cfg.fold_angle)
     f = orient_faces(v, f)  # boundary loops follow the windings
     if cfg.fill_max_loop:
         f = orient_faces(v, fill_holes(v, f, book, pts, limit, tree, cfg.fill_max_loop))

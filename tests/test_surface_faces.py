@@ -119,7 +119,7 @@ def test_folded_faces_are_not_both_selected():
 def test_fill_closes_a_hole_and_leaves_an_open_input_open():
     m, pts = _primitive("icosphere2")
     f = np.asarray(m.faces)[np.r_[0:5, 12:len(m.faces)]]  # a hole where 7 faces were
-    book = sf._Selection(m.vertices, sf.vertex_frames(m.vertices, pts, f), 30.0)
+    book = sf._Selection(m.vertices, sf.vertex_frames(m.vertices, pts), 30.0)
     for t in f.tolist():
         book.add(*t)
     filled = sf.fill_holes(m.vertices, f, book, pts, support_limit(pts, 0.0))
@@ -131,6 +131,35 @@ def test_fill_closes_a_hole_and_leaves_an_open_input_open():
     plane = np.c_[np.random.default_rng(0).random((8192, 2)), np.zeros(8192)]
     f = sf.surface_mesh(grid, np.zeros((0, 2), dtype=np.int64), plane)
     assert len(f) == 2 * (k - 1) ** 2 and not mesh_topology(grid, f)["watertight"]
+
+
+def test_overlapping_faces_at_a_vertex_without_tangent_plane_are_not_both_selected():
+    """At a crease or corner (no tangent plane: NaN frames) two nearly parallel faces around a shared
+    vertex that cover the same angle there are a double layer; faces across the crease are not."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0.9, -0.1, 0.02], [0.5, 1.2, 0.01], [0, 0, 1.0], [0, 1, 1.0]])
+    cand = np.array([[0, 1, 2], [0, 3, 4], [0, 5, 6]])  # the second overlaps the first; the third stands up
+    f, _ = sf.select_faces(v, cand, np.array([3.0, 2, 1]), np.full((len(v), 2, 3), np.nan))
+    assert sorted(map(tuple, np.sort(f, 1).tolist())) == [(0, 1, 2), (0, 5, 6)]
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_fill_replaces_wrong_faces_that_block_a_hole(seed):
+    """A few wrong restricted-Delaunay triangles taken first leave holes no ear fits (they fold onto the
+    ears or hold the edges the ears need); re-clipping without the faces along such a hole closes the
+    sphere, and never puts an edge in three faces or leaves a vertex out."""
+    m = trimesh.creation.icosphere(2, radius=0.45)
+    pts = trimesh.sample.sample_surface(m, 8192, seed=0)[0]
+    f, _, limit = sf.on_surface(m.vertices, sf.delaunay_triangles(m.vertices), pts)
+    true = set(map(tuple, np.sort(m.faces, 1).tolist()))
+    is_true = np.array([tuple(t) in true for t in f.tolist()])
+    rng = np.random.default_rng(seed)
+    score = np.where(is_true, 1.0, -1.0) + rng.uniform(0, 0.1, len(f))
+    score[rng.choice(np.flatnonzero(~is_true), size=6, replace=False)] = 5.0
+    sel, book = sf.select_faces(m.vertices, f, score, sf.vertex_frames(m.vertices, pts))
+    assert len(sf.boundary_loops(sel)) > 0
+    filled = sf.fill_holes(m.vertices, sf.orient_faces(m.vertices, sel), book, pts, limit)
+    assert _max_faces_per_edge(filled) == 2 and len(np.unique(filled)) == len(m.vertices)
+    assert mesh_topology(m.vertices, filled)["watertight"]
 
 
 def test_boundary_loops_of_an_open_cylinder():

@@ -45,13 +45,17 @@ def _t(q, pts, nrm):
     return torch.from_numpy(q)[None], torch.from_numpy(pts)[None], torch.from_numpy(nrm)[None]
 
 
-def test_chunked_edge_logits_equal_unchunked():
-    m = _model()
+@pytest.mark.parametrize("pairs", [False, True])
+def test_chunked_edge_logits_equal_unchunked(pairs):
+    m = _model(pair_evidence=pairs)
+    if pairs:
+        torch.nn.init.normal_(m.pair_fc.weight)
     qt, pt, nt = _t(*_shape(23))
     with torch.no_grad():
         h = m.backbone(qt, m.backbone.condition(pt, nt))
-        a = m.edge_logits(h, chunk=5)
-        b = m.edge_logits(h, chunk=1000)
+        ctx = m.pair_context(qt, pt, nt)
+        a = m.edge_logits(h, chunk=5, pairs=ctx)
+        b = m.edge_logits(h, chunk=1000, pairs=ctx)
     assert a.shape == (1, 23, 23)
     torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
 
@@ -101,9 +105,11 @@ def test_padding_is_invisible(bias):
     torch.testing.assert_close(a[0], b[0, :10, :10], rtol=1e-4, atol=1e-5)
 
 
-@pytest.mark.parametrize("bias", [False, True])
-def test_logits_are_permutation_equivariant(bias):
-    m = _model(distance_bias=bias)
+@pytest.mark.parametrize(("bias", "pairs"), [(False, False), (True, False), (False, True)])
+def test_logits_are_permutation_equivariant(bias, pairs):
+    m = _model(distance_bias=bias, pair_evidence=pairs)
+    if pairs:
+        torch.nn.init.normal_(m.pair_fc.weight)
     q, pts, nrm = _shape(15)
     perm = np.random.default_rng(3).permutation(15)
     with torch.no_grad():
@@ -113,8 +119,11 @@ def test_logits_are_permutation_equivariant(bias):
     torch.testing.assert_close(b, a[p][:, p], rtol=1e-4, atol=1e-5)
 
 
-def test_predictor_follows_order_and_mask():
-    m = _model()
+@pytest.mark.parametrize("pairs", [False, True])
+def test_predictor_follows_order_and_mask(pairs):
+    m = _model(pair_evidence=pairs)
+    if pairs:
+        torch.nn.init.normal_(m.pair_fc.weight)
     q, pts, nrm = _shape(14)
     predict = m.predictor(q, pts, nrm)
     order = np.random.default_rng(1).permutation(14)

@@ -5,11 +5,15 @@ multi-head spacetime edge head of METHOD.md scores every pair:
 
     u = proj(h_i) split per head h into halves (u1, u2), each L2-normalised (3 dims)
     d_h(i, j) = ||u1_i - u1_j||^2 - ||u2_i - u2_j||^2 = 2 (u2_i . u2_j - u1_i . u1_j)
-    logit(i, j) = MLP_{H -> hidden -> 1}(d_1 .. d_H)
+    logit(i, j) = MLP_{H (+5) -> hidden -> 1}(d_1 .. d_H [, pair evidence])
 
 With unit halves d is a difference of dot products, so each head is one batched matmul;
 the result is symmetric by construction.  The N x N x H tensor is built ``pair_chunk``
-rows at a time, which bounds memory at N = 4000 (``benchmarks/face_memory.py``).
+rows at a time, which bounds memory at N = 4000 (``benchmarks/face_memory.py``).  With
+``pair_evidence`` the MLP also reads what the input surface says about each pair
+(``models.pairs``: how far the segment strays from the surface, its length in point spacings,
+the input normals at its ends against it); those weights start at zero, so a model trained
+without them continues exactly where it was.
 
 Trained with the asymmetric loss (Ridnik et al.: gamma+ = 0, gamma- = 3, clip 0.05) over
 pairs i < j, under random attention masks like those of prediction filtering (so the
@@ -26,9 +30,10 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..filtering import FilterConfig, edges_from_logits, filter_predictions
-from .backbone import VertexSetBackbone
+from .backbone import VertexSetBackbone, cell_centres
 from .encoder import EncoderConfig
 from .layers import init_weights
+from .pairs import PAIR_FEATURES, PairContext, pair_context, pair_features
 
 
 @dataclass
@@ -44,6 +49,9 @@ class FaceModelConfig:
     # Geometric attention bias among vertices (models.backbone).  Off by default: in our first
     # comparison (same batches, 200 steps) it trained no faster and cost ~1.3x per step.
     distance_bias: bool = False
+    pair_evidence: bool = False  # geometric pair features in the edge MLP (models.pairs)
+    pair_grid: int = 32  # nodes per axis of the distance grid the pair features read
+    pair_samples: int = 6  # points sampled along each segment
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
 
 
@@ -91,12 +99,15 @@ class FaceModel(nn.Module):
         self.edge_proj = nn.Linear(cfg.dim, cfg.edge_heads * cfg.edge_head_dim)
         self.edge_fc = nn.Linear(cfg.edge_heads, cfg.edge_mlp_hidden)
         self.edge_out = nn.Linear(cfg.edge_mlp_hidden, 1)
+        self.pair_fc = nn.Linear(PAIR_FEATURES, cfg.edge_mlp_hidden, bias=False) if cfg.pair_evidence else None
         init_weights(self)
         # Unit halves make d lie in [-4, 4] per head: give the MLP unit-scale weights, and start
         # from "no edge" (p ~ 0.05, where the clipped negative loss vanishes): edges are rare.
         nn.init.normal_(self.edge_fc.weight, std=cfg.edge_heads ** -0.5)
         nn.init.normal_(self.edge_out.weight, std=cfg.edge_mlp_hidden ** -0.5)
         nn.init.constant_(self.edge_out.bias, -3.0)
+        if self.pair_fc is not None:
+            nn.init.zeros_(self.pair_fc.weight)
 
     @property
     def device(self) -> torch.device:
@@ -113,8 +124,23 @@ class FaceModel(nn.Module):
         u1, u2 = u[..., 0, :], u[..., 1, :]
         return torch.cat([u2, -u1], dim=-1), torch.cat([u2, u1], dim=-1)
 
-    def edge_logits(self, h: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
-        """(B, N, dim) vertex features -> (B, N, N) float32 edge logits, ``chunk`` rows at a time."""
+    def pair_context(self, q: torch.Tensor, points: torch.Tensor | None,
+                     normals: torch.Tensor | None) -> PairContext | None:
+        """What the pair features of vertices ``q`` (B, N, 3) long need from the input (None without them)."""
+        if not self.cfg.pair_evidence:
+            return None
+        if points is None or normals is None:
+            raise ValueError("this face model reads pair evidence: it needs the input points and normals")
+        return pair_context(cell_centres(q), points, normals, self.cfg.pair_grid, self.cfg.pair_samples)
+
+    def edge_logits(self, h: torch.Tensor, chunk: int | None = None, pairs: PairContext | None = None) -> torch.Tensor:
+        """(B, N, dim) vertex features -> (B, N, N) float32 edge logits, ``chunk`` rows at a time.
+
+        ``pairs`` (from :meth:`pair_context`, vertices in the order of ``h``) is required when the
+        model reads pair evidence.
+        """
+        if (pairs is None) != (self.pair_fc is None):
+            raise ValueError("pair evidence: give a PairContext exactly when the model reads it")
         left, right = self.edge_factors(h)
         b, heads, n, _ = left.shape
         chunk = chunk or self.cfg.pair_chunk
@@ -129,7 +155,11 @@ class FaceModel(nn.Module):
             for s in range(0, n, chunk):
                 d = 2.0 * (left[:, :, s:s + chunk] @ rt)  # (B, H, r, N): the H spacetime distances
                 r = d.shape[2]
-                hid = F.gelu(torch.einsum("kh,bhx->bkx", w1, d.reshape(b, heads, r * n)) + b1[:, None])
+                pre = torch.einsum("kh,bhx->bkx", w1, d.reshape(b, heads, r * n)) + b1[:, None]
+                if pairs is not None:
+                    f = pair_features(pairs, s, s + r).reshape(b, r * n, PAIR_FEATURES)
+                    pre = pre + torch.einsum("kf,bxf->bkx", self.pair_fc.weight.float(), f)
+                hid = F.gelu(pre)
                 rows.append((torch.einsum("k,bkx->bx", w2, hid) + b2).view(b, r, n))
         return torch.cat(rows, dim=1)
 
@@ -147,7 +177,7 @@ class FaceModel(nn.Module):
         """
         if prefix is None:
             prefix = self.backbone.condition(points, normals)
-        return self.edge_logits(self.backbone(q, prefix, valid, mask))
+        return self.edge_logits(self.backbone(q, prefix, valid, mask), pairs=self.pair_context(q, points, normals))
 
     # ------------------------------------------------------------------ inference
 
@@ -160,15 +190,17 @@ class FaceModel(nn.Module):
         """
         dev = self.device
         qt = torch.as_tensor(np.asarray(q), dtype=torch.long, device=dev)[None]
+        pts, nrm = _f32(points, dev)[None], _f32(normals, dev)[None]
         with torch.no_grad():
-            prefix = self.backbone.condition(_f32(points, dev)[None], _f32(normals, dev)[None])
+            prefix = self.backbone.condition(pts, nrm)
+            pairs = self.pair_context(qt, pts, nrm)
 
         def predict(order: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
             with torch.no_grad():
                 idx = torch.as_tensor(np.asarray(order), dtype=torch.long, device=dev)
                 m = None if mask is None else torch.as_tensor(np.asarray(mask, dtype=bool), device=dev)[None]
                 h = self.backbone(qt[:, idx], prefix, mask=m)
-                return self.edge_logits(h)[0].cpu().numpy()
+                return self.edge_logits(h, pairs=None if pairs is None else pairs.take(idx))[0].cpu().numpy()
 
         return predict
 

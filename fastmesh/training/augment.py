@@ -11,7 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..io import sample_triangles
-from ..tokenizer import quantize_mesh
+from ..tokenizer import dequantize, quantize_mesh
+from ..tokenizer.quantize import LEVELS
 
 
 @dataclass
@@ -21,6 +22,12 @@ class AugmentConfig:
     scale_min: float = 0.75  # anisotropic scale per axis in [scale_min, 1]
     jitter: float = 0.005  # std of Gaussian noise on condition points (unit cube)
     normal_jitter: float = 0.05
+    # Vertex sets like a decoder's, for the face model (``perturb_vertex_set``): the share of samples
+    # perturbed, and the rates inside one; 0 = always the artist's own vertices.
+    perturb: float = 0.0
+    vertex_jitter: float = 0.0  # share of vertices moved by one cell along one axis
+    vertex_drop: float = 0.0  # share of vertices dropped (collapsed into a neighbour)
+    vertex_extra: float = 0.0  # extra vertices on the surface, per vertex (faces split)
 
 
 def augment_mesh(v: np.ndarray, cfg: AugmentConfig, rng: np.random.Generator) -> np.ndarray:
@@ -79,3 +86,52 @@ def symmetric_cells(cells: np.ndarray, sym: tuple[np.ndarray, np.ndarray], level
     perm, signs = sym
     c = cells[:, perm]
     return np.where(signs < 0, levels - 1 - c, c)
+
+
+def perturb_vertex_set(q: np.ndarray, faces: np.ndarray, cfg: AugmentConfig,
+                       rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A vertex set a decoder might emit for this mesh, with the faces an artist would give it.
+
+    Some vertices are dropped, each collapsed into an adjacent kept vertex (the faces follow it,
+    those that degenerate go); some faces are split at a point inside them (an extra vertex on the
+    surface, three faces); some vertices move by one cell.  The result is canonical again
+    (``quantize_mesh``: merged cells, clean faces, sorted), as the decoder's vertices are.
+
+    Parameters
+    ----------
+    q : (V, 3) int cells; faces : (F, 3) int.
+
+    Returns
+    -------
+    q : (V', 3) int64; faces : (F', 3) int64.
+    """
+    q = np.asarray(q, dtype=np.int64)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    n = len(q)
+    if cfg.vertex_drop > 0 and len(f):
+        drop = rng.random(n) < cfg.vertex_drop
+        e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        e = np.concatenate([e, e[:, ::-1]])
+        e = e[drop[e[:, 0]] & ~drop[e[:, 1]]]
+        e = e[rng.permutation(len(e))]
+        into = np.arange(n)
+        first = np.unique(e[:, 0], return_index=True)[1]  # one random kept neighbour per dropped vertex
+        into[e[first, 0]] = e[first, 1]
+        f = into[f]
+    if cfg.vertex_extra > 0 and len(f):
+        k = min(len(f), rng.binomial(n, cfg.vertex_extra))
+        split = rng.choice(len(f), size=k, replace=False)
+        w = rng.dirichlet(np.ones(3), size=k)
+        new = np.rint(np.einsum("kc,kcd->kd", w, q[f[split]])).astype(np.int64)
+        idx = len(q) + np.arange(k)
+        q = np.concatenate([q, new])
+        a, b, c = f[split].T
+        f = np.concatenate([np.delete(f, split, axis=0),
+                            np.stack([a, b, idx], 1), np.stack([b, c, idx], 1), np.stack([c, a, idx], 1)])
+    if cfg.vertex_jitter > 0:
+        q = q.copy()
+        moved = np.flatnonzero(rng.random(len(q)) < cfg.vertex_jitter)
+        q[moved, rng.integers(0, 3, len(moved))] += rng.choice([-1, 1], len(moved))
+        q = np.clip(q, 0, LEVELS - 1)
+    q, f, _ = quantize_mesh(dequantize(q), f)
+    return q, f

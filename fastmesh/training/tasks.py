@@ -20,7 +20,7 @@ from ..models.checkpoint import config_from_dict, registry
 from ..tokenizer import dequantize
 from ..tokenizer import vertex as vt
 from ..tokenizer.quantize import LEVELS
-from .augment import apply_symmetry, grid_symmetry, prepare_sample, symmetric_cells
+from .augment import apply_symmetry, grid_symmetry, perturb_vertex_set, prepare_sample, symmetric_cells
 
 
 def _points_tensors(samples) -> dict[str, torch.Tensor]:
@@ -259,8 +259,11 @@ class FaceTask(_SetTask):
         kinds, probs = list(FACE_MASKS), np.array(list(FACE_MASKS.values()))
         qs, parts = [], []
         for s in samples:
-            q, n = s[0], len(s[0])
-            edges = edges_from_faces(s[1])
+            q, f = s[0], s[1]
+            if train and cfg.augment.perturb > 0 and rng.random() < cfg.augment.perturb:
+                q, f = perturb_vertex_set(q, f, cfg.augment, rng)
+            n = len(q)
+            edges = edges_from_faces(f)
             kind = kinds[rng.choice(len(kinds), p=probs / probs.sum())] if train else "full"
             order, attn, score = face_training_mask(edges, n, kind, rng)
             pos = np.empty(n, dtype=np.int64)

@@ -36,7 +36,7 @@ from fastmesh.models.generate import generate  # noqa: E402
 from fastmesh.models.kv_cache import KVCache  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import Pipeline  # noqa: E402
-from fastmesh.tokenizer import bpt, dequantize  # noqa: E402
+from fastmesh.tokenizer import bpt  # noqa: E402
 from fastmesh.tokenizer import vertex as vt  # noqa: E402
 
 
@@ -79,7 +79,7 @@ def matvec_bound(model, repeats: int = 50) -> float:
 
 def time_generate(pipe: Pipeline, dec, rec, seed: int = 0) -> tuple[int, float, torch.Tensor]:
     """(tokens, seconds, prefix) of the real sampling loop on a validation mesh's point cloud."""
-    v = dequantize(rec.q) + rec.residual / 128
+    v = rec.continuous
     pts, nrm = sample_triangles(v, rec.faces, pipe.vertex.cfg.encoder.n_points, np.random.default_rng(seed))
     pts_t, nrm_t = torch.from_numpy(pts)[None], torch.from_numpy(nrm)[None]
     with torch.inference_mode():

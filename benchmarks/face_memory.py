@@ -30,12 +30,13 @@ import numpy as np, torch
 n, threads, masked, chunk = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "1", int(sys.argv[4])
 torch.set_num_threads(threads)
 from fastmesh.models.face import FaceModel, FaceModelConfig
+from fastmesh.tokenizer.grid import LEVELS
 torch.manual_seed(0)
 model = FaceModel(FaceModelConfig(**({"pair_chunk": chunk} if chunk else {}))).eval()
 rng = np.random.default_rng(0)
 q = np.zeros((0, 3), dtype=np.int64)
 while len(q) < n:
-    q = np.unique(np.concatenate([q, rng.integers(0, 128, (n, 3))]), axis=0)
+    q = np.unique(np.concatenate([q, rng.integers(0, LEVELS, (n, 3))]), axis=0)
 q = q[rng.permutation(len(q))[:n]]
 pts = rng.uniform(-0.5, 0.5, (2048, 3)).astype(np.float32)
 nrm = rng.normal(size=(2048, 3)).astype(np.float32)
@@ -67,6 +68,7 @@ torch.set_num_threads(threads)
 from fastmesh.faces import mesh_from_adjacency
 from fastmesh.pipeline import Pipeline
 from fastmesh.tokenizer import dequantize
+from fastmesh.tokenizer.grid import LEVELS
 
 def rss_mb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -78,8 +80,9 @@ def sphere(m):
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
 
 m = n
+mid = (LEVELS - 1) / 2  # the grid's centre, in cells
 while True:  # n distinct cells of a sphere of radius 63.5 cells
-    q = np.unique(np.clip(np.round(63.5 + 63.5 * sphere(m) - 0.5), 0, 127).astype(np.int64), axis=0)
+    q = np.unique(np.clip(np.round(mid + mid * sphere(m) - 0.5), 0, LEVELS - 1).astype(np.int64), axis=0)
     if len(q) >= n:
         break
     m = int(m * 1.05) + 1

@@ -27,6 +27,7 @@ import numpy as np
 
 from .io import MESH_FORMATS, Normalization, ShapeError, load_shape
 from .tokenizer import dequantize, quantize_mesh, vertex
+from .tokenizer.grid import LEVELS
 
 CACHE_VERSION = 2
 
@@ -62,7 +63,7 @@ class MeshRecord:
     @property
     def continuous(self) -> np.ndarray:
         """(V, 3) float64 normalised positions (cell centre + residual)."""
-        return dequantize(self.q) + self.residual / 128.0
+        return dequantize(self.q) + self.residual / LEVELS
 
 
 class MeshDataset:
@@ -259,7 +260,7 @@ def _process(args: tuple[str, str, str, str, int]):
         return ("error", path, "degenerate")
     if len(q) > max_vertices:
         return ("error", path, "too_many_vertices")
-    residual = ((cont - dequantize(q)) * 128.0).astype(np.float16)
+    residual = ((cont - dequantize(q)) * LEVELS).astype(np.float16)
     return ("ok", path, group, category, package, q.astype(np.uint8), faces.astype(np.int16), residual)
 
 

@@ -20,6 +20,7 @@ import numpy as np
 
 from .metrics import normalize_edges
 from .support import support_distance, supported
+from .tokenizer.grid import CELL
 
 # Wedges expanded per vectorised chunk: bounds memory at ~100 MB for any adjacency.
 _CHUNK = 2_000_000
@@ -81,7 +82,7 @@ class FaceConfig:
     drop_zero_area: bool = True
     area_tol: float = 1e-10
     drop_coplanar_diagonals: bool = False
-    coplanar_tol: float = 0.5 / 128
+    coplanar_tol: float = 0.5 * CELL
     orient: bool = True
     remove_unreferenced: bool = False
     support_tol: float | None = None
@@ -235,7 +236,7 @@ def drop_degenerate(vertices: np.ndarray, faces: np.ndarray, area_tol: float = 1
     return f[np.sort(first)]
 
 
-def drop_coplanar_diagonals(vertices: np.ndarray, faces: np.ndarray, coplanar_tol: float = 0.5 / 128,
+def drop_coplanar_diagonals(vertices: np.ndarray, faces: np.ndarray, coplanar_tol: float = 0.5 * CELL,
                             cases: tuple[str, ...] = ("convex", "inner")) -> np.ndarray:
     """Resolve coplanar 4-cliques of the faces' edge graph (see ``FaceConfig``).
 

@@ -21,11 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .io import Normalization, sample_triangles
-from .tokenizer.quantize import LEVELS
+from .tokenizer.grid import CELL  # one cell of the 7-bit grid, in units of the longest bounding-box side
 
 N_SAMPLES = 5000
 SEED = 0
-CELL = 1.0 / LEVELS  # one cell of the 7-bit grid, in units of the longest bounding-box side
 MATCH_CELLS = (1, 2)  # vertex precision / recall radii, in cells
 SURFACE_CELLS = 1.5  # a generated vertex farther than this from the input surface is off it
 

@@ -1,65 +1,116 @@
-"""User-facing generation parameters (no torch import: the CLI and service read them cheaply)."""
+"""User-facing generation parameters and the values each accepts (no torch import: the CLI and service read
+them cheaply).
+
+``BOUNDS`` is the one statement of those values: ``GenerateParams.validate`` (library, CLI, worker) and
+``SamplingConfig.validate`` (the decoder's loop) check it, and the service declares its integer form fields
+from it, so the OpenAPI schema states the same ranges.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 MAX_CANDIDATES = 16  # each candidate costs a full generation
 TARGET_FACES = (4, 8000)  # faces a user may ask for; the decoder's vertex limit still caps the result
 # Smallest non-zero temperature: logits / temperature must stay finite in float32 (0 means greedy decoding).
 MIN_TEMPERATURE = 1e-3
 MAX_TEMPERATURE = 5.0
+DEFAULT_VERTEX_LIMIT = 1000  # a vertex decoder's max_vertices unless its config says otherwise
+LARGEST_VERTEX_LIMIT = 4000  # the largest max_vertices of a trained decoder: the limit while the model is unknown
 
 
-@dataclass
-class SamplingConfig:
-    temperature: float = 0.3
-    top_k: int = 50
-    top_p: float = 0.95
-    max_vertices: int = 1000
-    seed: int = 0
+@dataclass(frozen=True)
+class Bound:
+    """The values of one numeric parameter: ``lo`` to ``hi``, both included unless ``lo_open``.
 
-    def validate(self) -> None:
-        if not (self.temperature == 0 or MIN_TEMPERATURE <= self.temperature <= MAX_TEMPERATURE):
-            raise ValueError(f"temperature must be 0 (greedy) or in [{MIN_TEMPERATURE:g}, {MAX_TEMPERATURE:g}]")
-        if self.top_k < 0:
-            raise ValueError("top_k must be >= 0 (0 disables it)")
-        if not 0 < self.top_p <= 1:
-            raise ValueError("top_p must be in (0, 1]")
-        if self.max_vertices < 3:
-            raise ValueError("max_vertices must be at least 3")
+    ``integer`` parameters must be Python ints; the others anything ``float`` reads.  With ``zero``, 0 is
+    accepted too (below ``lo``: a value that switches a feature off).
+    """
+
+    lo: float
+    hi: float
+    integer: bool = True
+    lo_open: bool = False
+    zero: bool = False
+
+    def check(self, name: str, value, hi: float | None = None) -> None:
+        """Raise ValueError naming ``name`` unless ``value`` lies in the bound (``hi`` lowers its top)."""
+        hi = self.hi if hi is None else hi
+        if self.integer:
+            if not (isinstance(value, int) and self.lo <= value <= hi):
+                raise ValueError(f"{name} must be an integer in [{self.lo}, {hi}]")
+            return
+        try:
+            x = float(value)
+        except (TypeError, ValueError):
+            x = float("nan")  # fails every comparison below
+        above_lo = x > self.lo if self.lo_open else x >= self.lo
+        if not ((self.zero and x == 0) or (above_lo and x <= hi)):
+            raise ValueError(f"{name} must be {'0 or ' if self.zero else ''}in "
+                             f"{'(' if self.lo_open else '['}{self.lo:g}, {hi:g}]")
+
+    def form_range(self) -> dict:
+        """``ge``/``le`` of a form field or schema holding this bound."""
+        return {"gt" if self.lo_open else "ge": self.lo, "le": self.hi}
+
+
+BOUNDS = {
+    # Candidate k samples with seed + k: every such seed must stay a valid int64 generator seed.
+    "seed": Bound(0, 2**63 - 1 - MAX_CANDIDATES),
+    "temperature": Bound(MIN_TEMPERATURE, MAX_TEMPERATURE, integer=False, zero=True),  # 0: greedy
+    "top_k": Bound(0, 1_000_000),  # 0 disables it; the cap keeps the number a sane size
+    "top_p": Bound(0.0, 1.0, integer=False, lo_open=True),
+    "max_vertices": Bound(3, 1_000_000),  # the decoder's own limit lowers the top (``validate``)
+    "candidates": Bound(1, MAX_CANDIDATES),
+    "target_faces": Bound(*TARGET_FACES),
+}
 
 
 @dataclass
 class GenerateParams:
-    """User-facing generation settings (the service's form fields have the same names)."""
+    """User-facing generation settings (the service's form fields have the same names).
+
+    Where a default is None the pipeline decides: ``max_vertices`` the vertex model's limit,
+    ``target_faces`` the face count (the model chooses it itself).
+    """
 
     seed: int = 0
     temperature: float = 0.3
     top_k: int = 50
     top_p: float = 0.95
-    max_vertices: int | None = None  # None: the vertex model's own limit
+    max_vertices: int | None = None
     enhancer: bool = True
     filtering: bool = True
     candidates: int = 2  # meshes made (seeds seed, seed+1, ...); the one nearest the input is returned
-    target_faces: int | None = None  # faces asked for; None: the model chooses the count itself
+    target_faces: int | None = None
 
-    def validate(self, limit: int = 4000) -> None:
-        """Raise ValueError naming the first bad field."""
-        if not isinstance(self.seed, int) or not 0 <= self.seed < 2**63 - MAX_CANDIDATES:
-            raise ValueError(f"seed must be an integer in [0, 2^63 - {MAX_CANDIDATES})")
-        if not isinstance(self.candidates, int) or not 1 <= self.candidates <= MAX_CANDIDATES:
-            raise ValueError(f"candidates must be an integer in [1, {MAX_CANDIDATES}]")
-        lo, hi = TARGET_FACES
-        if self.target_faces is not None and (not isinstance(self.target_faces, int)
-                                              or not lo <= self.target_faces <= hi):
-            raise ValueError(f"target_faces must be an integer in [{lo}, {hi}]")
-        if self.max_vertices is not None and not 3 <= self.max_vertices <= limit:
-            raise ValueError(f"max_vertices must be in [3, {limit}]")
-        self.sampling(limit).validate()
+    def validate(self, limit: int = LARGEST_VERTEX_LIMIT) -> None:
+        """Raise ValueError naming the first bad field; ``limit`` is the vertex decoder's ``max_vertices``."""
+        for name, bound in BOUNDS.items():
+            value = getattr(self, name)
+            if value is None and getattr(GenerateParams, name) is None:  # unset: the pipeline decides
+                continue
+            bound.check(name, value, hi=min(bound.hi, limit) if name == "max_vertices" else None)
 
-    def sampling(self, limit: int):
+    def sampling(self, limit: int) -> SamplingConfig:
         """The decoder's ``SamplingConfig`` with ``max_vertices`` resolved against ``limit``."""
         max_v = limit if self.max_vertices is None else min(int(self.max_vertices), limit)
         return SamplingConfig(temperature=float(self.temperature), top_k=int(self.top_k), top_p=float(self.top_p),
                               max_vertices=max_v, seed=int(self.seed))
+
+
+@dataclass(frozen=True)
+class SamplingConfig:
+    """What the vertex decoder's sampling loop reads: ``GenerateParams``' sampling fields, with their defaults,
+    and a resolved vertex budget.  ``GenerateParams.sampling`` builds one from a request."""
+
+    temperature: float = GenerateParams.temperature
+    top_k: int = GenerateParams.top_k
+    top_p: float = GenerateParams.top_p
+    max_vertices: int = DEFAULT_VERTEX_LIMIT
+    seed: int = GenerateParams.seed
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first field outside ``BOUNDS``."""
+        for f in fields(self):
+            BOUNDS[f.name].check(f.name, getattr(self, f.name))

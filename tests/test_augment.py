@@ -7,6 +7,7 @@ import trimesh
 
 from fastmesh.metrics import edges_from_faces
 from fastmesh.tokenizer import dequantize, quantize_mesh
+from fastmesh.tokenizer.grid import CELL
 from fastmesh.training.augment import AugmentConfig, perturb_vertex_set
 
 
@@ -49,7 +50,7 @@ def test_extra_vertices_split_faces_on_the_surface():
     for p in dequantize(np.array(sorted(new))):
         closest = trimesh.triangles.closest_point(tri, np.repeat(p[None], len(tri), 0))
         dist = np.linalg.norm(closest - p, axis=1).min()
-        assert dist <= np.sqrt(3) / 2 / 128 + 1e-9  # rounded to the cell of a point on a face
+        assert dist <= np.sqrt(3) / 2 * CELL + 1e-9  # rounded to the cell of a point on a face
     assert _closed(q2, f2)
 
 

@@ -25,6 +25,7 @@ from fastmesh.models.evidence import GAIN
 from fastmesh.models.generate import SamplingConfig, generate, generate_uncached
 from fastmesh.models.vertex import VertexConfig, VertexDecoder
 from fastmesh.tokenizer import vertex as vt
+from fastmesh.tokenizer.grid import join_cells
 
 torch.set_num_threads(1)
 
@@ -158,11 +159,11 @@ def test_decoder_reads_the_cell_log_odds():
                 assert diff[r, t, vt.OFFSET0:].abs().max() == 0  # no block yet: no offset evidence
                 continue
             o = torch.arange(vt.N_OFFSETS)
-            cell = torch.stack([b // 64 * 16 + o // 256, (b // 8) % 8 * 16 + (o // 16) % 16, b % 8 * 16 + o % 16], 1)
+            cell = join_cells(torch.full_like(o, b), o)
             want = m.evidence.cell_gain * (grid[r, flat_index(cell)] - FLOOR)
             assert torch.allclose(diff[r, t, vt.OFFSET0:], want, atol=1e-4)
     # The expected vertex count of a block is the sum of its cells' probabilities.
-    p = torch.sigmoid(grid[0]).reshape(128, 128, 128)
+    p = torch.sigmoid(grid[0]).reshape(CELLS, CELLS, CELLS)
     assert torch.allclose(ev.cell_expected[0, 7], p[0:16, 0:16, 112:128].sum(), rtol=1e-4)
 
 

@@ -8,6 +8,7 @@ import torch
 from fastmesh.models.encoder import EncoderConfig
 from fastmesh.models.enhancer import Enhancer, EnhancerConfig
 from fastmesh.tokenizer import dequantize
+from fastmesh.tokenizer.grid import CELL, LEVELS
 
 torch.set_num_threads(1)
 
@@ -20,7 +21,7 @@ def _model(seed: int = 0) -> Enhancer:
 
 def _shape(n: int = 30, seed: int = 0):
     rng = np.random.default_rng(seed)
-    q = np.unique(rng.integers(0, 128, (2 * n, 3)), axis=0)[:n]
+    q = np.unique(rng.integers(0, LEVELS, (2 * n, 3)), axis=0)[:n]
     pts = rng.uniform(-0.5, 0.5, (64, 3)).astype(np.float32)
     nrm = rng.normal(size=(64, 3)).astype(np.float32)
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
@@ -48,8 +49,8 @@ def test_refine_stays_inside_each_cell():
         m.head.weight.mul_(1e3)
     v = m.refine(q, pts, nrm)
     assert v.shape == (30, 3) and v.dtype == np.float64
-    assert np.abs(v - dequantize(q)).max() <= 0.5 / 128 + 1e-12
-    assert np.abs(v - dequantize(q)).max() > 0.1 / 128
+    assert np.abs(v - dequantize(q)).max() <= 0.5 * CELL + 1e-12
+    assert np.abs(v - dequantize(q)).max() > 0.1 * CELL
     assert m.refine(np.zeros((0, 3), dtype=np.int64), pts, nrm).shape == (0, 3)
 
 

@@ -14,6 +14,7 @@ from fastmesh.metrics import edges_from_faces
 from fastmesh.models.encoder import EncoderConfig
 from fastmesh.models.face import FaceModel, FaceModelConfig, asymmetric_loss
 from fastmesh.tokenizer import quantize_mesh
+from fastmesh.tokenizer.grid import LEVELS
 from fastmesh.training.tasks import face_training_mask
 
 torch.set_num_threads(1)
@@ -29,7 +30,7 @@ def tiny_config(**kw) -> FaceModelConfig:
 
 def _shape(n: int = 20, seed: int = 0):
     rng = np.random.default_rng(seed)
-    q = np.unique(rng.integers(0, 128, (n * 2, 3)), axis=0)[:n]
+    q = np.unique(rng.integers(0, LEVELS, (n * 2, 3)), axis=0)[:n]
     pts = rng.uniform(-0.5, 0.5, (64, 3)).astype(np.float32)
     nrm = rng.normal(size=(64, 3)).astype(np.float32)
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
@@ -79,7 +80,7 @@ def test_attention_mask_blocks_attention(bias):
     m = _model(distance_bias=bias)
     q, pts, nrm = _shape(12)
     q2 = q.copy()
-    q2[5] = (q2[5] + 17) % 128  # move vertex 5
+    q2[5] = (q2[5] + 17) % LEVELS  # move vertex 5
     mask = torch.ones(1, 12, 12, dtype=torch.bool)
     mask[0, 0] = False  # vertex 0 sees nobody but itself (and the prefix)
     with torch.no_grad():

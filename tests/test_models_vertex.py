@@ -11,6 +11,7 @@ from fastmesh.models.evidence import GAIN, SPREAD_EDGES
 from fastmesh.models.generate import SamplingConfig, filter_logits, generate, generate_uncached, token_probs
 from fastmesh.models.vertex import VertexConfig, VertexDecoder
 from fastmesh.tokenizer import vertex as vt
+from fastmesh.tokenizer.grid import quantize, split_cells
 
 torch.set_num_threads(1)
 
@@ -80,8 +81,7 @@ def test_evidence_bias_counts_points_around_each_candidate_cell():
     m = _model(0, evidence=True)
     pts = torch.tensor([[[0.01, 0.01, 0.01]] * 5 + [[-0.45, -0.45, -0.45]]])  # 5 points in one cell, 1 far away
     ev = m.point_evidence(pts)
-    cell = ((pts[0, 0] + 0.5) * 128).floor().long()  # (65, 65, 65): block (4, 4, 4), offset (1, 1, 1)
-    blk = int((cell[0] // 16) * 64 + (cell[1] // 16) * 8 + cell[2] // 16)
+    blk = int(split_cells(quantize(pts[0, 0]))[0])  # cell (65, 65, 65): block (4, 4, 4), offset (1, 1, 1)
     bias = ev.logit_bias(torch.tensor([[blk, -1]]))
     tab, btab = GAIN * m.evidence.table.weight[:, 0], GAIN * m.evidence.block_table.weight[:, 0]
     stab, etab = GAIN * m.evidence.skip_table.weight[:, 0], GAIN * m.evidence.eos_table.weight[:, 0]

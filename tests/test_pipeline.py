@@ -21,6 +21,7 @@ from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weights_dir
 from fastmesh.quality import mesh_quality
 from fastmesh.support import surface_fit
+from fastmesh.tokenizer.grid import CELL
 
 torch.set_num_threads(1)
 
@@ -42,7 +43,7 @@ def test_generate_returns_mesh_in_input_frame(pipe):
     assert res.faces.max() < len(res.vertices)
     lo, hi = shape.bounds
     # Outputs are back in the input's frame: inside its bounding box (plus half a 7-bit cell).
-    tol = (hi - lo).max() / 128
+    tol = (hi - lo).max() * CELL
     assert (res.vertices >= lo - tol).all() and (res.vertices <= hi + tol).all()
     assert set(res.timings) == {"encode", "vertices", "enhancer", "faces", "filtering"}
     assert all(v >= 0 for v in res.timings.values())

@@ -8,17 +8,19 @@ import trimesh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fastmesh.tokenizer import bpt, dequantize, quantize, quantize_mesh, sort_key, vanilla, vertex
+from fastmesh.tokenizer import bpt, dequantize, grid, quantize, quantize_mesh, sort_key, vanilla, vertex
+from fastmesh.tokenizer.grid import LEVELS
 
 SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
-cells = st.lists(st.tuples(*[st.integers(0, 127)] * 3), min_size=1, max_size=80)
+cell = st.tuples(*[st.integers(0, LEVELS - 1)] * 3)
+cells = st.lists(cell, min_size=1, max_size=80)
 
 
 @st.composite
 def meshes(draw, max_vertices: int = 40, max_faces: int = 80):
     """Random quantised meshes: cells (repeats allowed) and faces (degenerate ones allowed)."""
-    q = np.array(draw(st.lists(st.tuples(*[st.integers(0, 127)] * 3), min_size=3, max_size=max_vertices)))
+    q = np.array(draw(st.lists(cell, min_size=3, max_size=max_vertices)))
     n = len(q)
     f = np.array(draw(st.lists(st.tuples(*[st.integers(0, n - 1)] * 3), min_size=1, max_size=max_faces)))
     return q, f.reshape(-1, 3)
@@ -83,16 +85,65 @@ def test_vertex_decode_strict_errors():
     out = vertex.decode([vertex.BOS, vertex.BLOCK0, vertex.OFFSET0 + 5, vertex.OFFSET0 + 5, vertex.EOS], strict=False)
     assert len(out) == 1
     with pytest.raises(ValueError):
-        vertex.encode(np.array([[0, 0, 128]]))
+        vertex.encode(np.array([[0, 0, LEVELS]]))
 
 
 def test_quantize_round_trip_within_half_cell():
     rng = np.random.default_rng(0)
     v = rng.uniform(-0.5, 0.5, size=(1000, 3))
     q = quantize(v)
-    assert q.min() >= 0 and q.max() <= 127
-    assert np.abs(dequantize(q) - v).max() <= 0.5 / 128 + 1e-12
+    assert q.min() >= 0 and q.max() <= LEVELS - 1
+    assert np.abs(dequantize(q) - v).max() <= 0.5 * grid.CELL + 1e-12
     assert np.array_equal(quantize(dequantize(q)), q)
+
+
+# --------------------------------------------------------------------------- the grid
+
+
+def test_grid_bit_layout():
+    """Cell (65, 66, 127) is block (4, 4, 7), offset (1, 2, 15): ids x major, key = block * 4096 + offset."""
+    block, offset = grid.split_cells(np.array([65, 66, 127]))
+    assert (block, offset) == (4 * 64 + 4 * 8 + 7, 1 * 256 + 2 * 16 + 15)
+    assert sort_key(np.array([[65, 66, 127]])).tolist() == [block * 4096 + offset]
+    assert grid.flat_index(np.array([65, 66, 127])) == (65 * 128 + 66) * 128 + 127
+    assert quantize(np.array([-0.5, 0.5, 0.5 - 1e-9])).tolist() == [0, 127, 127]  # the faces close the cube
+
+
+@SETTINGS
+@given(c=cells)
+def test_grid_split_join_and_flat_are_inverses(c):
+    q = np.array(c)
+    assert np.array_equal(grid.join_cells(*grid.split_cells(q)), q)
+    assert np.array_equal(grid.cells_from_keys(sort_key(q)), q)
+    assert np.array_equal(grid.unflat_index(grid.flat_index(q)), q)
+    block, offset = grid.split_cells(q)
+    assert np.array_equal(grid.split_key(sort_key(q))[0], block) and np.array_equal(grid.block_coords(block), q >> 4)
+    assert np.array_equal(grid.offset_coords(offset), q % 16)
+    for res in (2, 8, 64):  # the coarse grids of the evidence
+        assert np.array_equal(grid.unflat_index(grid.flat_index(q % res, res), res), q % res)
+
+
+def test_grid_numpy_and_torch_agree():
+    torch = pytest.importorskip("torch")
+    rng = np.random.default_rng(0)
+    v = np.concatenate([rng.uniform(-0.6, 0.6, (500, 3)), [[-0.5, 0.5, 0.0], [0.5 - 1e-7, -0.5 + 1e-7, 1.0]]])
+    q = quantize(v)
+    assert np.array_equal(quantize(torch.from_numpy(v)).numpy(), q)  # float64 in: the same floors
+    assert quantize(torch.from_numpy(v)).dtype == torch.int64
+    qt = torch.from_numpy(q)
+    centres = dequantize(qt)
+    assert centres.dtype == torch.float32 and np.allclose(centres.numpy(), dequantize(q), atol=1e-7)
+    assert np.array_equal(dequantize(qt.double()).numpy(), dequantize(q))
+    assert np.array_equal(grid.grid_coords(torch.from_numpy(v)).numpy(), grid.grid_coords(v))
+    block, offset = grid.split_cells(q)
+    tb, to = grid.split_cells(qt)
+    assert np.array_equal(tb.numpy(), block) and np.array_equal(to.numpy(), offset)
+    assert np.array_equal(grid.join_cells(tb, to).numpy(), grid.join_cells(block, offset))
+    assert np.array_equal(grid.sort_key(qt).numpy(), sort_key(q))
+    assert np.array_equal(grid.cells_from_keys(torch.from_numpy(sort_key(q))).numpy(), q)
+    assert np.array_equal(grid.flat_index(qt).numpy(), grid.flat_index(q))
+    assert np.array_equal(grid.unflat_index(grid.flat_index(qt)).numpy(), q)
+    assert grid.unflat_index(torch.arange(5, dtype=torch.int32)).dtype == torch.int64
 
 
 # --------------------------------------------------------------------------- vanilla

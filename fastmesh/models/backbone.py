@@ -24,13 +24,9 @@ import math
 import torch
 from torch import nn
 
+from ..tokenizer.grid import dequantize
 from .encoder import EncoderConfig, PointEncoder
 from .layers import Block, CoordEmbedding, RMSNorm, fourier_features
-
-
-def cell_centres(q: torch.Tensor) -> torch.Tensor:
-    """(…, 3) int cells -> (…, 3) float cell centres in the unit cube (``tokenizer.dequantize``)."""
-    return (q.float() + 0.5) / 128.0 - 0.5
 
 
 def full_attention_mask(valid: torch.Tensor, n_prefix: int, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -88,7 +84,7 @@ class VertexSetBackbone(nn.Module):
         """
         if valid is None:
             valid = torch.ones(q.shape[:2], dtype=torch.bool, device=q.device)
-        x = self.cell_emb(q) + self.pos_proj(fourier_features(cell_centres(q), self.n_freqs))
+        x = self.cell_emb(q) + self.pos_proj(fourier_features(dequantize(q), self.n_freqs))
         if extra is not None:
             x = x + extra
         m = prefix.shape[1]
@@ -101,7 +97,7 @@ class VertexSetBackbone(nn.Module):
         # Additive float mask: -inf where not allowed, -slope * distance among vertices.
         dev = q.device
         dtype = torch.get_autocast_dtype(dev.type) if torch.is_autocast_enabled(dev.type) else x.dtype
-        c = cell_centres(q)
+        c = dequantize(q)
         dist = torch.cdist(c, c)  # (B, N, N)
         blocked = torch.zeros(attn.shape, dtype=dtype, device=dev).masked_fill(~attn, float("-inf"))
         for i, layer in enumerate(self.layers):

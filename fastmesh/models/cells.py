@@ -33,25 +33,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..tokenizer.quantize import LEVELS as CELLS
-from .evidence import _flat
+from ..tokenizer.grid import LEVELS as CELLS
+from ..tokenizer.grid import N_CELLS, flat_index, grid_coords, quantize, unflat_index
 
 SHIFTS = (1, 2, 3, 4)  # coarse cells of 2, 4, 8, 16 cells: neighbourhoods 6 to 48 cells wide
 CANDIDATE_RADIUS = 2  # cells within this Chebyshev distance of a point's cell are candidates
 PER_SCALE = 10
 N_FEATURES = PER_SCALE * len(SHIFTS) + 1
 _NEIGHBOURS = torch.tensor([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
-
-
-def flat_index(cells: torch.Tensor) -> torch.Tensor:
-    """(…, 3) int cells -> (…) flat index in the 128^3 grid (x major), as ``dense_grid`` lays it out."""
-    return _flat(cells.long(), CELLS)
-
-
-def unflat_index(flat: torch.Tensor) -> torch.Tensor:
-    """(…) flat index in the 128^3 grid -> (…, 3) int64 cells: the inverse of ``flat_index``."""
-    flat = flat.long()
-    return torch.stack([flat // (CELLS * CELLS), (flat // CELLS) % CELLS, flat % CELLS], -1)
 
 
 def candidate_cells(points: torch.Tensor, radius: int = CANDIDATE_RADIUS) -> tuple[torch.Tensor, torch.Tensor]:
@@ -66,14 +55,14 @@ def candidate_cells(points: torch.Tensor, radius: int = CANDIDATE_RADIUS) -> tup
     cells : (C, 3) int64, sorted by flat index
     nearest : (C,) float64, distance from each cell's centre to the nearest point, in cells
     """
-    u = (points.double() + 0.5) * CELLS
-    own = u.floor().clamp(0, CELLS - 1).long()
+    u = grid_coords(points.double())
+    own = quantize(points.double())
     r = torch.arange(-radius, radius + 1)
     offs = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
     around = (own[:, None] + offs[None]).reshape(-1, 3)
     dist = (u[:, None] - (around.reshape(len(u), -1, 3) + 0.5)).norm(dim=-1).reshape(-1)
     ok = ((around >= 0) & (around < CELLS)).all(-1)
-    flat, inv = torch.unique(_flat(around[ok], CELLS), return_inverse=True)
+    flat, inv = torch.unique(flat_index(around[ok]), return_inverse=True)
     nearest = torch.full((len(flat),), float("inf"), dtype=dist.dtype).scatter_reduce(0, inv, dist[ok], "amin")
     return unflat_index(flat), nearest
 
@@ -93,7 +82,8 @@ def cell_features(points: torch.Tensor, normals: torch.Tensor, cells: torch.Tens
     -------
     (C, N_FEATURES) float32
     """
-    u = (points.double() + 0.5) * CELLS  # positions in cell units
+    u = grid_coords(points.double())  # positions in cell units
+    own = quantize(points.double())
     n = normals.double()
     centre = cells.double() + 0.5
     # Per point: 1, u, upper(u u^T), upper(n n^T).
@@ -102,14 +92,14 @@ def cell_features(points: torch.Tensor, normals: torch.Tensor, cells: torch.Tens
     feats = []
     for s in SHIFTS:
         res = CELLS >> s
-        coarse = u.floor().long().clamp(0, CELLS - 1) >> s
+        coarse = own >> s
         around = (coarse[:, None] + _NEIGHBOURS[None]).reshape(-1, 3)  # (P*27, 3)
         ok = ((around >= 0) & (around < res)).all(-1)
-        keys, inv = torch.unique(_flat(around[ok], res), return_inverse=True)
+        keys, inv = torch.unique(flat_index(around[ok], res), return_inverse=True)
         sums = torch.zeros(len(keys), mom.shape[1], dtype=u.dtype)
         sums.index_add_(0, inv, mom.repeat_interleave(27, 0)[ok])
         shape = _key_features(sums)  # per coarse key: what does not depend on the cell
-        ck = _flat(cells >> s, res)
+        ck = flat_index(cells >> s, res)
         pos = torch.searchsorted(keys, ck).clamp(max=len(keys) - 1)
         hit = keys[pos] == ck
         feats.append(_cell_features(shape, pos, hit, centre, float(1 << s)))
@@ -202,7 +192,7 @@ def dense_grid(cells: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
 
 def dense_grid_flat(flat, logits) -> torch.Tensor:
     """(C,) flat cell indices and their log-odds -> (128^3,) float32 grid, ``FLOOR`` elsewhere."""
-    grid = torch.full((CELLS ** 3,), FLOOR)
+    grid = torch.full((N_CELLS,), FLOOR)
     grid[torch.as_tensor(np.asarray(flat), dtype=torch.long)] = torch.as_tensor(
         np.asarray(logits, dtype=np.float32)).clamp(min=FLOOR)
     return grid

@@ -20,8 +20,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..tokenizer import dequantize
-from .backbone import VertexSetBackbone, cell_centres
+from ..tokenizer.grid import LEVELS, dequantize
+from .backbone import VertexSetBackbone
 from .encoder import EncoderConfig
 from .layers import init_weights
 
@@ -59,13 +59,13 @@ class LocalPoints(nn.Module):
         g = idx.reshape(b, n * k, 1).expand(-1, -1, 3)
         nb = torch.gather(points, 1, g).view(b, n, k, 3)
         nrm = torch.gather(normals, 1, g).view(b, n, k, 3)
-        scale = 128.0 / self.range
+        scale = LEVELS / self.range
         off = nb - centres[:, :, None]
         # Tangent-plane offset of each neighbour: the displacement that puts the cell centre on
         # that point's plane.  Explicit because an MLP approximates this bilinear form poorly.
         plane = (off * nrm).sum(-1, keepdim=True)
         feats = torch.cat([(off * scale).clamp(-1, 1), nrm, (dist * scale).clamp(max=1)[..., None],
-                           (plane * 128.0).clamp(-2, 2), (plane * nrm * 128.0).clamp(-2, 2)], dim=-1)  # cells
+                           (plane * LEVELS).clamp(-2, 2), (plane * nrm * LEVELS).clamp(-2, 2)], dim=-1)  # cells
         feats = self.mlp(feats)
         return self.out(feats.max(dim=2).values)
 
@@ -87,7 +87,7 @@ class Enhancer(nn.Module):
                 valid: torch.Tensor | None = None) -> torch.Tensor:
         """q (B, N, 3) long, points/normals (B, P, 3), valid (B, N) bool -> (B, N, 3) residuals in cells."""
         prefix = self.backbone.condition(points, normals)
-        extra = None if self.local is None else self.local(cell_centres(q), points, normals)
+        extra = None if self.local is None else self.local(dequantize(q), points, normals)
         h = self.backbone(q, prefix, valid, extra=extra)
         return 0.5 * torch.tanh(self.head(h).float())
 
@@ -107,4 +107,4 @@ class Enhancer(nn.Module):
             res = self(torch.as_tensor(q, device=dev)[None],
                        torch.as_tensor(np.asarray(points, dtype=np.float32), device=dev)[None],
                        torch.as_tensor(np.asarray(normals, dtype=np.float32), device=dev)[None])
-        return dequantize(q) + res[0].double().cpu().numpy() / 128.0
+        return dequantize(q) + res[0].double().cpu().numpy() / LEVELS

@@ -59,11 +59,20 @@ import torch
 from torch import nn
 
 from ..tokenizer import vertex as vt
-from ..tokenizer.quantize import LEVELS as CELLS
+from ..tokenizer.grid import (
+    BLOCK_SIDE,
+    BLOCKS_PER_AXIS,
+    N_OFFSETS,
+    OFFSET_BITS,
+    block_coords,
+    flat_index,
+    offset_coords,
+    quantize,
+)
+from ..tokenizer.grid import LEVELS as CELLS
 
 SHIFTS = (1, 2, 3)  # cube sides 2, 4, 8 cells: the 2048 condition points cover a surface sparsely at 1 cell
 LEVELS = 6  # count levels 0, 1, 2-3, 4-7, 8-15, 16+
-BLOCK_SHIFT = 4  # a block is 16 cells per axis
 BLOCK_LEVELS = 8
 SEQ_LEVELS = 8  # occupied blocks remaining / skipped: 0, 1, 2-3, ..., 64+
 NORMAL_SHIFTS = (1, 2)  # cubes of side 2 and 4 cells for the normal spread
@@ -87,10 +96,10 @@ class Evidence:
                  cells: torch.Tensor | None = None):
         self.m = module
         b = points.shape[0]
-        point_cells = ((points.detach().float() + 0.5) * CELLS).floor().clamp(0, CELLS - 1).long()  # (B, P, 3)
+        point_cells = quantize(points.detach().float())  # (B, P, 3)
         self.levels = []  # per shift: (B, res^3) count level of every coarse cube
-        for s, n_levels in [(s, LEVELS) for s in SHIFTS] + [(BLOCK_SHIFT, BLOCK_LEVELS)]:
-            flat = _flat(point_cells >> s, CELLS >> s)
+        for s, n_levels in [(s, LEVELS) for s in SHIFTS] + [(OFFSET_BITS, BLOCK_LEVELS)]:
+            flat = flat_index(point_cells >> s, CELLS >> s)
             grid = torch.zeros(b, (CELLS >> s) ** 3, device=points.device)
             grid.scatter_add_(1, flat, torch.ones_like(flat, dtype=grid.dtype))
             self.levels.append(_level(grid, n_levels))
@@ -98,25 +107,25 @@ class Evidence:
         occupied = (self.levels[-1] > 0).float()  # (B, 512)
         self.occ_incl = occupied.cumsum(1)
         self.occ_excl = self.occ_incl - occupied
-        # The coarse index of cell (block * 16 + offset) is linear: base(block) + part(offset).
-        o = torch.arange(vt.N_OFFSETS, device=points.device)
-        oxyz = torch.stack([o // 256, (o // 16) % 16, o % 16], dim=-1)  # the tokenizer's bit layout
-        self.parts = [_flat(oxyz >> s, CELLS >> s) for s in SHIFTS]
+        # The coarse index of cell (block * BLOCK_SIDE + offset) is linear: base(block) + part(offset).
+        oxyz = offset_coords(torch.arange(N_OFFSETS, device=points.device))
+        self.parts = [flat_index(oxyz >> s, CELLS >> s) for s in SHIFTS]
         self.spread = None  # per NORMAL_SHIFTS: (B, res^3) spread state of every cube
         if module.corner_table is not None:
             if normals is None:
                 raise ValueError("this decoder's evidence reads the input normals: pass them")
             self.spread = [_spread_states(point_cells >> s, normals.detach().float(), CELLS >> s)
                            for s in NORMAL_SHIFTS]
-            self.spread_parts = [_flat(oxyz >> s, CELLS >> s) for s in NORMAL_SHIFTS]
+            self.spread_parts = [flat_index(oxyz >> s, CELLS >> s) for s in NORMAL_SHIFTS]
         self.cells = None  # (B, 128^3) cell log-odds
         if module.cell_gain is not None:
             if cells is None:
                 raise ValueError("this decoder's evidence reads the cell log-odds of models.cells: pass them")
             self.cells = cells.float().reshape(b, -1)
-            self.cell_part = _flat(oxyz, CELLS)
+            self.cell_part = flat_index(oxyz)
             # Expected vertices per block, in block id order (the block of cell (x, y, z) is its top 3 bits).
-            expected = torch.sigmoid(self.cells).reshape(b, 8, 16, 8, 16, 8, 16).sum((2, 4, 6)).reshape(b, -1)
+            per_block = (BLOCKS_PER_AXIS, BLOCK_SIDE) * 3  # (bx, ox, by, oy, bz, oz)
+            expected = torch.sigmoid(self.cells).reshape(b, *per_block).sum((2, 4, 6)).reshape(b, -1)
             self.cell_expected = expected
             self.cell_incl = expected.cumsum(1)
             self.cell_excl = self.cell_incl - expected
@@ -153,34 +162,29 @@ class Evidence:
     def _offset_rows(self, rows: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
         """(U,) shape index and block id (-1: none) -> (U, 4096) bias of every offset token."""
         blk = block.clamp(min=0)
-        bxyz = torch.stack([blk // 64, (blk // 8) % 8, blk % 8], dim=-1)  # (U, 3)
+        bxyz = block_coords(blk)  # (U, 3)
         idx = None
         for s, lev, part in zip(SHIFTS, self.levels, self.parts, strict=False):
-            lv = lev[rows[:, None], _flat(bxyz * (16 >> s), CELLS >> s)[:, None] + part]  # (U, 4096)
+            lv = lev[rows[:, None], flat_index(bxyz * (BLOCK_SIDE >> s), CELLS >> s)[:, None] + part]  # (U, 4096)
             idx = lv if idx is None else idx * LEVELS + lv
         bias = self.m.table(idx).squeeze(-1)
         if self.spread is not None:
             idx = None
             for s, st, part in zip(NORMAL_SHIFTS, self.spread, self.spread_parts, strict=True):
-                sv = st[rows[:, None], _flat(bxyz * (16 >> s), CELLS >> s)[:, None] + part]
+                sv = st[rows[:, None], flat_index(bxyz * (BLOCK_SIDE >> s), CELLS >> s)[:, None] + part]
                 idx = sv if idx is None else idx * SPREAD_STATES + sv
             bias = bias + self.m.corner_table(idx).squeeze(-1)
         bias = GAIN * bias
         if self.cells is not None:
-            cell = _flat(bxyz * 16, CELLS)[:, None] + self.cell_part  # (U, 4096) flat cells of the offsets
+            cell = flat_index(bxyz * BLOCK_SIDE)[:, None] + self.cell_part  # (U, 4096) flat cells of the offsets
             bias = bias + self.m.cell_gain * self.cells[rows[:, None], cell]
         return bias * (block >= 0)[:, None]  # no block yet: no evidence
-
-
-def _flat(c: torch.Tensor, res: int) -> torch.Tensor:
-    """(…, 3) coarse coordinates -> flat index in a res^3 grid."""
-    return (c[..., 0] * res + c[..., 1]) * res + c[..., 2]
 
 
 def _spread_states(coarse: torch.Tensor, normals: torch.Tensor, res: int) -> torch.Tensor:
     """(B, P, 3) coarse cells and (B, P, 3) unit normals -> (B, res^3) spread state (0: no points)."""
     b = coarse.shape[0]
-    flat = _flat(coarse, res)  # (B, P)
+    flat = flat_index(coarse, res)  # (B, P)
     # One sign per direction: the largest component positive (n and -n then agree).
     big = normals.abs().argmax(-1, keepdim=True)
     n = normals * torch.where(normals.gather(-1, big) < 0, -1.0, 1.0)

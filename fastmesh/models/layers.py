@@ -13,6 +13,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..tokenizer.grid import LEVELS
+
 
 class RMSNorm(nn.Module):
     def __init__(self, dim: int, eps: float = 1e-6):
@@ -104,7 +106,7 @@ class CoordEmbedding(nn.Module):
     with a few thousand training meshes.
     """
 
-    def __init__(self, dim: int, levels: int = 128):
+    def __init__(self, dim: int, levels: int = LEVELS):
         super().__init__()
         self.tables = nn.ModuleList([nn.Embedding(levels, dim) for _ in range(3)])
 

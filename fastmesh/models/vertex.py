@@ -20,8 +20,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..params import DEFAULT_VERTEX_LIMIT
 from ..tokenizer import vertex as vt
-from ..tokenizer.quantize import LEVELS
+from ..tokenizer.grid import BLOCK_SIDE, BLOCKS_PER_AXIS, block_coords, offset_coords, quantize
 from .encoder import EncoderConfig, PointEncoder
 from .evidence import Evidence, PointEvidence
 from .layers import Block, CoordEmbedding, RMSNorm, init_weights, rotary
@@ -33,7 +34,7 @@ class VertexConfig:
     depth: int = 6
     heads: int = 8
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
-    max_vertices: int = 1000  # the data variant it was trained on (1000 or 4000)
+    max_vertices: int = DEFAULT_VERTEX_LIMIT  # the data variant it was trained on (1000 or 4000)
     evidence: bool = False  # add the learned point-evidence logit bias (models.evidence)
     evidence_normals: bool = False  # ... and its normal-spread ("corner") table
     evidence_cells: bool = False  # ... and the cell log-odds of models.cells
@@ -99,7 +100,7 @@ class VertexDecoder(nn.Module):
         self.cond_proj = nn.Linear(cfg.encoder.dim, cfg.dim, bias=False)
         self.tok_emb = nn.Embedding(vt.VOCAB_SIZE, cfg.dim)
         self.cell_emb = CoordEmbedding(cfg.dim)  # full cell of an offset token
-        self.block_emb = CoordEmbedding(cfg.dim, levels=8)  # block coordinates of a block token
+        self.block_emb = CoordEmbedding(cfg.dim, levels=BLOCKS_PER_AXIS)  # block coordinates of a block token
         self.layers = nn.ModuleList([Block(cfg.dim, cfg.heads) for _ in range(cfg.depth)])
         self.norm = RMSNorm(cfg.dim)
         self.head = nn.Linear(cfg.dim, vt.VOCAB_SIZE, bias=False)
@@ -123,8 +124,7 @@ class VertexDecoder(nn.Module):
         latents, anchor_pts = self.encoder(points, normals, return_anchors=True)
         prefix = self.cond_proj(latents)
         if anchor_pts is not None:
-            cells = ((anchor_pts.float() + 0.5) * LEVELS).floor().clamp(0, LEVELS - 1).long()
-            prefix = prefix + self.cell_emb(cells)
+            prefix = prefix + self.cell_emb(quantize(anchor_pts.float()))
         if self.count_emb is not None:
             if target_faces is None:
                 target_faces = torch.zeros(prefix.shape[0], dtype=torch.long, device=prefix.device)
@@ -142,10 +142,8 @@ class VertexDecoder(nn.Module):
         x = self.tok_emb(tokens)
         is_block = ((tokens >= vt.BLOCK0) & (tokens < vt.OFFSET0))[..., None]
         is_off = (tokens >= vt.OFFSET0)[..., None]
-        b = block.clamp(min=0)
-        bxyz = torch.stack([b // 64, (b // 8) % 8, b % 8], dim=-1)
-        o = (tokens - vt.OFFSET0).clamp(min=0)
-        cell = bxyz * 16 + torch.stack([o // 256, (o // 16) % 16, o % 16], dim=-1)
+        bxyz = block_coords(block.clamp(min=0))
+        cell = bxyz * BLOCK_SIDE + offset_coords((tokens - vt.OFFSET0).clamp(min=0))
         return x + is_block * self.block_emb(bxyz) + is_off * self.cell_emb(cell)
 
     def _run(self, x: torch.Tensor, start: int, kv_cache=None, is_causal: bool = True) -> torch.Tensor:

@@ -1,6 +1,8 @@
-"""Tokenizers: FastMesh's vertex tokenizer, and vanilla / BPT whole-mesh baselines."""
+"""Tokenizers: FastMesh's vertex tokenizer, and vanilla / BPT whole-mesh baselines, on the 7-bit grid (``grid``)."""
 
-from . import bpt, vanilla, vertex
-from .quantize import LEVELS, clean_faces, dequantize, quantize, quantize_mesh, sort_key
+from . import bpt, grid, vanilla, vertex
+from .grid import LEVELS, dequantize, quantize, sort_key
+from .quantize import clean_faces, quantize_mesh
 
-__all__ = ["LEVELS", "bpt", "vanilla", "clean_faces", "dequantize", "quantize", "quantize_mesh", "sort_key", "vertex"]
+__all__ = ["LEVELS", "bpt", "grid", "vanilla", "clean_faces", "dequantize", "quantize", "quantize_mesh", "sort_key",
+           "vertex"]

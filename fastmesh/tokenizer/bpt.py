@@ -37,14 +37,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .quantize import sort_key
+from .grid import N_BLOCKS, N_OFFSETS, cells_from_keys, split_cells
 from .vanilla import canonical_mesh, mesh_from_soup
-from .vertex import cells_from_keys
 
 PAD, BOS, EOS = 0, 1, 2
 N_SPECIAL = 3
-N_BLOCKS = 512
-N_OFFSETS = 4096
 BLOCK0 = N_SPECIAL
 OFFSET0 = BLOCK0 + N_BLOCKS
 PATCH0 = OFFSET0 + N_OFFSETS
@@ -180,8 +177,7 @@ def encode(q: np.ndarray, faces: np.ndarray, oriented: bool = True,
     q, f = canonical_mesh(q, faces)
     seq, starts = patchify(f, len(q), oriented=oriented)
     seq = np.asarray(seq, dtype=np.int64)
-    key = sort_key(q)[seq]
-    block, offset = key // N_OFFSETS, key % N_OFFSETS
+    block, offset = split_cells(q[seq])
     is_centre = np.zeros(len(seq), dtype=bool)
     is_centre[starts] = True
     new_block = is_centre.copy()

@@ -1,38 +1,17 @@
-"""7-bit quantisation of normalised positions and the merge it implies.
+"""Quantising a normalised mesh onto the 7-bit grid (``tokenizer.grid``) and the merge it implies.
 
-A position v in [-0.5, 0.5] maps to the cell q = clip(floor((v + 0.5) * 128), 0, 127)
-per axis; decoding returns the cell *centre* (q + 0.5) / 128 - 0.5, so the
-round-trip error is at most half a cell (1/256 of the unit cube) per axis and the
-fidelity enhancer predicts a residual in [-0.5, 0.5) cells around that centre.
+Vertices sharing a cell become one; the mean continuous position of each merged cell is kept as
+the target of the fidelity enhancer, which predicts a residual in [-0.5, 0.5) cells around the
+cell centre.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-BITS = 7
-LEVELS = 1 << BITS  # 128 cells per axis
+from .grid import quantize, sort_key
 
-
-def quantize(v: np.ndarray) -> np.ndarray:
-    """(N, 3) float positions in the unit cube -> (N, 3) int64 cells in [0, 127]."""
-    return np.clip(np.floor((np.asarray(v, dtype=np.float64) + 0.5) * LEVELS), 0, LEVELS - 1).astype(np.int64)
-
-
-def dequantize(q: np.ndarray) -> np.ndarray:
-    """(N, 3) int cells -> (N, 3) float64 cell centres in (-0.5, 0.5)."""
-    return (np.asarray(q, dtype=np.float64) + 0.5) / LEVELS - 0.5
-
-
-def sort_key(q: np.ndarray) -> np.ndarray:
-    """Canonical vertex order: by block id, then offset id (see ``tokenizer.vertex``).
-
-    block*4096 + offset reorders the bits of (x, y, z) as (x_hi, y_hi, z_hi, x_lo, y_lo, z_lo).
-    """
-    q = np.asarray(q, dtype=np.int64)
-    block = (q[:, 0] >> 4) * 64 + (q[:, 1] >> 4) * 8 + (q[:, 2] >> 4)
-    offset = (q[:, 0] & 15) * 256 + (q[:, 1] & 15) * 16 + (q[:, 2] & 15)
-    return block * 4096 + offset
+__all__ = ["clean_faces", "quantize_mesh"]
 
 
 def quantize_mesh(v: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

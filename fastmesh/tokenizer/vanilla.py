@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .quantize import LEVELS, clean_faces, sort_key
-from .vertex import cells_from_keys
+from .grid import LEVELS, cells_from_keys, check_cells, sort_key
+from .quantize import clean_faces
 
 PAD, BOS, EOS = 0, 1, 2
 N_SPECIAL = 3
@@ -47,8 +47,7 @@ def canonical_mesh(q: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nda
     """
     q = np.asarray(q, dtype=np.int64).reshape(-1, 3)
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if len(q) and (q.min() < 0 or q.max() >= LEVELS):
-        raise ValueError("vertex cells must lie in [0, 127]")
+    check_cells(q)
     if faces.size and (faces.min() < 0 or faces.max() >= len(q)):
         raise ValueError("face indices out of range")
     keys, inverse = np.unique(sort_key(q), return_inverse=True)

@@ -15,12 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .quantize import sort_key
+from .grid import N_BLOCKS, N_OFFSETS, cells_from_keys, check_cells, sort_key, split_key
 
 PAD, BOS, EOS = 0, 1, 2
 N_SPECIAL = 3
-N_BLOCKS = 512
-N_OFFSETS = 4096
 BLOCK0 = N_SPECIAL
 OFFSET0 = N_SPECIAL + N_BLOCKS
 VOCAB_SIZE = N_SPECIAL + N_BLOCKS + N_OFFSETS  # 4611
@@ -33,10 +31,9 @@ def encode(q: np.ndarray) -> np.ndarray:
     the same tokens.
     """
     q = np.asarray(q, dtype=np.int64).reshape(-1, 3)
-    if len(q) and (q.min() < 0 or q.max() > 127):
-        raise ValueError("vertex cells must lie in [0, 127]")
+    check_cells(q)
     key = np.unique(sort_key(q))
-    block, offset = key // N_OFFSETS, key % N_OFFSETS
+    block, offset = split_key(key)
     new_block = np.ones(len(key), dtype=bool)
     new_block[1:] = block[1:] != block[:-1]
     n_tok = len(key) + int(new_block.sum())
@@ -86,18 +83,10 @@ def decode(tokens: np.ndarray, strict: bool = True) -> np.ndarray:
     return cells_from_keys(np.array(cells, dtype=np.int64))
 
 
-def cells_from_keys(key: np.ndarray) -> np.ndarray:
-    """Inverse of ``sort_key``: (N,) keys -> (N, 3) cells."""
-    block, offset = key // N_OFFSETS, key % N_OFFSETS
-    bx, by, bz = block // 64, (block // 8) % 8, block % 8
-    ox, oy, oz = offset // 256, (offset // 16) % 16, offset % 16
-    return np.stack([bx * 16 + ox, by * 16 + oy, bz * 16 + oz], axis=1).astype(np.int64)
-
-
 def num_tokens(q: np.ndarray) -> int:
     """Length of ``encode(q)`` without building it (BOS and EOS included)."""
     key = np.unique(sort_key(np.asarray(q).reshape(-1, 3)))
-    return len(key) + len(np.unique(key // N_OFFSETS)) + 2
+    return len(key) + len(np.unique(split_key(key)[0])) + 2
 
 
 def allowed_ranges(prev: int, block: int, offset: int) -> list[tuple[int, int]]:

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..io import sample_triangles
 from ..tokenizer import dequantize, quantize_mesh
-from ..tokenizer.quantize import LEVELS
+from ..tokenizer.grid import LEVELS
 
 
 @dataclass

@@ -19,7 +19,7 @@ from ..metrics import edge_metrics, edges_from_faces
 from ..models.checkpoint import config_from_dict, registry
 from ..tokenizer import dequantize
 from ..tokenizer import vertex as vt
-from ..tokenizer.quantize import LEVELS
+from ..tokenizer.grid import CELL, LEVELS, N_CELLS, flat_index, unflat_index
 from .augment import apply_symmetry, grid_symmetry, perturb_vertex_set, prepare_sample, symmetric_cells
 
 
@@ -108,11 +108,11 @@ def sparse_cells(ds, indices, syms=None) -> dict[str, torch.Tensor]:
     where the model runs; padding points at an extra cell past the grid.  ``syms`` (one per mesh,
     or None) moves each mesh's cells by a symmetry of ``augment.grid_symmetry``.
     """
-    from ..models.cells import FLOOR, flat_index, unflat_index
+    from ..models.cells import FLOOR
 
     stored = [ds.cells(int(i)) for i in indices]
     k = max(1, max(len(f) for f, _ in stored))
-    flat = torch.full((len(stored), k), LEVELS ** 3, dtype=torch.long)
+    flat = torch.full((len(stored), k), N_CELLS, dtype=torch.long)
     logit = torch.full((len(stored), k), FLOOR)
     for r, (f, lo) in enumerate(stored):
         f = torch.from_numpy(f.astype(np.int64))
@@ -127,7 +127,7 @@ def dense_cells(flat: torch.Tensor, logit: torch.Tensor) -> torch.Tensor:
     """(B, K) from ``sparse_cells`` -> (B, 128^3) float32 log-odds grids, ``FLOOR`` off the candidates."""
     from ..models.cells import FLOOR
 
-    grid = torch.full((len(flat), LEVELS ** 3 + 1), FLOOR, device=flat.device)
+    grid = torch.full((len(flat), N_CELLS + 1), FLOOR, device=flat.device)
     return grid.scatter_(1, flat, logit.float().clamp(min=FLOOR))[:, :-1]
 
 
@@ -179,7 +179,7 @@ class EnhancerTask(_SetTask):
         q, valid = _pad_cells([s[0] for s in samples])
         target = np.zeros(q.shape, dtype=np.float32)
         for r, s in enumerate(samples):
-            target[r, : len(s[0])] = np.clip((s[2] - dequantize(s[0])) * 128.0, -0.5, 0.5)
+            target[r, : len(s[0])] = np.clip((s[2] - dequantize(s[0])) / CELL, -0.5, 0.5)
         return {"q": q, "valid": valid, "target": torch.from_numpy(target), **_points_tensors(samples)}
 
     def loss(self, model, batch):
@@ -329,7 +329,7 @@ class CellTask:
         return np.ones(len(ds), dtype=np.int64)  # batch_cost = meshes per batch
 
     def make_batch(self, ds, indices, rng: np.random.Generator, cfg, train: bool) -> dict[str, torch.Tensor]:
-        from ..models.cells import CellNetConfig, candidate_cells, cell_features, flat_index
+        from ..models.cells import CellNetConfig, candidate_cells, cell_features
 
         n_points = int(cfg.model.get("n_points", CellNetConfig.n_points))
         feats, labels, weights = [], [], []

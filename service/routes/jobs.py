@@ -15,7 +15,7 @@ from fastapi import APIRouter, File, Form, Header, Query, Request, Response, Upl
 from fastapi.responses import JSONResponse
 
 from fastmesh.io import EXPORT_FORMATS, ShapeError, export_mesh, load_shape
-from fastmesh.params import MAX_CANDIDATES, TARGET_FACES
+from fastmesh.params import BOUNDS
 
 from ..deps import JobId, Owner, StoreDep, owned_job
 from ..errors import SHAPE_STATUS, ApiError
@@ -46,28 +46,28 @@ def jobs_router(settings: Settings) -> APIRouter:
                                                                "that request created"}})
     def submit(request: Request, who: Owner, store: StoreDep,
                file: UploadFile = File(..., description="Mesh or point cloud; the extension names the format."),
-               seed: int | None = Form(None, ge=0, le=2**32 - 1, description=f"Sampling seed ({d('seed')}).",
+               seed: int | None = Form(None, **BOUNDS["seed"].form_range(), description=f"Sampling seed ({d('seed')}).",
                                        examples=[0]),
                temperature: float | None = Form(None, allow_inf_nan=False,
                                                 description=f"Sampling temperature ({d('temperature')}).",
                                                 examples=[defaults.get("temperature")]),
-               top_k: int | None = Form(None, ge=0, le=1_000_000,
+               top_k: int | None = Form(None, **BOUNDS["top_k"].form_range(),
                                         description=f"Top-k sampling, 0 = off ({d('top_k')}).",
                                         examples=[defaults.get("top_k")]),
                top_p: float | None = Form(None, allow_inf_nan=False, description=f"Nucleus sampling ({d('top_p')}).",
                                           examples=[defaults.get("top_p")]),
-               max_vertices: int | None = Form(None, ge=3, le=1_000_000,
+               max_vertices: int | None = Form(None, **BOUNDS["max_vertices"].form_range(),
                                                description=f"Vertex budget; unset = the model's limit "
                                                            f"({d('max_vertices')}).",
                                                examples=[defaults.get("max_vertices")]),
                enhancer: bool | None = Form(None, description=f"Run the vertex enhancer ({d('enhancer')})."),
                filtering: bool | None = Form(None, description=f"Filter bad faces ({d('filtering')})."),
-               candidates: int | None = Form(None, ge=1, le=MAX_CANDIDATES,
+               candidates: int | None = Form(None, **BOUNDS["candidates"].form_range(),
                                              description="Meshes sampled (seeds seed, seed+1, ...); the one "
                                                          "nearest the input is returned; 1 is fastest "
                                                          f"({d('candidates')}).",
                                              examples=[defaults.get("candidates")]),
-               target_faces: int | None = Form(None, ge=TARGET_FACES[0], le=TARGET_FACES[1],
+               target_faces: int | None = Form(None, **BOUNDS["target_faces"].form_range(),
                                                description="Faces to aim for; unset = the model chooses the count "
                                                            "from the shape.", examples=[300]),
                formats: str | None = Form(None, description="Comma list of glb, obj, ply exported with the job "

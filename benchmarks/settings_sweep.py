@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import fastmesh.pipeline as pipeline_module  # noqa: E402
 from fastmesh.eval import pair_inputs  # noqa: E402
-from fastmesh.filtering import FilterConfig, edges_from_logits  # noqa: E402
+from fastmesh.filtering import FilterConfig, edges_from_logits, filter_predictions  # noqa: E402
 from fastmesh.io import Normalization, load_shape  # noqa: E402
 from fastmesh.metrics import surface_distance  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
@@ -58,17 +58,17 @@ def main() -> int:
 
     # Capture what the pipeline hands to its face stage, so each variant reuses the same vertices.
     seen: dict = {}
-    run_filter, build_mesh = pipeline_module.filter_predictions, pipeline_module.mesh_from_adjacency
+    run_edges, build_mesh = pipeline_module.predict_edges, pipeline_module.mesh_from_adjacency
 
-    def spy_filter(predict, n, cfg):
+    def spy_edges(predict, n, cfg, filtering=True):
         seen["predict"], seen["n"] = predict, n
-        return run_filter(predict, n, cfg)
+        return run_edges(predict, n, cfg, filtering)
 
-    def spy_mesh(positions, edges, cfg=None, points=None):
-        seen["positions"], seen["points"] = positions, points
-        return build_mesh(positions, edges, cfg, points=points)
+    def spy_mesh(positions, edges, cfg=None, points=None, logits=None):
+        seen["positions"], seen["points"], seen["logits"] = positions, points, logits
+        return build_mesh(positions, edges, cfg, points=points, logits=logits)
 
-    pipeline_module.filter_predictions, pipeline_module.mesh_from_adjacency = spy_filter, spy_mesh
+    pipeline_module.predict_edges, pipeline_module.mesh_from_adjacency = spy_edges, spy_mesh
     for temp in [float(t) for t in args.temperatures.split(",")]:
         rows: dict[tuple[str, bool], list] = {(k, d): [] for k in names for d in (False, True)}
         n_vert, t_vert = [], []
@@ -84,10 +84,11 @@ def main() -> int:
                 if isinstance(cfg, float):
                     edges = edges_from_logits(seen["predict"](np.arange(seen["n"]), None), cfg)
                 else:
-                    edges = run_filter(seen["predict"], seen["n"], cfg).edges
+                    edges = filter_predictions(seen["predict"], seen["n"], cfg).edges
                 for diag in (False, True):
                     cfg_faces = replace(pipe.face_config, drop_coplanar_diagonals=diag)  # the rest as shipped
-                    v, f = build_mesh(seen["positions"], edges, cfg_faces, points=seen["points"])
+                    v, f = build_mesh(seen["positions"], edges, cfg_faces, points=seen["points"],
+                                      logits=seen["logits"])
                     if len(f) == 0:
                         rows[k, diag].append([np.nan] * 6)
                         continue

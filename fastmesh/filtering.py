@@ -199,3 +199,30 @@ def _call(predict: Predictor, order: np.ndarray, mask: np.ndarray | None, n: int
     if logits.shape != (n, n):
         raise ValueError(f"predict returned shape {logits.shape}, expected {(n, n)}")
     return logits
+
+
+def predict_edges(predict: Predictor, n: int, config: FilterConfig, filtering: bool = True
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The face stage's edges among ``n`` vertices, and the logits of its first pass.
+
+    With ``filtering``: :func:`filter_predictions` (its first pass is the unmasked one).  Without: that
+    one unmasked pass in the input order, which is then also the last: cut at ``config.final_threshold``.
+
+    Returns
+    -------
+    edges : (E, 2) int64, i < j; logits : (n, n) float32 of the unmasked pass in the input order (used to
+    score candidate triangles).
+    """
+    first: list[np.ndarray] = []
+
+    def keep_first(order: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+        out = predict(order, mask)
+        if not first:
+            first.append(out)
+        return out
+
+    if filtering:
+        edges = filter_predictions(keep_first, n, config).edges
+    else:
+        edges = edges_from_logits(keep_first(np.arange(n), None), config.final_threshold)
+    return edges, first[0]

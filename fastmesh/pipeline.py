@@ -1,8 +1,18 @@
 """The two-stage FastMesh pipeline: load the networks once, then ``generate`` many times.
 
-    shape ──normalise──► surface samples ──► vertex decoder (tokens → 7-bit cells)
-          ──► fidelity enhancer (continuous positions) ──► face model (+ prediction filtering)
-          ──► triangles of mutually connected triplets ──► clean-up ──► back to the input's frame
+The stages as :meth:`Pipeline.generate` runs them (``STAGES`` names their timings and progress):
+
+    shape ──normalise──► surface samples                                      encode
+          ──► vertex decoder: tokens → 7-bit cells, K candidates in one batch vertices
+          then, per candidate:
+          ──► fidelity enhancer: continuous positions inside each cell        enhancer
+          ──► face model: edge logits of all pairs in one pass                faces
+          ──► prediction filtering: masked re-predictions (optional)          filtering
+          ──► triangles on the input surface: candidates that lie on it,      faces
+              chosen by the edge logits, kept a surface, holes closed
+              (``faces.mesh_from_adjacency``, ``surface_faces``)
+          ──► the candidate nearest the input surface (``support.surface_fit``) filtering
+          ──► back to the input's frame
 
 This is the Python API the CLI, the worker and the evaluation call::
 
@@ -16,7 +26,8 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -24,7 +35,7 @@ import numpy as np
 import torch
 
 from .faces import FaceConfig, mesh_from_adjacency
-from .filtering import FilterConfig, edges_from_logits, filter_predictions
+from .filtering import FilterConfig, Predictor, predict_edges
 from .io import Normalization, Shape, export_mesh, input_surface, sample_surface
 from .models.checkpoint import load_model, save_model
 from .models.encoder import EncoderConfig
@@ -41,10 +52,11 @@ __all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "
 NETWORKS = ("vertex", "enhancer", "face")
 CELLS = "cells"  # the cell evidence network (models.cells), needed by a decoder trained with it
 CELL_SEED = 0  # of the input sample the cell evidence reads
-# Share of the overall progress bar each stage covers (decoding dominates).  The candidates are
-# encoded and decoded together; each then has its share of the stages from the enhancer on.
-_STAGE_SPAN = {"encode": (0.0, 0.03), "vertices": (0.03, 0.80), "enhancer": (0.80, 0.83), "faces": (0.83, 0.90),
-               "filtering": (0.90, 1.0)}
+# The stages in the order they run, with the share of the progress bar each covers (decoding dominates).
+# The candidates are encoded and decoded together; each then has its share of the stages from the enhancer on.
+STAGES = (("encode", 0.0, 0.03), ("vertices", 0.03, 0.80), ("enhancer", 0.80, 0.83), ("faces", 0.83, 0.90),
+          ("filtering", 0.90, 1.0))
+_STAGE_SPAN = {name: (lo, hi) for name, lo, hi in STAGES}
 # torch CPU threads when neither the caller nor $FASTMESH_TORCH_THREADS says: decoding one sequence is a chain of
 # small matrix-vector products, and on our 2-core machine a second thread made generation slower, not faster.
 CPU_THREADS = 1
@@ -54,6 +66,44 @@ def default_weights_dir() -> Path:
     """The weights shipped inside the package (``fastmesh/weights``), or ``$FASTMESH_WEIGHTS``."""
     env = os.environ.get("FASTMESH_WEIGHTS")
     return Path(env) if env else Path(__file__).parent / "weights"
+
+
+@contextmanager
+def stage(name: str, timings: dict[str, float], report: Callable[[str, float], None] | None = None) -> Iterator[None]:
+    """Time the block into ``timings[name]`` (seconds add up over candidates); with ``report``, announce the
+    stage's start on the progress bar first."""
+    if report is not None:
+        report(name, _STAGE_SPAN[name][0])
+    t = time.perf_counter()
+    try:
+        yield
+    finally:
+        timings[name] += time.perf_counter() - t
+
+
+def _check(should_cancel: Callable[[], bool] | None) -> None:
+    if should_cancel is not None and should_cancel():
+        raise Cancelled("generation cancelled")
+
+
+def _timed(predict: Predictor, timings: dict[str, float], report: Callable[[str, float], None], should_cancel,
+           n_passes: int) -> Predictor:
+    """``predict`` timed as the stages count it: its first (unmasked) pass is the face stage, each masked
+    re-prediction is filtering, whose progress it reports; cancellation is checked before each pass."""
+    calls = 0
+    lo, hi = _STAGE_SPAN["filtering"]
+
+    def timed(order: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+        nonlocal calls
+        _check(should_cancel)
+        with stage("faces" if calls == 0 else "filtering", timings):
+            out = predict(order, mask)
+        calls += 1
+        if calls > 1:
+            report("filtering", lo + (hi - lo) * (calls - 1) / max(1, n_passes - 1))
+        return out
+
+    return timed
 
 
 class GenerationError(RuntimeError):
@@ -248,12 +298,11 @@ class Pipeline:
         norm = Normalization.fit(shape.vertices)
         unit = norm.apply(shape.vertices)
         n_cand = params.candidates if params.temperature > 0 else 1  # greedy decoding: one answer
-        timings = {"encode": 0.0, "vertices": 0.0, "enhancer": 0.0, "faces": 0.0, "filtering": 0.0}
+        timings = {name: 0.0 for name, _, _ in STAGES}
         # Candidate k is exactly what seed + k gives alone; all are scored against one sample of the input.
         reference = input_surface(shape, unit, self.face_config.support_points, params.seed) if n_cand > 1 else None
-        t = time.perf_counter()
-        cells = self._cell_grid(shape, unit)
-        timings["encode"] += time.perf_counter() - t
+        with stage("encode", timings):
+            cells = self._cell_grid(shape, unit)
         best, fits, errors = None, [], []
         decoded = self._decode(shape, unit, params, n_cand, report, should_cancel, timings, cells)
         rest = _STAGE_SPAN["enhancer"][0]
@@ -269,9 +318,8 @@ class Pipeline:
                 errors.append(err)
                 fits.append(None)
                 continue
-            t = time.perf_counter()
-            fit = surface_fit(cand["vertices"], cand["faces"], reference, params.seed) if n_cand > 1 else 0.0
-            timings["filtering"] += time.perf_counter() - t  # choosing among candidates: a filtering step
+            with stage("filtering", timings):  # choosing among candidates: a filtering step
+                fit = surface_fit(cand["vertices"], cand["faces"], reference, params.seed) if n_cand > 1 else 0.0
             fits.append(round(float(fit), 6))
             if best is None or fit < best["fit"]:
                 best = {**cand, "fit": fit, "seed": params.seed + k}
@@ -328,23 +376,18 @@ class Pipeline:
         seed gives alone.  Returns per candidate its (points, normals, tokens); adds the stage times
         to ``timings``.
         """
-        if should_cancel is not None and should_cancel():
-            raise Cancelled("generation cancelled")
+        _check(should_cancel)
         # Encode: sample the surface; each network reads its share.
-        t = time.perf_counter()
-        report("encode", 0.0)
         samples, prefixes, evidence = [], [], []
-        for k in range(n_cand):
-            pts, nrm, prefix, ev = self._encode(shape, unit, params.seed + k, params, cells)
-            samples.append((pts, nrm))
-            prefixes.append(prefix)
-            evidence.append(ev)
-        timings["encode"] += time.perf_counter() - t
-        if should_cancel is not None and should_cancel():
-            raise Cancelled("generation cancelled")
+        with stage("encode", timings, report):
+            for k in range(n_cand):
+                pts, nrm, prefix, ev = self._encode(shape, unit, params.seed + k, params, cells)
+                samples.append((pts, nrm))
+                prefixes.append(prefix)
+                evidence.append(ev)
+        _check(should_cancel)
 
         # Stage I: vertex tokens.
-        t = time.perf_counter()
         lo, hi = _STAGE_SPAN["vertices"]
         sampling = params.sampling(self.max_vertices)
         max_v = sampling.max_vertices
@@ -352,11 +395,10 @@ class Pipeline:
         def on_step(step: int, n_vert: int) -> None:
             report("vertices", lo + (hi - lo) * min(1.0, n_vert / max_v))
 
-        report("vertices", lo)
-        ev = None if evidence[0] is None else evidence[0] if n_cand == 1 else StackedEvidence(evidence)
-        seqs = generate(self.decoder, torch.cat(prefixes), sampling, progress=on_step, should_cancel=should_cancel,
-                        evidence=ev)
-        timings["vertices"] += time.perf_counter() - t
+        with stage("vertices", timings, report):
+            ev = None if evidence[0] is None else evidence[0] if n_cand == 1 else StackedEvidence(evidence)
+            seqs = generate(self.decoder, torch.cat(prefixes), sampling, progress=on_step,
+                            should_cancel=should_cancel, evidence=ev)
         return [(pts, nrm, seq.cpu().numpy()) for (pts, nrm), seq in zip(samples, seqs, strict=True)]
 
     def _candidate(self, shape: Shape, unit: np.ndarray, params: GenerateParams, seed: int, pts: np.ndarray,
@@ -364,61 +406,35 @@ class Pipeline:
                    timings: dict) -> dict:
         """One mesh from the vertex ``tokens`` decoded for ``seed`` on the surface sample ``pts``/``nrm``,
         in the normalised frame (``unit``: the shape's vertices there); adds its stage times to ``timings``."""
-
-        def check_cancel():
-            if should_cancel is not None and should_cancel():
-                raise Cancelled("generation cancelled")
-
         q = vt.decode(tokens, strict=True)
         if len(q) < 3:
             raise GenerationError("no_vertices", f"the vertex decoder produced {len(q)} vertices; try another seed")
-        check_cancel()
+        _check(should_cancel)
 
         # Fidelity enhancer: continuous positions inside each cell.
-        t = time.perf_counter()
-        report("enhancer", _STAGE_SPAN["enhancer"][0])
-        if params.enhancer:
-            n_ep = self.enhancer.cfg.encoder.n_points
-            positions = self.enhancer.refine(q, pts[:n_ep], nrm[:n_ep])
-        else:
-            positions = dequantize(q)
-        timings["enhancer"] += time.perf_counter() - t
-        check_cancel()
+        with stage("enhancer", timings, report):
+            if params.enhancer:
+                n_ep = self.enhancer.cfg.encoder.n_points
+                positions = self.enhancer.refine(q, pts[:n_ep], nrm[:n_ep])
+            else:
+                positions = dequantize(q)
+        _check(should_cancel)
 
         # Stage II: edges in one bidirectional pass, then (optionally) filtered re-predictions.
         report("faces", _STAGE_SPAN["faces"][0])
         n_fp = self.face.cfg.encoder.n_points
-        t = time.perf_counter()
-        predict = self.face.predictor(q, pts[:n_fp], nrm[:n_fp])
-        calls: list[float] = []
-        first: list[np.ndarray] = []  # logits of the unmasked pass, to score candidate faces
+        with stage("faces", timings):
+            predict = self.face.predictor(q, pts[:n_fp], nrm[:n_fp])  # encodes the condition once
+        predict = _timed(predict, timings, report, should_cancel, self.filter_config.n_passes)
+        edges, logits = predict_edges(predict, len(q), self.filter_config, params.filtering)
 
-        def timed(order, mask):
-            t0 = time.perf_counter()
-            check_cancel()
-            out = predict(order, mask)
-            if not first:
-                first.append(out)
-            calls.append(time.perf_counter() - t0)
-            if len(calls) > 1:
-                f0, f1 = _STAGE_SPAN["filtering"]
-                report("filtering", f0 + (f1 - f0) * (len(calls) - 1) / max(1, self.filter_config.n_passes - 1))
-            return out
-
-        if params.filtering:
-            edges = filter_predictions(timed, len(q), self.filter_config).edges
-        else:
-            edges = edges_from_logits(timed(np.arange(len(q)), None), 0.5)
-        total_face = time.perf_counter() - t
-        t = time.perf_counter()
-        surface = None  # the input surface the faces must lie on
-        fc = self.face_config
-        if fc.support_tol is not None or fc.max_faces_per_edge is not None or fc.selection == "surface":
-            surface = input_surface(shape, unit, fc.support_points, seed)
-        verts, faces = mesh_from_adjacency(positions, edges, fc, points=surface, logits=first[0] if first else None)
-        # The first pass and triangle extraction are the face stage; re-predictions are filtering.
-        timings["faces"] += (calls[0] if calls else total_face) + time.perf_counter() - t
-        timings["filtering"] += total_face - (calls[0] if calls else total_face)
+        # Triangles on the input surface, scored by the edge logits, kept a surface, holes closed.
+        with stage("faces", timings):
+            fc = self.face_config
+            surface = None
+            if fc.support_tol is not None or fc.max_faces_per_edge is not None or fc.selection == "surface":
+                surface = input_surface(shape, unit, fc.support_points, seed)
+            verts, faces = mesh_from_adjacency(positions, edges, fc, points=surface, logits=logits)
         if len(faces) == 0:
             raise GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")
         report("filtering", 1.0)

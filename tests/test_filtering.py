@@ -12,6 +12,7 @@ from fastmesh.filtering import (
     edges_from_logits,
     filter_predictions,
     neighbour_radius,
+    predict_edges,
     rcm_order,
 )
 from fastmesh.metrics import edge_metrics, edges_from_faces
@@ -125,3 +126,19 @@ def test_no_reorder_and_plain_threshold():
 def test_bad_predictor_shape():
     with pytest.raises(ValueError):
         filter_predictions(lambda order, mask: np.zeros((3, 3)), 4)
+
+
+def test_predict_edges_is_filtering_or_one_pass_at_the_final_threshold():
+    edges, n = _shuffled_grid(6, 3)
+    lg = _noisy_logits(edges, n, 4)
+    cfg = FilterConfig(final_threshold=0.7)
+    calls = []
+    got, first = predict_edges(_predictor(lg, calls), n, cfg)
+    np.testing.assert_array_equal(got, filter_predictions(_predictor(lg), n, cfg).edges)
+    np.testing.assert_array_equal(first, lg)  # the unmasked first pass, in the input order
+    assert len(calls) == cfg.n_passes and calls[0][1] is None
+    calls.clear()
+    got, first = predict_edges(_predictor(lg, calls), n, cfg, filtering=False)
+    np.testing.assert_array_equal(got, edges_from_logits(lg, 0.7))
+    np.testing.assert_array_equal(first, lg)
+    assert len(calls) == 1

@@ -29,8 +29,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..filtering import FilterConfig, edges_from_logits, filter_predictions
-from .backbone import VertexSetBackbone, cell_centres
+from ..filtering import FilterConfig, predict_edges
+from ..tokenizer.grid import dequantize
+from .backbone import VertexSetBackbone
 from .encoder import EncoderConfig
 from .layers import init_weights
 from .pairs import PAIR_FEATURES, PairContext, pair_context, pair_features
@@ -131,7 +132,7 @@ class FaceModel(nn.Module):
             return None
         if points is None or normals is None:
             raise ValueError("this face model reads pair evidence: it needs the input points and normals")
-        return pair_context(cell_centres(q), points, normals, self.cfg.pair_grid, self.cfg.pair_samples)
+        return pair_context(dequantize(q), points, normals, self.cfg.pair_grid, self.cfg.pair_samples)
 
     def edge_logits(self, h: torch.Tensor, chunk: int | None = None, pairs: PairContext | None = None) -> torch.Tensor:
         """(B, N, dim) vertex features -> (B, N, N) float32 edge logits, ``chunk`` rows at a time.
@@ -209,27 +210,17 @@ class FaceModel(nn.Module):
         """(E, 2) int64 predicted edges (i < j) among vertices ``q`` (N, 3).
 
         Without ``filtering``: one unmasked pass, edges where the symmetrised probability
-        exceeds 0.5.  With it: ``filtering.filter_predictions`` (re-predictions under masks).
+        exceeds 0.5.  With it: ``filtering.filter_predictions`` (re-predictions under masks); see
+        ``filtering.predict_edges``.
         With ``return_logits``: ``(edges, logits)``, the (N, N) float32 logits of the unmasked pass.
         """
         n = len(q)
         if n < 2:
             edges = np.zeros((0, 2), dtype=np.int64)
             return (edges, np.zeros((n, n), dtype=np.float32)) if return_logits else edges
-        predict = self.predictor(q, points, normals)
-        first: list[np.ndarray] = []
-
-        def keep_first(order: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
-            out = predict(order, mask)
-            if not first:  # the unmasked pass in the input order
-                first.append(out)
-            return out
-
-        if filtering is None:
-            edges = edges_from_logits(keep_first(np.arange(n), None), 0.5)
-        else:
-            edges = filter_predictions(keep_first, n, filtering).edges
-        return (edges, first[0]) if return_logits else edges
+        edges, logits = predict_edges(self.predictor(q, points, normals), n, filtering or FilterConfig(),
+                                      filtering is not None)
+        return (edges, logits) if return_logits else edges
 
 
 def _f32(a, device) -> torch.Tensor:

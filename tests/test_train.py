@@ -19,6 +19,7 @@ from fastmesh.cli import main
 from fastmesh.data import build_dataset, load_dataset
 from fastmesh.models.checkpoint import load_model
 from fastmesh.tokenizer import quantize
+from fastmesh.tokenizer.grid import LEVELS, N_CELLS
 from fastmesh.training.augment import apply_symmetry, grid_symmetry, symmetric_cells
 from fastmesh.training.tasks import dense_cells, sparse_cells
 
@@ -99,6 +100,22 @@ def test_train_each_network(cache, tmp_path, kind):
     model, meta = load_model(out)
     assert meta["kind"] == kind and meta["train"]["step"] == 4
     assert (out / "best" / "model.safetensors").exists() and (out / "train_state.pt").exists()
+
+
+def test_face_model_with_pair_evidence_trains_on_perturbed_vertex_sets(cache, tmp_path):
+    """The pair weights start at zero and move; a run that perturbs every sample sees other batches."""
+    model = {**TINY["face"]["model"], "pair_evidence": True}
+    rates = {"vertex_jitter": 0.2, "vertex_drop": 0.1, "vertex_extra": 0.1}
+    losses = []
+    for perturb in (0.0, 1.0):
+        out = tmp_path / f"p{perturb}"
+        cfg = _config(tmp_path, "face", model=model, augment={"perturb": perturb, **rates})
+        assert main(["train", "face", "--data", str(cache), "--out", str(out), "--config", str(cfg)]) == 0
+        net, meta = load_model(out)
+        assert net.cfg.pair_evidence and meta["train"]["step"] == 4
+        assert float(net.pair_fc.weight.abs().sum()) > 0
+        losses.append([r["loss"] for r in _log(out) if "loss" in r])
+    assert losses[0] != losses[1]
 
 
 @pytest.mark.parametrize("kind", ["face", "vertex"])
@@ -202,7 +219,7 @@ def test_decoder_reading_cell_evidence_trains_from_a_cell_cache(cache, tmp_path)
     ds = load_dataset(cell_cache)
     assert len(ds) == 4 and len(ds.indices("val")) == 1
     grid = ds.cell_logits(0)
-    assert grid.shape == (128 ** 3,) and (grid > -12).sum() > 0
+    assert grid.shape == (N_CELLS,) and (grid > -12).sum() > 0
     # worker processes score the same meshes from the same samples
     twin = load_dataset(_cell_cache(cache, cells_dir, tmp_path / "pooled.npz", "--train", "3", "--val", "1",
                                     "--workers", "2"))
@@ -241,13 +258,13 @@ def test_cube_symmetries_carry_cells_with_the_mesh():
     evidence of a mesh is valid for its moved copy."""
     rng = np.random.default_rng(3)
     v = rng.uniform(-0.5, 0.5, (500, 3))
-    frac = (v + 0.5) * 128 % 1
+    frac = (v + 0.5) * LEVELS % 1
     v = v[((frac > 0.01) & (frac < 0.99)).all(1)]  # not on a cell boundary, where rounding may go either way
     seen = set()
     for _ in range(40):
         sym = grid_symmetry(rng)
         seen.add((tuple(sym[0]), tuple(sym[1])))
-        np.testing.assert_array_equal(quantize(apply_symmetry(v, sym)), symmetric_cells(quantize(v), sym, 128))
+        np.testing.assert_array_equal(quantize(apply_symmetry(v, sym)), symmetric_cells(quantize(v), sym, LEVELS))
     assert len(seen) > 20  # many of the 48, not one
 
 
@@ -257,9 +274,9 @@ def test_sparse_cells_move_with_the_mesh_under_a_symmetry(cache, tmp_path):
                                   "--val", "0"))
     sym = grid_symmetry(np.random.default_rng(5))
     moved = sparse_cells(ds, [0], [sym])
-    grid = dense_cells(moved["cell_flat"], moved["cell_logit"])[0].reshape(128, 128, 128)
-    stored = ds.cell_logits(0).reshape(128, 128, 128)
+    grid = dense_cells(moved["cell_flat"], moved["cell_logit"])[0].reshape(LEVELS, LEVELS, LEVELS)
+    stored = ds.cell_logits(0).reshape(LEVELS, LEVELS, LEVELS)
     hot = torch.nonzero(stored > -12)
-    to = torch.from_numpy(symmetric_cells(hot.numpy(), sym, 128))
+    to = torch.from_numpy(symmetric_cells(hot.numpy(), sym, LEVELS))
     torch.testing.assert_close(grid[to[:, 0], to[:, 1], to[:, 2]], stored[hot[:, 0], hot[:, 1], hot[:, 2]])
     assert int((grid > -12).sum()) == len(hot)

@@ -11,7 +11,7 @@ selection and hole filling.  The vertices are N distinct 7-bit cells on a sphere
 lattice), the input 8192 samples of that sphere.  Targets: peak RSS < 2 GB, < 20 s on 2 threads.
 
     python benchmarks/face_memory.py [--sizes 1000 2000 4000] [--threads 1] [--masked] [--pair-chunk K]
-    python benchmarks/face_memory.py --stage --threads 2 [--sizes 4000]
+    python benchmarks/face_memory.py --stage --threads 2 [--sizes 4000] [--no-filtering]
 
 Prints one JSON line per N: baseline RSS after building the model, peak RSS during the
 pass, seconds for the unmasked pass (and for a banded-mask pass with --masked); with --stage
@@ -63,7 +63,7 @@ print(json.dumps(out))
 STAGE = r"""
 import json, resource, sys, time
 import numpy as np, torch
-n, threads = int(sys.argv[1]), int(sys.argv[2])
+n, threads, filtering = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "1"
 torch.set_num_threads(threads)
 from fastmesh.faces import mesh_from_adjacency
 from fastmesh.pipeline import Pipeline
@@ -93,11 +93,12 @@ pipe = Pipeline.from_pretrained(device="cpu")
 base = rss_mb()
 t0 = time.perf_counter()
 n_fp = pipe.face.cfg.encoder.n_points
-edges, logits = pipe.face.predict_edges(q, pts[:n_fp], nrm[:n_fp], filtering=pipe.filter_config, return_logits=True)
+edges, logits = pipe.face.predict_edges(q, pts[:n_fp], nrm[:n_fp], filtering=pipe.filter_config if filtering else None,
+                                        return_logits=True)
 t1 = time.perf_counter()
 v, f = mesh_from_adjacency(dequantize(q), edges, pipe.face_config, points=pts, logits=logits)
 t2 = time.perf_counter()
-print(json.dumps({"n": n, "threads": threads, "selection": pipe.face_config.selection,
+print(json.dumps({"n": n, "threads": threads, "filtering": filtering, "selection": pipe.face_config.selection,
                   "baseline_rss_mb": round(base), "peak_rss_mb": round(rss_mb()),
                   "network_and_filtering_s": round(t1 - t0, 2), "faces_s": round(t2 - t1, 2),
                   "total_s": round(t2 - t0, 2), "edges": int(len(edges)), "faces": int(len(f))}))
@@ -111,10 +112,12 @@ def main() -> None:
     ap.add_argument("--masked", action="store_true", help="also time a pass with a band attention mask")
     ap.add_argument("--pair-chunk", type=int, default=0, help="override pair_chunk (e.g. 100000 = unchunked)")
     ap.add_argument("--stage", action="store_true", help="the whole face stage with the shipped model and settings")
+    ap.add_argument("--no-filtering", action="store_true", help="--stage: one network pass, no prediction filtering")
     args = ap.parse_args()
     for n in args.sizes:
         if args.stage:
-            r = subprocess.run([sys.executable, "-c", STAGE, str(n), str(args.threads)], capture_output=True, text=True)
+            r = subprocess.run([sys.executable, "-c", STAGE, str(n), str(args.threads),
+                                "0" if args.no_filtering else "1"], capture_output=True, text=True)
             print(r.stdout.strip() if r.returncode == 0 else f"N={n} failed: {r.stderr[-2000:]}", flush=True)
             continue
         r = subprocess.run([sys.executable, "-c", CHILD, str(n), str(args.threads), "1" if args.masked else "0",

@@ -1,4 +1,4 @@
-"""Peak memory of the API and the worker under the attacks of issue 15 (defects 1, 2, 3 and 5).
+"""Peak memory of the API and the worker under four attacks: previews, glTF instancing, parsing, zero normals.
 
     python benchmarks/attack_memory.py [--weights DIR] [--skip-worker]
 
@@ -11,7 +11,7 @@ attack (baseline and peak RSS in MiB, answers, latencies) and one JSON object at
    processes the API may use are reported separately (``render_children``).
 2. glTF instancing: a ~150 KB GLB whose 1,200 nodes show one 642-vertex mesh.
 3. parsing: 6 concurrent 500,000-point ``.npy`` uploads (the default limit).
-5. zero normals: 500 points of a cube with all normals ``0 0 0``, and the same points without normals
+4. zero normals: 500 points of a cube with all normals ``0 0 0``, and the same points without normals
    (the worker's peak for each job).
 
 Only HTTP and the processes of :mod:`service.processes` are used, so the same script measures another

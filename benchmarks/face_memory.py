@@ -65,7 +65,7 @@ import json, resource, sys, time
 import numpy as np, torch
 n, threads, filtering = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "1"
 torch.set_num_threads(threads)
-from fastmesh.faces import mesh_from_adjacency
+from fastmesh.triangles import mesh_from_adjacency
 from fastmesh.pipeline import Pipeline
 from fastmesh.tokenizer import dequantize
 from fastmesh.tokenizer.grid import LEVELS
@@ -96,9 +96,9 @@ n_fp = pipe.face.cfg.encoder.n_points
 edges, logits = pipe.face.predict_edges(q, pts[:n_fp], nrm[:n_fp], filtering=pipe.filter_config if filtering else None,
                                         return_logits=True)
 t1 = time.perf_counter()
-v, f = mesh_from_adjacency(dequantize(q), edges, pipe.face_config, points=pts, logits=logits)
+v, f = mesh_from_adjacency(dequantize(q), edges, pipe.triangle_config, points=pts, logits=logits)
 t2 = time.perf_counter()
-print(json.dumps({"n": n, "threads": threads, "filtering": filtering, "selection": pipe.face_config.selection,
+print(json.dumps({"n": n, "threads": threads, "filtering": filtering, "selection": pipe.triangle_config.selection,
                   "baseline_rss_mb": round(base), "peak_rss_mb": round(rss_mb()),
                   "network_and_filtering_s": round(t1 - t0, 2), "faces_s": round(t2 - t1, 2),
                   "total_s": round(t2 - t0, 2), "edges": int(len(edges)), "faces": int(len(f))}))

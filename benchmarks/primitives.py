@@ -8,7 +8,7 @@ points with normals, and the pipeline (default settings) makes a mesh from that 
 Per shape: the primitive's vertex count, the generated count and their ratio, precision and
 recall within one 7-bit cell of the primitive's vertices, the share of generated vertices within
 1.5 cells of its surface (``fastmesh.metrics.vertex_metrics``, in the primitive's normalised
-frame), and the seconds of ``generate``.  ``ok`` marks the target of issue 11: recall within one
+frame), and the seconds of ``generate``.  ``ok`` marks the target: recall within one
 cell >= 0.9 and at most 1.5x the primitive's vertices.
 """
 

@@ -86,8 +86,8 @@ def main() -> int:
                 else:
                     edges = filter_predictions(seen["predict"], seen["n"], cfg).edges
                 for diag in (False, True):
-                    cfg_faces = replace(pipe.face_config, drop_coplanar_diagonals=diag)  # the rest as shipped
-                    v, f = build_mesh(seen["positions"], edges, cfg_faces, points=seen["points"],
+                    cfg_triangles = replace(pipe.triangle_config, drop_coplanar_diagonals=diag)  # the rest as shipped
+                    v, f = build_mesh(seen["positions"], edges, cfg_triangles, points=seen["points"],
                                       logits=seen["logits"])
                     if len(f) == 0:
                         rows[k, diag].append([np.nan] * 6)

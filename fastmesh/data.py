@@ -70,14 +70,14 @@ class MeshDataset:
     """A loaded cache: random access to :class:`MeshRecord` by index."""
 
     def __init__(self, arrays: dict[str, np.ndarray], meta: dict):
-        self.a = arrays
+        self.arrays = arrays
         self.meta = meta
 
     def __len__(self) -> int:
-        return len(self.a["v_off"]) - 1
+        return len(self.arrays["v_off"]) - 1
 
     def __getitem__(self, i: int) -> MeshRecord:
-        a = self.a
+        a = self.arrays
         v0, v1 = a["v_off"][i], a["v_off"][i + 1]
         f0, f1 = a["f_off"][i], a["f_off"][i + 1]
         return MeshRecord(q=a["q"][v0:v1].astype(np.int64), faces=a["faces"][f0:f1].astype(np.int64),
@@ -87,10 +87,10 @@ class MeshDataset:
     def cells(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Mesh ``i``'s stored cells (a cache of ``build_cell_cache``): flat indices (K,) int32 and
         log-odds (K,) float16."""
-        if "c_off" not in self.a:
+        if "c_off" not in self.arrays:
             raise ValueError("this dataset holds no cell log-odds: build it with `fastmesh data cells`")
-        c0, c1 = self.a["c_off"][i], self.a["c_off"][i + 1]
-        return self.a["cell_flat"][c0:c1], self.a["cell_logit"][c0:c1]
+        c0, c1 = self.arrays["c_off"][i], self.arrays["c_off"][i + 1]
+        return self.arrays["cell_flat"][c0:c1], self.arrays["cell_logit"][c0:c1]
 
     def cell_logits(self, i: int):
         """(128^3,) float32 torch grid of mesh ``i``'s stored cell log-odds."""
@@ -99,21 +99,21 @@ class MeshDataset:
         return dense_grid_flat(*self.cells(i))
 
     def num_vertices(self) -> np.ndarray:
-        return np.diff(self.a["v_off"])
+        return np.diff(self.arrays["v_off"])
 
     def num_faces(self) -> np.ndarray:
-        return np.diff(self.a["f_off"])
+        return np.diff(self.arrays["f_off"])
 
     def indices(self, split: str) -> np.ndarray:
         """Indices of ``'train'``, ``'val'`` or ``'all'`` records."""
         if split == "all":
             return np.arange(len(self))
-        return np.flatnonzero(self.a["split"] == (1 if split == "val" else 0))
+        return np.flatnonzero(self.arrays["split"] == (1 if split == "val" else 0))
 
 
 def subset_arrays(ds: MeshDataset, indices: np.ndarray) -> dict[str, np.ndarray]:
     """The arrays of a dataset holding only the meshes at ``indices`` (in that order), ``meta`` included."""
-    a = ds.a
+    a = ds.arrays
     v = np.concatenate([np.arange(a["v_off"][i], a["v_off"][i + 1]) for i in indices])
     f = np.concatenate([np.arange(a["f_off"][i], a["f_off"][i + 1]) for i in indices])
     out = {"q": a["q"][v], "residual": a["residual"][v], "faces": a["faces"][f],
@@ -346,13 +346,13 @@ def dataset_stats(ds: MeshDataset) -> dict:
         r = ds[i]
         blocks.append(vertex.num_tokens(r.q))
     toks = np.array(blocks)
-    split = ds.a["split"]
+    split = ds.arrays["split"]
 
     def dist(x):
         return {"mean": float(x.mean()), "median": float(np.median(x)), "min": int(x.min()), "max": int(x.max()),
                 "total": int(x.sum())}
 
-    groups = ds.a["group"]
+    groups = ds.arrays["group"]
     return {
         "meshes": len(ds),
         "groups": int(len(np.unique(groups))),
@@ -362,8 +362,8 @@ def dataset_stats(ds: MeshDataset) -> dict:
         "vertices": dist(nv),
         "faces": dist(nf),
         "fastmesh_tokens": dist(toks),
-        "categories": dict(Counter(ds.a["category"].tolist()).most_common()),
-        "val_packages": dict(Counter(ds.a["package"][split == 1].tolist()).most_common()),
+        "categories": dict(Counter(ds.arrays["category"].tolist()).most_common()),
+        "val_packages": dict(Counter(ds.arrays["package"][split == 1].tolist()).most_common()),
         "max_vertices": ds.meta.get("max_vertices"),
         "dropped": ds.meta.get("dropped", {}),
     }

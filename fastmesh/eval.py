@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .faces import FaceConfig, mesh_from_adjacency, remove_unreferenced
 from .io import (
     SUPPORTED_FORMATS,
     Normalization,
@@ -37,8 +36,9 @@ from .io import (
     write_mesh,
 )
 from .metrics import edge_metrics, edges_from_faces, mesh_topology, surface_distance, vertex_metrics
-from .surface_faces import restricted_delaunay_mesh
+from .surface_triangles import restricted_delaunay_mesh
 from .tokenizer import dequantize, quantize_mesh
+from .triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced
 
 MESH_EXTS = ("ply", "obj", "glb", "gltf", "stl", "off")
 
@@ -206,14 +206,14 @@ def _topology_row(vertices: np.ndarray, faces: np.ndarray) -> dict:
     return {"edge_manifold": t["edge_manifold"], "watertight": t["watertight"], "pieces": t["pieces"]}
 
 
-def gt_vertex_systems(face_config: FaceConfig, baseline: bool) -> dict[str, FaceConfig | None]:
+def gt_vertex_systems(triangle_config: TriangleConfig, baseline: bool) -> dict[str, TriangleConfig | None]:
     """The face stages ``evaluate_gt_vertices`` scores: the pipeline's (``fastmesh``); with ``baseline``
     also the other selection with the same settings (``selection_cliques`` or ``selection_surface``)
     and the restricted Delaunay anchor (``restricted_delaunay``, no model)."""
-    systems: dict[str, FaceConfig | None] = {"fastmesh": face_config}
+    systems: dict[str, TriangleConfig | None] = {"fastmesh": triangle_config}
     if baseline:
-        other = "cliques" if face_config.selection == "surface" else "surface"
-        systems[f"selection_{other}"] = replace(face_config, selection=other)
+        other = "cliques" if triangle_config.selection == "surface" else "surface"
+        systems[f"selection_{other}"] = replace(triangle_config, selection=other)
         systems["restricted_delaunay"] = None
     return systems
 
@@ -228,7 +228,7 @@ def evaluate_gt_vertices(pipe, pairs: list[tuple[Path, Path]], filtering: bool =
     watertight, pieces, seconds (the network pass counts for the systems that use it).  With ``save``
     every result is written in the reference's original frame (see :func:`_save`).
     """
-    systems = gt_vertex_systems(pipe.face_config, baseline)
+    systems = gt_vertex_systems(pipe.triangle_config, baseline)
     rows = []
     for i, (inp, ref_path) in enumerate(pairs, 1):
         ref = load_shape(ref_path)
@@ -246,7 +246,7 @@ def evaluate_gt_vertices(pipe, pairs: list[tuple[Path, Path]], filtering: bool =
         net_seconds = time.perf_counter() - t
         true_edges = edges_from_faces(true_faces)
         m = edge_metrics(edges, true_edges)
-        surface = input_surface(shape, norm.apply(shape.vertices), pipe.face_config.support_points, seed)
+        surface = input_surface(shape, norm.apply(shape.vertices), pipe.triangle_config.support_points, seed)
         ref_top = mesh_topology(q, true_faces)
         row = {"name": inp.stem, "vertices": int(len(q)), "true_faces": int(len(true_faces)),
                "reference": {"watertight": ref_top["watertight"], "pieces": ref_top["pieces"]},
@@ -319,7 +319,7 @@ def export_eval_set(ds, source_root: str | Path, out: str | Path, split: str = "
     (out / "reference").mkdir(parents=True, exist_ok=True)
     chosen = [i for i in ds.indices(split) if not (max_vertices and ds.num_vertices()[i] > max_vertices)]
     if per_package:
-        package = ds.a["package"]
+        package = ds.arrays["package"]
         subsets = []
         for p in sorted(set(package[chosen])):
             mine = [i for i in chosen if package[i] == p]
@@ -327,7 +327,7 @@ def export_eval_set(ds, source_root: str | Path, out: str | Path, split: str = "
         chosen = sorted(subsets)
     count = 0
     for i in chosen:
-        name = str(ds.a["name"][i])
+        name = str(ds.arrays["name"][i])
         src = Path(source_root) / name
         ref = load_shape(src)
         pts, nrm = sample_surface(ref, n_points, seed=seed)

@@ -10,7 +10,7 @@ The stages as :meth:`Pipeline.generate` runs them (``STAGES`` names their timing
           ──► prediction filtering: masked re-predictions (optional)          filtering
           ──► triangles on the input surface: candidates that lie on it,      faces
               chosen by the edge logits, kept a surface, holes closed
-              (``faces.mesh_from_adjacency``, ``surface_faces``)
+              (``triangles.mesh_from_adjacency``, ``surface_triangles``)
           ──► the candidate nearest the input surface (``support.surface_fit``) filtering
           ──► back to the input's frame
 
@@ -34,7 +34,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .faces import FaceConfig, mesh_from_adjacency
 from .filtering import FilterConfig, Predictor, predict_edges
 from .io import Normalization, Shape, export_mesh, input_surface, sample_surface
 from .models.checkpoint import load_model, save_model
@@ -46,6 +45,7 @@ from .quality import mesh_quality
 from .support import surface_fit
 from .tokenizer import dequantize
 from .tokenizer import vertex as vt
+from .triangles import TriangleConfig, mesh_from_adjacency
 
 __all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "Pipeline", "default_weights_dir"]
 
@@ -166,7 +166,7 @@ class Pipeline:
     """The three networks plus the fixed geometry around them."""
 
     def __init__(self, vertex, enhancer, face, device: torch.device | str = "cpu",
-                 filter_config: FilterConfig | None = None, face_config: FaceConfig | None = None,
+                 filter_config: FilterConfig | None = None, triangle_config: TriangleConfig | None = None,
                  source: str = "", threads: int | None = None, cells=None):
         self.device = torch.device(device)
         # Process-wide (torch has one thread pool), and before the decoder is built: its ONNX session
@@ -182,7 +182,7 @@ class Pipeline:
         self.face = face.to(self.device).eval()
         self.filter_config = filter_config or FilterConfig()
         # Keep every vertex the decoder produced until the mesh is built, then drop the unused.
-        self.face_config = face_config or FaceConfig(remove_unreferenced=True)
+        self.triangle_config = triangle_config or TriangleConfig(remove_unreferenced=True)
         self.source = source
         self.max_vertices = int(vertex.cfg.max_vertices)
         # Decode steps run in ONNX Runtime on CPU when it is installed (~3x faster per token than
@@ -210,9 +210,9 @@ class Pipeline:
         settings = root / "pipeline.json"
         extra = json.loads(settings.read_text()) if settings.exists() else {}
         fcfg = FilterConfig(**extra.get("filtering", {}))
-        face_cfg = FaceConfig(**{"remove_unreferenced": True, **extra.get("faces", {})})
+        triangle_cfg = TriangleConfig(**{"remove_unreferenced": True, **extra.get("faces", {})})
         return cls(nets["vertex"], nets["enhancer"], nets["face"], device=dev, filter_config=fcfg,
-                   face_config=face_cfg, source=str(root), threads=threads, cells=cells)
+                   triangle_config=triangle_cfg, source=str(root), threads=threads, cells=cells)
 
     @classmethod
     def random(cls, size: str = "tiny", seed: int = 0, device: str | None = None,
@@ -248,7 +248,7 @@ class Pipeline:
             save_model(net, name, root / name)
         if self.cells is not None:
             save_model(self.cells, CELLS, root / CELLS)
-        settings = {"filtering": asdict(self.filter_config), "faces": asdict(self.face_config)}
+        settings = {"filtering": asdict(self.filter_config), "faces": asdict(self.triangle_config)}
         (root / "pipeline.json").write_text(json.dumps(settings, indent=2))
 
     def info(self) -> dict:
@@ -300,7 +300,7 @@ class Pipeline:
         n_cand = params.candidates if params.temperature > 0 else 1  # greedy decoding: one answer
         timings = {name: 0.0 for name, _, _ in STAGES}
         # Candidate k is exactly what seed + k gives alone; all are scored against one sample of the input.
-        reference = input_surface(shape, unit, self.face_config.support_points, params.seed) if n_cand > 1 else None
+        reference = input_surface(shape, unit, self.triangle_config.support_points, params.seed) if n_cand > 1 else None
         with stage("encode", timings):
             cells = self._cell_grid(shape, unit)
         best, fits, errors = None, [], []
@@ -430,11 +430,11 @@ class Pipeline:
 
         # Triangles on the input surface, scored by the edge logits, kept a surface, holes closed.
         with stage("faces", timings):
-            fc = self.face_config
+            tc = self.triangle_config
             surface = None
-            if fc.support_tol is not None or fc.max_faces_per_edge is not None or fc.selection == "surface":
-                surface = input_surface(shape, unit, fc.support_points, seed)
-            verts, faces = mesh_from_adjacency(positions, edges, fc, points=surface, logits=logits)
+            if tc.support_tol is not None or tc.max_faces_per_edge is not None or tc.selection == "surface":
+                surface = input_surface(shape, unit, tc.support_points, seed)
+            verts, faces = mesh_from_adjacency(positions, edges, tc, points=surface, logits=logits)
         if len(faces) == 0:
             raise GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")
         report("filtering", 1.0)

@@ -14,9 +14,8 @@ from fastapi import FastAPI
 
 from . import errors
 from .deps import ApiKeys
-from .metrics import Metrics
+from .forms import generation_defaults
 from .middleware import ApiKeyGate, BodyLimit, JsonCORS, RequestMetrics
-from .params import generation_defaults
 from .preview import DEFAULT_PREVIEW, preview_router
 from .reaper import reap_loop
 from .render_pool import RenderPool
@@ -24,6 +23,7 @@ from .routes import ops
 from .routes.jobs import jobs_router
 from .settings import Settings
 from .store import Store
+from .telemetry import Metrics
 from .web.routes import web_router
 
 DESCRIPTION = """Upload a point cloud or a dense mesh, poll the job, download a clean artist-style mesh.

@@ -15,9 +15,9 @@ from fastapi import Depends, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from .errors import ApiError
-from .metrics import Metrics
 from .settings import Settings
 from .store import Store
+from .telemetry import Metrics
 
 ID_RE = re.compile(r"[0-9a-f]{32}")
 JobId = Annotated[str, Path(description="Job id as returned by POST /v1/jobs.",

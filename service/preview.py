@@ -142,7 +142,7 @@ def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAU
             raise busy("the preview could not be rendered in time") from None
         del blob
         key = cache_key(store, job["id"])
-        with store.r.pipeline() as tx:
+        with store.redis.pipeline() as tx:
             tx.hset(key, cache_field(of, size, wireframe), png)
             tx.expire(key, max(1, min(config.cache_seconds, store.ttl_of(job["id"]))))
             tx.execute()
@@ -180,7 +180,7 @@ def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAU
         size = snap_size(size, config.sizes)
         of = "result" if job["status"] == "succeeded" else "input"
         field = cache_field(of, size, wireframe)
-        png = await anyio.to_thread.run_sync(store.r.hget, cache_key(store, job_id), field)
+        png = await anyio.to_thread.run_sync(store.redis.hget, cache_key(store, job_id), field)
         if png is None:
             name = f"{job_id}|{field}"
             flight = flights.get(name)

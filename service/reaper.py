@@ -39,14 +39,14 @@ def reap(store: Store) -> list[tuple[str, str]]:
     """
     actions = []
     s = store.settings
-    for raw in store.r.smembers(store.k_running):
+    for raw in store.redis.smembers(store.k_running):
         job_id = raw.decode()
         job = store.get(job_id)
         if job is None or job["status"] != "running":  # finished since SMEMBERS (or expired): housekeeping
-            store.r.srem(store.k_running, job_id)
+            store.redis.srem(store.k_running, job_id)
             continue
         attempt = int(job["attempt"])
-        if store.r.exists(store.k_hb(job_id)):
+        if store.redis.exists(store.k_hb(job_id)):
             # Alive but overdue (a hung decoder keeps its heartbeat thread going): fail it; the worker's
             # next cancel check sees the status change and stops.
             if time.time() - job["started_at"] > s.job_timeout + s.heartbeat_ttl:
@@ -58,7 +58,7 @@ def reap(store: Store) -> list[tuple[str, str]]:
                 "status": "queued", "attempt": attempt + 1, "stage": "queued", "fraction": 0.0,
                 "worker": ""}, attempt=attempt, final=True)
             if ok:
-                store.r.hincrby(f"{store.p}:stats:jobs", "retried", 1)
+                store.redis.hincrby(f"{store.prefix}:stats:jobs", "retried", 1)
                 store.enqueue(job_id, attempt + 1)
                 actions.append((job_id, "requeued"))
         else:
@@ -80,28 +80,28 @@ def _reap_queued(store: Store) -> list[tuple[str, str]]:
     """
     actions = []
     now = time.time()
-    k_suspects = f"{store.p}:suspects"
-    suspects = {k.decode(): float(v) for k, v in store.r.hgetall(k_suspects).items()}
-    for raw in store.r.zrangebyscore(store.k_queued, "-inf", now - store.settings.heartbeat_ttl):
+    k_suspects = f"{store.prefix}:suspects"
+    suspects = {k.decode(): float(v) for k, v in store.redis.hgetall(k_suspects).items()}
+    for raw in store.redis.zrangebyscore(store.k_queued, "-inf", now - store.settings.heartbeat_ttl):
         job_id = raw.decode()
         job = store.get(job_id)
         if job is None or job["status"] != "queued":
-            store.r.zrem(store.k_queued, job_id)
+            store.redis.zrem(store.k_queued, job_id)
             continue
-        if job.get("rq_id") and store.r.lpos(store.queue.key, job["rq_id"]) is not None:
+        if job.get("rq_id") and store.redis.lpos(store.queue.key, job["rq_id"]) is not None:
             suspects.pop(job_id, None)
             continue  # still waiting its turn
         first_seen = suspects.pop(job_id, None)
         if first_seen is None:
-            store.r.hset(k_suspects, job_id, now)
+            store.redis.hset(k_suspects, job_id, now)
             continue
         if now - first_seen < store.settings.heartbeat_ttl:
             continue
-        store.r.hdel(k_suspects, job_id)
+        store.redis.hdel(k_suspects, job_id)
         attempt = int(job["attempt"])
         if store.transition(job_id, "queued", {"attempt": attempt + 1}, attempt=attempt):
             store.enqueue(job_id, attempt + 1)
             actions.append((job_id, "requeued_lost_entry"))
     if suspects:  # they started (or went) in the meantime: not lost after all
-        store.r.hdel(k_suspects, *suspects)
+        store.redis.hdel(k_suspects, *suspects)
     return actions

@@ -48,7 +48,7 @@ TIMING_KEYS = ("queue", "load", "encode", "vertices", "enhancer", "faces", "filt
 STAGE_BUCKETS = (0.01, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0)
 # Result-to-input distance (% of the input's size): validation meshes sit at CD 2-5, HD 8-25.
 DISTANCE_BUCKETS = (0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 7.5, 10.0, 15.0, 20.0, 30.0, 50.0)
-TASK = "worker.tasks.run_job"  # by name: the API never imports the worker (or torch)
+TASK = "worker.jobs.run_job"  # by name: the API never imports the worker (or torch)
 RQ_GRACE = 30  # RQ's hard timeout backs up our cooperative one by this many seconds
 PENDING_TTL = 10  # seconds an Idempotency-Key stays claimed by a request that has not created its job yet
 
@@ -159,38 +159,38 @@ class Store:
     def __init__(self, settings: Settings, client: redis.Redis | None = None):
         self.settings = settings
         # Bytes in, bytes out: RQ needs raw bytes and our blobs are binary; hashes are decoded by hand.
-        self.r = client or redis.Redis.from_url(settings.redis_url, socket_connect_timeout=5, socket_keepalive=True)
-        self.p = settings.redis_prefix
-        self.queue = Queue(settings.queue_name, connection=self.r)
-        self._transition = self.r.register_script(_TRANSITION)
-        self._start = self.r.register_script(_START)
-        self._heartbeat = self.r.register_script(_HEARTBEAT)
-        self._admit = self.r.register_script(_ADMIT)
+        self.redis = client or redis.Redis.from_url(settings.redis_url, socket_connect_timeout=5, socket_keepalive=True)
+        self.prefix = settings.redis_prefix
+        self.queue = Queue(settings.queue_name, connection=self.redis)
+        self._transition = self.redis.register_script(_TRANSITION)
+        self._start = self.redis.register_script(_START)
+        self._heartbeat = self.redis.register_script(_HEARTBEAT)
+        self._admit = self.redis.register_script(_ADMIT)
 
     # ------------------------------------------------------------------ keys
     def k_job(self, job_id: str) -> str:
-        return f"{self.p}:job:{job_id}"
+        return f"{self.prefix}:job:{job_id}"
 
     def k_input(self, job_id: str) -> str:
-        return f"{self.p}:input:{job_id}"
+        return f"{self.prefix}:input:{job_id}"
 
     def k_result(self, job_id: str, fmt: str) -> str:
-        return f"{self.p}:result:{job_id}:{fmt}"
+        return f"{self.prefix}:result:{job_id}:{fmt}"
 
     def k_hb(self, job_id: str) -> str:
-        return f"{self.p}:hb:{job_id}"
+        return f"{self.prefix}:hb:{job_id}"
 
     @property
     def k_running(self) -> str:
-        return f"{self.p}:running"
+        return f"{self.prefix}:running"
 
     @property
     def k_queued(self) -> str:
-        return f"{self.p}:queued"
+        return f"{self.prefix}:queued"
 
     def k_preview(self, job_id: str) -> str:
         """Hash of the job's rendered previews (``service.preview``)."""
-        return f"{self.p}:preview:{job_id}"
+        return f"{self.prefix}:preview:{job_id}"
 
     def result_keys(self, job_id: str) -> list[str]:
         return [self.k_result(job_id, f) for f in (*EXPORT_FORMATS, "npz")]
@@ -198,7 +198,7 @@ class Store:
     # ------------------------------------------------------------------ reading
     def get(self, job_id: str) -> dict | None:
         """The job's hash, values decoded (JSON fields parsed), or None if unknown / expired."""
-        raw = self.r.hgetall(self.k_job(job_id))
+        raw = self.redis.hgetall(self.k_job(job_id))
         if not raw:
             return None
         out = {}
@@ -209,7 +209,7 @@ class Store:
         return out
 
     def public(self, job: dict) -> dict:
-        """The job as ``GET /v1/jobs/{id}`` shows it (the interface of issue 4)."""
+        """The job as ``GET /v1/jobs/{id}`` shows it (``service.schemas.Job``)."""
         timings = {k: None for k in TIMING_KEYS}
         timings.update({k: v for k, v in (job.get("timings") or {}).items() if k in TIMING_KEYS})
         return {
@@ -230,17 +230,17 @@ class Store:
         return self.queue.count
 
     def running_count(self) -> int:
-        return int(self.r.scard(self.k_running))
+        return int(self.redis.scard(self.k_running))
 
     def workers_alive(self) -> list[str]:
         cutoff = time.time() - self.settings.heartbeat_ttl
-        return [w.decode() for w in self.r.zrangebyscore(f"{self.p}:workers", cutoff, "+inf")]
+        return [w.decode() for w in self.redis.zrangebyscore(f"{self.prefix}:workers", cutoff, "+inf")]
 
     def queue_position(self, job: dict) -> int | None:
         """0-based place in the queue of a queued job (None when not queued or unknown)."""
         if job["status"] != "queued" or not job.get("rq_id"):
             return None
-        return self.r.lpos(self.queue.key, job["rq_id"])  # RQ pushes right, pops left
+        return self.redis.lpos(self.queue.key, job["rq_id"])  # RQ pushes right, pops left
 
     # ------------------------------------------------------------------ transitions
     def transition(self, job_id: str, allowed: str | tuple[str, ...], fields: dict | None = None,
@@ -270,12 +270,12 @@ class Store:
         fields = {"owner": owner, "status": "queued", "attempt": 1, "stage": "queued", "fraction": 0.0,
                   "created_at": now, "started_at": None, "finished_at": None, "params": params,
                   "input": input_info, "result": None, "timings": {"load": load_seconds}, "error": None}
-        with self.r.pipeline() as pipe:
+        with self.redis.pipeline() as pipe:
             pipe.set(self.k_input(job_id), shape_bytes, ex=ttl)
             pipe.hset(self.k_job(job_id), mapping={
                 k: v if k in ("owner", "status") else json.dumps(v) for k, v in fields.items()})
             pipe.expire(self.k_job(job_id), ttl)
-            pipe.hincrby(f"{self.p}:stats:jobs", "submitted", 1)
+            pipe.hincrby(f"{self.prefix}:stats:jobs", "submitted", 1)
             pipe.execute()
         self.enqueue(job_id, 1)
         return job_id
@@ -286,7 +286,7 @@ class Store:
 
     def enqueue(self, job_id: str, attempt: int) -> None:
         rq_id = f"{job_id}-{attempt}"
-        with self.r.pipeline() as pipe:
+        with self.redis.pipeline() as pipe:
             pipe.hset(self.k_job(job_id), "rq_id", rq_id)
             pipe.zadd(self.k_queued, {job_id: time.time()})
             pipe.execute()
@@ -311,7 +311,7 @@ class Store:
                                attempt=attempt)
 
     def still_mine(self, job_id: str, attempt: int) -> bool:
-        st, at = self.r.hmget(self.k_job(job_id), "status", "attempt")
+        st, at = self.redis.hmget(self.k_job(job_id), "status", "attempt")
         return st == b"running" and at is not None and int(at) == attempt
 
     def finish(self, job_id: str, attempt: int | None, status: str, *, allowed=("running",),
@@ -333,8 +333,8 @@ class Store:
                              ttl=self.settings.retention_seconds,
                              expire=[self.k_input(job_id), *self.result_keys(job_id)])
         if ok:
-            with self.r.pipeline() as pipe:
-                pipe.hincrby(f"{self.p}:stats:jobs", status, 1)
+            with self.redis.pipeline() as pipe:
+                pipe.hincrby(f"{self.prefix}:stats:jobs", status, 1)
                 if status == "succeeded":
                     for k, v in t.items():
                         if v is not None:
@@ -347,7 +347,7 @@ class Store:
         return ok
 
     def _observe(self, pipe, name: str, value: float, buckets: tuple[float, ...]) -> None:
-        key = f"{self.p}:stats:{name}"
+        key = f"{self.prefix}:stats:{name}"
         pipe.hincrby(key, "count", 1)
         pipe.hincrbyfloat(key, "sum", float(value))
         for le in buckets:
@@ -364,13 +364,13 @@ class Store:
 
     def _histograms(self, kind: str) -> dict[str, dict[str, float]]:
         out = {}
-        for key in self.r.scan_iter(f"{self.p}:stats:{kind}:*"):
+        for key in self.redis.scan_iter(f"{self.prefix}:stats:{kind}:*"):
             name = key.decode().rsplit(":", 1)[1]
-            out[name] = {k.decode(): float(v) for k, v in self.r.hgetall(key).items()}
+            out[name] = {k.decode(): float(v) for k, v in self.redis.hgetall(key).items()}
         return out
 
     def job_counters(self) -> dict[str, int]:
-        return {k.decode(): int(v) for k, v in self.r.hgetall(f"{self.p}:stats:jobs").items()}
+        return {k.decode(): int(v) for k, v in self.redis.hgetall(f"{self.prefix}:stats:jobs").items()}
 
     # ------------------------------------------------------------------ user actions
     def cancel(self, job_id: str) -> bool:
@@ -385,32 +385,32 @@ class Store:
         return ok
 
     def delete(self, job_id: str) -> None:
-        self.r.delete(self.k_job(job_id), self.k_input(job_id), self.k_hb(job_id), self.k_preview(job_id),
+        self.redis.delete(self.k_job(job_id), self.k_input(job_id), self.k_hb(job_id), self.k_preview(job_id),
                       *self.result_keys(job_id))
-        self.r.srem(self.k_running, job_id)
-        self.r.zrem(self.k_queued, job_id)
+        self.redis.srem(self.k_running, job_id)
+        self.redis.zrem(self.k_queued, job_id)
 
     # ------------------------------------------------------------------ blobs
     def put_result(self, job_id: str, fmt: str, data: bytes, ttl: int | None = None) -> None:
-        self.r.set(self.k_result(job_id, fmt), data, ex=ttl or self.settings.retention_seconds)
+        self.redis.set(self.k_result(job_id, fmt), data, ex=ttl or self.settings.retention_seconds)
 
     def get_result(self, job_id: str, fmt: str) -> bytes | None:
-        return self.r.get(self.k_result(job_id, fmt))
+        return self.redis.get(self.k_result(job_id, fmt))
 
     def get_input(self, job_id: str) -> bytes | None:
-        return self.r.get(self.k_input(job_id))
+        return self.redis.get(self.k_input(job_id))
 
     def ttl_of(self, job_id: str) -> int:
-        t = self.r.ttl(self.k_job(job_id))
+        t = self.redis.ttl(self.k_job(job_id))
         return t if t and t > 0 else self.settings.retention_seconds
 
     # ------------------------------------------------------------------ idempotency and rate limits
     def _k_idem(self, owner: str, key: str) -> str:
-        return f"{self.p}:idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}"
+        return f"{self.prefix}:idem:{owner}:{hashlib.sha256(key.encode()).hexdigest()}"
 
     def idempotency_get(self, owner: str, key: str) -> str | None:
         """What ``key`` names: "<job id> <fingerprint>" or, while being created, "<job id> <fingerprint> pending"."""
-        raw = self.r.get(self._k_idem(owner, key))
+        raw = self.redis.get(self._k_idem(owner, key))
         return raw.decode() if raw is not None else None
 
     def idempotency_claim(self, owner: str, key: str, job_id_fp: str) -> str | None:
@@ -421,15 +421,15 @@ class Store:
         killed in between must not block the key for the whole retention time.
         """
         k = self._k_idem(owner, key)
-        if self.r.set(k, job_id_fp, nx=True, ex=PENDING_TTL):
+        if self.redis.set(k, job_id_fp, nx=True, ex=PENDING_TTL):
             return None
-        old = self.r.get(k)
+        old = self.redis.get(k)
         return old.decode() if old else None
 
     def idempotency_replace(self, owner: str, key: str, old: str, new: str) -> bool:
         """Swap claim ``old`` for ``new`` (compare-and-set)."""
         k = self._k_idem(owner, key)
-        with self.r.pipeline() as pipe:
+        with self.redis.pipeline() as pipe:
             try:
                 pipe.watch(k)
                 cur = pipe.get(k)
@@ -443,7 +443,7 @@ class Store:
                 return False
 
     def idempotency_release(self, owner: str, key: str) -> None:
-        self.r.delete(self._k_idem(owner, key))
+        self.redis.delete(self._k_idem(owner, key))
 
     def rate_hit(self, kind: str, owner: str, limit: int) -> int:
         """Count one request in this minute's window; return seconds to wait (0 = allowed)."""
@@ -451,8 +451,8 @@ class Store:
             return 0
         now = time.time()
         window = int(now // 60)
-        k = f"{self.p}:rate:{kind}:{owner}:{window}"
-        with self.r.pipeline() as pipe:
+        k = f"{self.prefix}:rate:{kind}:{owner}:{window}"
+        with self.redis.pipeline() as pipe:
             pipe.incr(k)
             pipe.expire(k, 61)
             count = pipe.execute()[0]
@@ -464,21 +464,21 @@ class Store:
             return 0
         now = time.time()
         window = int(now // 60)
-        count = int(self.r.get(f"{self.p}:rate:{kind}:{owner}:{window}") or 0)
+        count = int(self.redis.get(f"{self.prefix}:rate:{kind}:{owner}:{window}") or 0)
         return 0 if count < limit else max(1, int(math.ceil((window + 1) * 60 - now)))
 
     # ------------------------------------------------------------------ workers
     def worker_beat(self, name: str, info: dict | None = None) -> None:
         ttl = int(math.ceil(max(self.settings.heartbeat_ttl * 3, 60)))
-        with self.r.pipeline() as pipe:
-            pipe.zadd(f"{self.p}:workers", {name: time.time()})
+        with self.redis.pipeline() as pipe:
+            pipe.zadd(f"{self.prefix}:workers", {name: time.time()})
             if info:
-                pipe.hset(f"{self.p}:worker:{name}", mapping={k: json.dumps(v) for k, v in info.items()})
-            pipe.expire(f"{self.p}:worker:{name}", ttl)
+                pipe.hset(f"{self.prefix}:worker:{name}", mapping={k: json.dumps(v) for k, v in info.items()})
+            pipe.expire(f"{self.prefix}:worker:{name}", ttl)
             if info and isinstance(info.get("max_vertices"), int):  # outlives the worker: see vertex_limit
-                pipe.set(f"{self.p}:vertex_limit", info["max_vertices"], ex=self.settings.retention_seconds)
+                pipe.set(f"{self.prefix}:vertex_limit", info["max_vertices"], ex=self.settings.retention_seconds)
             # Forget workers silent for long (their own hash has expired by then too).
-            pipe.zremrangebyscore(f"{self.p}:workers", "-inf", time.time() - ttl)
+            pipe.zremrangebyscore(f"{self.prefix}:workers", "-inf", time.time() - ttl)
             pipe.execute()
 
     def vertex_limit(self) -> int | None:
@@ -486,24 +486,24 @@ class Store:
         last worker reported (a job queued meanwhile waits for that model); None if no worker ever said."""
         names = self.workers_alive()
         if not names:
-            last = self.r.get(f"{self.p}:vertex_limit")
+            last = self.redis.get(f"{self.prefix}:vertex_limit")
             return int(last) if last is not None else None
-        with self.r.pipeline() as pipe:
+        with self.redis.pipeline() as pipe:
             for n in names:
-                pipe.hget(f"{self.p}:worker:{n}", "max_vertices")
+                pipe.hget(f"{self.prefix}:worker:{n}", "max_vertices")
             limits = [json.loads(v) for v in pipe.execute() if v is not None]
         limits = [v for v in limits if isinstance(v, int)]
         return min(limits) if limits else None
 
     def worker_last_beat(self, name: str) -> float | None:
         """Unix time of the last heartbeat of the worker ``name`` (None: none on record)."""
-        return self.r.zscore(f"{self.p}:workers", name)
+        return self.redis.zscore(f"{self.prefix}:workers", name)
 
     def worker_gone(self, name: str) -> None:
-        self.r.zrem(f"{self.p}:workers", name)
+        self.redis.zrem(f"{self.prefix}:workers", name)
 
     def worker_info(self, name: str) -> dict:
-        return {k.decode(): json.loads(v) for k, v in self.r.hgetall(f"{self.p}:worker:{name}").items()}
+        return {k.decode(): json.loads(v) for k, v in self.redis.hgetall(f"{self.prefix}:worker:{name}").items()}
 
 
 def timeout_error(seconds: float) -> dict:

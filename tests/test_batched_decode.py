@@ -131,7 +131,7 @@ def test_pipeline_candidates_are_each_seed_alone():
     params = dict(max_vertices=24, temperature=1.0)
     both = pipe.generate(shape, GenerateParams(seed=11, candidates=2, **params))
     norm = Normalization.fit(shape.vertices)
-    reference = input_surface(shape, norm.apply(shape.vertices), pipe.face_config.support_points, 11)
+    reference = input_surface(shape, norm.apply(shape.vertices), pipe.triangle_config.support_points, 11)
     fits = []
     for k in range(2):
         alone = pipe.generate(shape, GenerateParams(seed=11 + k, candidates=1, **params))

@@ -33,8 +33,8 @@ def test_build_from_corpus_folder(mini_corpus, tmp_path):
     n_files = len(list(mini_corpus.rglob("*.ply")))
     assert stats["meshes"] == len(ds) == n_files
     assert len(POSED) == 2 and stats["groups"] == 2 + 6
-    groups = ds.a["group"]
-    split = ds.a["split"]
+    groups = ds.arrays["group"]
+    split = ds.arrays["split"]
     # Poses are never split from their base: one split per group.
     for g in np.unique(groups):
         assert len(np.unique(split[groups == g])) == 1
@@ -51,7 +51,7 @@ def test_split_is_deterministic(mini_corpus, tmp_path):
     b = build_dataset([str(mini_corpus)], tmp_path / "b.npz", val_fraction=0.3, workers=1)
     assert a == b
     da, db = load_dataset(tmp_path / "a.npz"), load_dataset(tmp_path / "b.npz")
-    assert np.array_equal(da.a["split"], db.a["split"]) and np.array_equal(da.a["q"], db.a["q"])
+    assert np.array_equal(da.arrays["split"], db.arrays["split"]) and np.array_equal(da.arrays["q"], db.arrays["q"])
     assert in_validation("x/y.ply", 0.3) == in_validation("x/y.ply", 0.3)
     assert not in_validation("anything", 0.0)
 
@@ -104,10 +104,10 @@ def test_split_by_package_holds_out_whole_packages(mini_corpus, tmp_path):
     out = tmp_path / "p.npz"
     stats = build_dataset([str(mini_corpus)], out, val_packages=("megaglest-data",), workers=1)
     ds = load_dataset(out)
-    package = ds.a["package"]
+    package = ds.arrays["package"]
     assert set(package) == {"ufoai-data", "megaglest-data"}
     # Every megaglest mesh and pose (the poses live in megaglest-data-poses/) is in validation, nothing else.
-    assert np.array_equal(ds.a["split"] == 1, package == "megaglest-data")
+    assert np.array_equal(ds.arrays["split"] == 1, package == "megaglest-data")
     assert stats["val_packages"] == {"megaglest-data": int((package == "megaglest-data").sum())}
     assert ds[int(ds.indices("val")[0])].package == "megaglest-data"
     with pytest.raises(ValueError, match="no-such-package"):
@@ -124,6 +124,6 @@ def test_cli_default_holds_out_the_validation_packages_present(mini_corpus, tmp_
     assert main(["data", "build", str(mini_corpus), "-o", str(tmp_path / "b.npz"), "--workers", "1",
                  "--val-packages", "megaglest-data"]) == 0
     ds = load_dataset(tmp_path / "b.npz")
-    assert np.array_equal(ds.a["split"] == 1, ds.a["package"] == "megaglest-data")
+    assert np.array_equal(ds.arrays["split"] == 1, ds.arrays["package"] == "megaglest-data")
     assert main(["data", "build", str(mini_corpus), "-o", str(tmp_path / "c.npz"), "--workers", "1",
                  "--val-packages", "megaglest-data,nope"]) == 2

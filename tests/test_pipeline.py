@@ -14,7 +14,6 @@ import pytest
 import torch
 import trimesh
 
-from fastmesh.faces import FaceConfig
 from fastmesh.filtering import FilterConfig
 from fastmesh.io import Shape, load_shape, sample_surface
 from fastmesh.params import GenerateParams
@@ -22,6 +21,7 @@ from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weig
 from fastmesh.quality import mesh_quality
 from fastmesh.support import surface_fit
 from fastmesh.tokenizer.grid import CELL
+from fastmesh.triangles import TriangleConfig
 
 torch.set_num_threads(1)
 
@@ -63,10 +63,10 @@ def test_same_seed_same_mesh_and_save_load_roundtrip(pipe, weights):
 def test_filtering_and_cleanup_settings_survive_save_load(tmp_path):
     p = Pipeline.random(seed=0)
     p.filter_config = FilterConfig(first_threshold=0.6, final_threshold=0.4, candidate_passes=1)
-    p.face_config = FaceConfig(remove_unreferenced=True, drop_coplanar_diagonals=True, support_tol=0.02)
+    p.triangle_config = TriangleConfig(remove_unreferenced=True, drop_coplanar_diagonals=True, support_tol=0.02)
     p.save(tmp_path)
     q = Pipeline.from_pretrained(tmp_path)
-    assert q.filter_config == p.filter_config and q.face_config == p.face_config
+    assert q.filter_config == p.filter_config and q.triangle_config == p.triangle_config
 
 
 def test_candidates_return_the_one_nearest_the_input(pipe):

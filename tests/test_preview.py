@@ -151,7 +151,7 @@ def test_wireframe_draws_dark_edges_and_is_cached_separately(open_app):
     dark = lambda im: int((im[..., :3].max(-1) < 90).sum())  # noqa: E731
     assert dark(wired) > dark(plain) + 100
     for wire in (False, True):
-        assert store.r.hexists(cache_key(store, job_id), cache_field("result", 128, wire))  # 96 snapped up
+        assert store.redis.hexists(cache_key(store, job_id), cache_field("result", 128, wire))  # 96 snapped up
 
 
 def test_preview_is_rendered_once_then_served_from_the_cache(open_app):
@@ -161,10 +161,10 @@ def test_preview_is_rendered_once_then_served_from_the_cache(open_app):
     finish(store, job_id, box.vertices, box.faces)
     first = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 64})
     key = cache_key(store, job_id)
-    assert store.r.hget(key, cache_field("result", 64, False)) == first.content
-    assert 0 < store.r.ttl(key) <= store.settings.retention_seconds  # expires with the job
+    assert store.redis.hget(key, cache_field("result", 64, False)) == first.content
+    assert 0 < store.redis.ttl(key) <= store.settings.retention_seconds  # expires with the job
     # Without the mesh, only the cache can answer: same bytes.
-    store.r.delete(store.k_result(job_id, "npz"), store.k_input(job_id))
+    store.redis.delete(store.k_result(job_id, "npz"), store.k_input(job_id))
     again = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 64})
     assert again.status_code == 200 and again.content == first.content
     # Another size is a different rendering; with nothing left to render it is a clear 404.
@@ -178,9 +178,9 @@ def test_deleting_a_job_deletes_its_cached_previews(open_app):
     box = trimesh.creation.box()
     finish(store, job_id, box.vertices, box.faces)
     assert c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 64}).status_code == 200
-    assert store.r.exists(cache_key(store, job_id))
+    assert store.redis.exists(cache_key(store, job_id))
     assert c.delete(f"/v1/jobs/{job_id}").status_code == 204
-    assert not store.r.exists(cache_key(store, job_id))
+    assert not store.redis.exists(cache_key(store, job_id))
 
 
 @pytest.mark.parametrize("query", [{"size": 63}, {"size": 1025}, {"size": "big"}, {"size": 2.5},
@@ -313,7 +313,7 @@ def test_concurrent_requests_for_one_preview_render_it_once(open_app):
     assert {r.status_code for r in got} == {200}
     assert len({r.content for r in got}) == 1
     assert app.app.state.previews.renders - before == 1
-    assert store.r.hkeys(cache_key(store, job_id)) == [cache_field("result", 512, False).encode()]
+    assert store.redis.hkeys(cache_key(store, job_id)) == [cache_field("result", 512, False).encode()]
 
 
 def test_sizes_snap_to_a_few_steps_so_the_cache_stays_small(open_app):
@@ -323,8 +323,8 @@ def test_sizes_snap_to_a_few_steps_so_the_cache_stays_small(open_app):
         r = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": size})
         side = int.from_bytes(r.content[16:20], "big")
         assert r.status_code == 200 and side >= size and side in (64, 128, 256, 512, 1024), (size, side)
-    assert store.r.hlen(cache_key(store, job_id)) <= 5
-    assert 0 < store.r.ttl(cache_key(store, job_id)) <= 3600  # previews live an hour, not the job's 24 h
+    assert store.redis.hlen(cache_key(store, job_id)) <= 5
+    assert 0 < store.redis.ttl(cache_key(store, job_id)) <= 3600  # previews live an hour, not the job's 24 h
 
 
 def test_more_pending_renders_than_the_bound_are_refused_at_once(open_app):

@@ -402,12 +402,12 @@ def test_idempotency_key_of_a_request_whose_api_died(keyed):
     claim = store.idempotency_get(who, "died-1")
     assert claim.startswith(f"{job_id} ") and not claim.endswith(" pending")
     # Killed after creating the job, before naming it final.
-    store.r.set(store._k_idem(who, "died-1"), f"{claim} pending", ex=store_module.PENDING_TTL)
+    store.redis.set(store._k_idem(who, "died-1"), f"{claim} pending", ex=store_module.PENDING_TTL)
     again = submit(keyed.url, headers={**auth, "Idempotency-Key": "died-1"}, seed=8)
     assert again.status_code == 200 and again.json()["id"] == job_id
     # Killed before creating the job: the retry waits for the claim to expire, then creates the job.
     fp = claim.split(" ")[1]
-    store.r.set(store._k_idem(who, "died-2"), f"{Store.new_id()} {fp} pending", px=1500)
+    store.redis.set(store._k_idem(who, "died-2"), f"{Store.new_id()} {fp} pending", px=1500)
     t0 = time.monotonic()
     late = submit(keyed.url, headers={**auth, "Idempotency-Key": "died-2"}, seed=8)
     assert late.status_code == 202 and late.json()["id"] != job_id, late.text

@@ -3,10 +3,10 @@
 import numpy as np
 import trimesh
 
-from fastmesh.faces import FaceConfig, mesh_from_adjacency
 from fastmesh.io import Shape, input_surface, sample_triangles
 from fastmesh.metrics import edges_from_faces
 from fastmesh.support import drop_unsupported, support_distance, surface_fit
+from fastmesh.triangles import TriangleConfig, mesh_from_adjacency
 
 
 def _grid(n: int, x0: float, x1: float) -> np.ndarray:
@@ -67,9 +67,9 @@ def test_a_vertex_on_the_surface_keeps_its_best_face():
 def test_mesh_from_adjacency_checks_support_only_when_asked():
     v, real, bridge, points = _two_squares()
     edges = edges_from_faces(np.concatenate([real, bridge]))
-    _, f_all = mesh_from_adjacency(v, edges, FaceConfig(orient=False))
-    _, f_sup = mesh_from_adjacency(v, edges, FaceConfig(orient=False, support_tol=0.03), points=points)
-    _, f_nopts = mesh_from_adjacency(v, edges, FaceConfig(orient=False, support_tol=0.03))
+    _, f_all = mesh_from_adjacency(v, edges, TriangleConfig(orient=False))
+    _, f_sup = mesh_from_adjacency(v, edges, TriangleConfig(orient=False, support_tol=0.03), points=points)
+    _, f_nopts = mesh_from_adjacency(v, edges, TriangleConfig(orient=False, support_tol=0.03))
     assert len(f_all) == len(f_nopts) > len(f_sup)
     # No kept triangle joins the two squares (vertices 0-3 and 4-7).
     assert all(len({int(i) // 4 for i in f}) == 1 for f in f_sup)

@@ -224,7 +224,7 @@ def test_decoder_reading_cell_evidence_trains_from_a_cell_cache(cache, tmp_path)
     twin = load_dataset(_cell_cache(cache, cells_dir, tmp_path / "pooled.npz", "--train", "3", "--val", "1",
                                     "--workers", "2"))
     for k in ("cell_flat", "cell_logit", "c_off", "q"):
-        np.testing.assert_array_equal(ds.a[k], twin.a[k], err_msg=k)
+        np.testing.assert_array_equal(ds.arrays[k], twin.arrays[k], err_msg=k)
     # a batch carries them sparse; spread out they are the stored grids
     sparse = sparse_cells(ds, [0, 2])
     dense = dense_cells(sparse["cell_flat"], sparse["cell_logit"])

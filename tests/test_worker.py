@@ -247,3 +247,10 @@ def test_sigterm_hands_the_running_job_back(env):
     assert env.attempt(job_id) == 2
     assert wait_final(app.url, job_id)["status"] == "succeeded"  # finished by the next worker
     assert f"{job_id} succeeded" in nxt.log()
+
+
+def test_jobs_queued_under_the_former_function_name_still_run():
+    import worker.jobs
+    import worker.tasks
+
+    assert worker.tasks.run_job is worker.jobs.run_job

@@ -23,7 +23,7 @@ from service.reaper import reap_logged
 from service.settings import Settings
 from service.store import Store
 
-from .tasks import STATE
+from .jobs import STATE
 
 log = logging.getLogger("fastmesh.worker")
 
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         STATE.name = args.name
     store = Store(settings)
     try:
-        store.r.ping()
+        store.redis.ping()
     except redis.RedisError as e:
         print(f"fastmesh-worker: cannot reach Redis at {settings.redis_url}: {e}", file=sys.stderr)
         return 1

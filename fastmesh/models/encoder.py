@@ -10,8 +10,8 @@ farthest-point samples of the input: each output token then belongs to a place o
 surface, and the vertex decoder adds the cell embedding of that place to it, so
 "which input region is near the next vertex" becomes a similarity between embeddings
 the decoder already uses for its own vertices (see ``VertexDecoder.condition``).
-Learned latents (``anchors`` = 0) left the decoder of session 1 ignoring its condition
-after three epochs (it emitted one sequence for every shape).
+With learned latents (``anchors`` = 0) a decoder still ignores its condition after three
+epochs (``configs/vertex-latents.json``: it emits one sequence for every shape).
 
 Why a prefix rather than cross-attention in the decoder: with a KV cache the prefix
 is prefilled once per shape and each decoded token attends to ``n_latents`` more

@@ -1,9 +1,9 @@
 """Point evidence: a learned logit bias from where the input points lie.
 
 The vertex decoder has to learn that vertices sit on the input surface.  Through
-attention alone that took longer than our CPU budget: after three epochs the
-session-1 decoder gained 0.013 nats per token from its condition (``cond_gain`` in
-the training log), i.e. it emitted the same artist-like sequence for every input.
+attention alone that takes longer than a CPU budget: after three epochs a decoder
+with learned latents and no evidence gains 0.013 nats per token from its condition
+(``cond_gain`` in the training log), i.e. it emits the same artist-like sequence for every input.
 
 So the condition also enters the *output*: every candidate token gets a bias read
 from counts of input points around the cell it would place a vertex in,
@@ -26,8 +26,8 @@ over (``skipped``):
     block token b (current c):  block_table[level(n_4)] + skip_table[level(skipped(c, b))]
 
 Without them a decoder that has not learned its input well stops early or leaves whole
-parts of the shape out (both seen with this decoder before they were added): ending while occupied
-blocks remain, or jumping over them, now costs what training finds it costs.
+parts of the shape out (both seen with decoders trained without these tables): ending while occupied
+blocks remain, or jumping over them, costs what training finds it costs.
 
 Optionally (``PointEvidence(normals=True)``) a last table reads the input *normals*: artist
 vertices sit where the surface bends (corners, creases), rarely inside a flat region, and point
@@ -94,7 +94,7 @@ class Evidence:
 
     def __init__(self, module: PointEvidence, points: torch.Tensor, normals: torch.Tensor | None = None,
                  cells: torch.Tensor | None = None):
-        self.m = module
+        self.tables = module
         b = points.shape[0]
         point_cells = quantize(points.detach().float())  # (B, P, 3)
         self.levels = []  # per shift: (B, res^3) count level of every coarse cube
@@ -146,17 +146,17 @@ class Evidence:
         done = self.occ_incl[rows, block.clamp(min=0)] * (block >= 0)  # occupied blocks emitted so far
         remaining = self.occ_incl[rows, -1] - done  # occupied blocks after the current one
         skipped = (self.occ_excl[rows] - done[:, None]).clamp(min=0)  # occupied blocks strictly between
-        block_bias = self.m.block_table(self.levels[-1][rows]).squeeze(-1) \
-            + self.m.skip_table(_level(skipped, SEQ_LEVELS)).squeeze(-1)
+        block_bias = self.tables.block_table(self.levels[-1][rows]).squeeze(-1) \
+            + self.tables.skip_table(_level(skipped, SEQ_LEVELS)).squeeze(-1)
         special = block_bias.new_zeros(len(rows), vt.N_SPECIAL)
-        special[:, vt.EOS] = self.m.eos_table(_level(remaining, SEQ_LEVELS)).squeeze(-1)
+        special[:, vt.EOS] = self.tables.eos_table(_level(remaining, SEQ_LEVELS)).squeeze(-1)
         if self.cells is not None:  # the same reading of the sequence, in expected vertices
             done = self.cell_incl[rows, block.clamp(min=0)] * (block >= 0)
             ahead = self.cell_incl[rows, -1] - done
             skipped = (self.cell_excl[rows] - done[:, None]).clamp(min=0)
-            block_bias = block_bias + (self.m.cell_block_table(_level(self.cell_expected[rows], CELL_LEVELS))
-                                       + self.m.cell_skip_table(_level(skipped, CELL_LEVELS))).squeeze(-1)
-            special[:, vt.EOS] += self.m.cell_eos_table(_level(ahead, CELL_LEVELS)).squeeze(-1)
+            block_bias = block_bias + (self.tables.cell_block_table(_level(self.cell_expected[rows], CELL_LEVELS))
+                                       + self.tables.cell_skip_table(_level(skipped, CELL_LEVELS))).squeeze(-1)
+            special[:, vt.EOS] += self.tables.cell_eos_table(_level(ahead, CELL_LEVELS)).squeeze(-1)
         return [GAIN * special, GAIN * block_bias]
 
     def _offset_rows(self, rows: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
@@ -167,17 +167,17 @@ class Evidence:
         for s, lev, part in zip(SHIFTS, self.levels, self.parts, strict=False):
             lv = lev[rows[:, None], flat_index(bxyz * (BLOCK_SIDE >> s), CELLS >> s)[:, None] + part]  # (U, 4096)
             idx = lv if idx is None else idx * LEVELS + lv
-        bias = self.m.table(idx).squeeze(-1)
+        bias = self.tables.table(idx).squeeze(-1)
         if self.spread is not None:
             idx = None
             for s, st, part in zip(NORMAL_SHIFTS, self.spread, self.spread_parts, strict=True):
                 sv = st[rows[:, None], flat_index(bxyz * (BLOCK_SIDE >> s), CELLS >> s)[:, None] + part]
                 idx = sv if idx is None else idx * SPREAD_STATES + sv
-            bias = bias + self.m.corner_table(idx).squeeze(-1)
+            bias = bias + self.tables.corner_table(idx).squeeze(-1)
         bias = GAIN * bias
         if self.cells is not None:
             cell = flat_index(bxyz * BLOCK_SIDE)[:, None] + self.cell_part  # (U, 4096) flat cells of the offsets
-            bias = bias + self.m.cell_gain * self.cells[rows[:, None], cell]
+            bias = bias + self.tables.cell_gain * self.cells[rows[:, None], cell]
         return bias * (block >= 0)[:, None]  # no block yet: no evidence
 
 

@@ -3,7 +3,7 @@
 An artist's edge runs along the surface, is about as long as the local detail, and lies across
 the surface normals at its ends; a pair that cuts through the inside of the shape or across a gap
 is no edge, whatever the vertex features say.  The input shows this directly, so the edge head
-reads it (issue: "the model should never have to learn what the input shows"):
+reads it (the model should never have to learn what the input shows):
 
     stray_max, stray_mean : distance of the segment i-j from the input points, sampled at
                             ``samples`` points along it, in point spacings (clipped at STRAY_CLIP)

@@ -37,8 +37,8 @@ class VertexTask:
 
     def costs(self, ds) -> np.ndarray:
         """Token count of each mesh (unaugmented; augmentation changes it by a few %)."""
-        return np.array([vt.num_tokens(ds.a["q"][a:b].astype(np.int64))
-                         for a, b in zip(ds.a["v_off"][:-1], ds.a["v_off"][1:], strict=True)])
+        return np.array([vt.num_tokens(ds.arrays["q"][a:b].astype(np.int64))
+                         for a, b in zip(ds.arrays["v_off"][:-1], ds.arrays["v_off"][1:], strict=True)])
 
     def make_batch(self, ds, indices, rng: np.random.Generator, cfg, train: bool) -> dict[str, torch.Tensor]:
         """Tokens, condition points and (for a decoder that reads them) the stored cell log-odds.

@@ -19,8 +19,8 @@ from fastmesh.params import BOUNDS
 
 from ..deps import JobId, Owner, StoreDep, owned_job
 from ..errors import SHAPE_STATUS, ApiError
+from ..forms import build_params, generation_defaults, input_info, safe_filename
 from ..idempotency import Idempotency
-from ..params import build_params, generation_defaults, input_info, safe_filename
 from ..schemas import Job, error_responses
 from ..settings import Settings
 from ..store import FINAL, QueueFull, Store, mesh_from_bytes, shape_to_bytes

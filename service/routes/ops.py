@@ -20,7 +20,7 @@ async def healthz() -> dict:  # async: answers from the event loop even when eve
             responses=error_responses(503))
 def readyz(store: StoreDep) -> dict:
     try:
-        store.r.ping()
+        store.redis.ping()
         workers, depth = len(store.workers_alive()), store.queue_depth()
     except Exception as e:
         raise ApiError(503, "not_ready", f"Redis unreachable: {type(e).__name__}") from None

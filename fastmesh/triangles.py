@@ -27,7 +27,7 @@ _CHUNK = 2_000_000
 
 
 @dataclass
-class FaceConfig:
+class TriangleConfig:
     """Clean-up options of :func:`mesh_from_adjacency`.
 
     Attributes
@@ -60,7 +60,7 @@ class FaceConfig:
         ``"cliques"``: the 3-cycles of the predicted edges with the clean-up above.  ``"surface"``
         (needs the input's samples): restricted Delaunay triangles plus the 3-cycles that lie on
         the input surface, scored by the model, selected to stay a surface and holes filled
-        (:func:`fastmesh.surface_faces.surface_mesh`; of the options above it uses
+        (:func:`fastmesh.surface_triangles.surface_mesh`; of the options above it uses
         ``support_points`` and ``remove_unreferenced``, and always orients).
     surface_tol : float or None
         ``"surface"``: the support limit relative to the points' longest side (None: only the
@@ -238,7 +238,7 @@ def drop_degenerate(vertices: np.ndarray, faces: np.ndarray, area_tol: float = 1
 
 def drop_coplanar_diagonals(vertices: np.ndarray, faces: np.ndarray, coplanar_tol: float = 0.5 * CELL,
                             cases: tuple[str, ...] = ("convex", "inner")) -> np.ndarray:
-    """Resolve coplanar 4-cliques of the faces' edge graph (see ``FaceConfig``).
+    """Resolve coplanar 4-cliques of the faces' edge graph (see ``TriangleConfig``).
 
     Parameters
     ----------
@@ -413,7 +413,7 @@ def remove_unreferenced(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nda
     return np.asarray(vertices)[used], remap[f], np.flatnonzero(used)
 
 
-def mesh_from_adjacency(vertices: np.ndarray, adj, config: FaceConfig | None = None,
+def mesh_from_adjacency(vertices: np.ndarray, adj, config: TriangleConfig | None = None,
                         points: np.ndarray | None = None, logits: np.ndarray | None = None
                         ) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and a predicted adjacency -> a cleaned, oriented triangle mesh.
@@ -423,7 +423,7 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: FaceConfig | None = N
     vertices : (N, 3) float
         Positions (any frame; tolerances are relative to the bounding box).
     adj : (N, N) array, sparse matrix or (E, 2) edge list
-    config : FaceConfig
+    config : TriangleConfig
     points : (P, 3) float, optional
         Samples of the input surface in the frame of ``vertices``: with ``config.support_tol``,
         faces that leave that surface are dropped, and ``config.max_faces_per_edge`` keeps the
@@ -436,10 +436,10 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: FaceConfig | None = N
     vertices : (M, 3) float64 (M = N unless ``remove_unreferenced``)
     faces : (F, 3) int64
     """
-    cfg = config or FaceConfig()
+    cfg = config or TriangleConfig()
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     if cfg.selection == "surface":
-        from .surface_faces import surface_mesh
+        from .surface_triangles import surface_mesh
 
         if points is None:
             raise ValueError("selection 'surface' needs samples of the input surface (points)")

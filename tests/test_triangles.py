@@ -10,7 +10,7 @@ import scipy.sparse as sp
 import trimesh
 from testdata import committed_meshes, shared_corpus_sample
 
-from fastmesh import faces as fm
+from fastmesh import triangles as fm
 from fastmesh.io import Normalization, load_shape
 from fastmesh.metrics import edges_from_faces
 from fastmesh.tokenizer import dequantize, quantize_mesh
@@ -135,7 +135,7 @@ def test_mesh_from_adjacency_recovers_sphere():
     m = trimesh.Trimesh(v, f, process=False)
     assert len(f) == len(s.faces) and m.is_winding_consistent and m.volume > 0
     v3, f3 = fm.mesh_from_adjacency(np.concatenate([s.vertices, [[9, 9, 9]]]), adj,
-                                    fm.FaceConfig(remove_unreferenced=True, drop_coplanar_diagonals=True))
+                                    fm.TriangleConfig(remove_unreferenced=True, drop_coplanar_diagonals=True))
     assert len(v3) == len(s.vertices) and len(f3) == len(s.faces)
 
 
@@ -185,8 +185,8 @@ def test_mesh_from_adjacency_limits_faces_per_edge_when_asked():
     rng = np.random.default_rng(0)
     v = rng.normal(size=(5, 3))
     edges = np.array([(i, j) for i in range(5) for j in range(i + 1, 5)])
-    _, f_all = fm.mesh_from_adjacency(v, edges, fm.FaceConfig(orient=False))
-    _, f_lim = fm.mesh_from_adjacency(v, edges, fm.FaceConfig(orient=False, max_faces_per_edge=2))
+    _, f_all = fm.mesh_from_adjacency(v, edges, fm.TriangleConfig(orient=False))
+    _, f_lim = fm.mesh_from_adjacency(v, edges, fm.TriangleConfig(orient=False, max_faces_per_edge=2))
     assert len(f_all) == 10 and 0 < len(f_lim) < 10
     e = np.sort(np.concatenate([f_lim[:, [0, 1]], f_lim[:, [1, 2]], f_lim[:, [2, 0]]]), axis=1)
     assert np.unique(e, axis=0, return_counts=True)[1].max() <= 2

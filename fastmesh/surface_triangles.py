@@ -19,8 +19,8 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .faces import FaceConfig, drop_degenerate, limit_faces_per_edge, orient_faces, triangles_from_adjacency
 from .support import support_distance, support_limit
+from .triangles import TriangleConfig, drop_degenerate, limit_faces_per_edge, orient_faces, triangles_from_adjacency
 
 # Share of the narrower corner two faces around a vertex may overlap in the tangent plane there
 # (projection onto an estimated plane is inexact on curved and sharp parts).
@@ -495,7 +495,7 @@ def fill_holes(vertices: np.ndarray, faces: np.ndarray, book: _Selection, points
     return np.asarray(list(kept.values()), dtype=np.int64).reshape(-1, 3)
 
 
-def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, config: FaceConfig | None = None,
+def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, config: TriangleConfig | None = None,
                  logits: np.ndarray | None = None) -> np.ndarray:
     """Faces among the surface candidates, chosen by the model, kept a surface, holes closed.
 
@@ -504,7 +504,7 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
     vertices : (N, 3) float
     edges : (E, 2) int, the model's predicted edges
     points : (P, 3) float, samples of the input surface in the frame of ``vertices``
-    config : FaceConfig
+    config : TriangleConfig
         ``surface_tol``, ``fold_angle``, ``fill_max_loop``,
         ``support_weight``, ``model_weight``, ``model_triangles``.
     logits : (N, N) float, optional
@@ -516,7 +516,7 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
     -------
     (F, 3) int64 oriented faces into ``vertices``.
     """
-    cfg = config or FaceConfig()
+    cfg = config or TriangleConfig()
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     pts = np.asarray(points, dtype=np.float64)
     cand = delaunay_triangles(v)

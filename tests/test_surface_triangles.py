@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh import surface_faces as sf
+from fastmesh import surface_triangles as sf
 from fastmesh.cli import main
-from fastmesh.faces import FaceConfig, mesh_from_adjacency
 from fastmesh.io import Normalization
 from fastmesh.metrics import mesh_topology
 from fastmesh.support import support_distance, support_limit
 from fastmesh.tokenizer import dequantize, quantize_mesh
+from fastmesh.triangles import TriangleConfig, mesh_from_adjacency
 
 PRIMITIVES = {
     "box": lambda: trimesh.creation.box(),
@@ -25,7 +25,7 @@ PRIMITIVES = {
     "icosphere1": lambda: trimesh.creation.icosphere(subdivisions=1),
     "icosphere2": lambda: trimesh.creation.icosphere(subdivisions=2),
 }
-SURFACE = FaceConfig(selection="surface")
+SURFACE = TriangleConfig(selection="surface")
 
 
 def _max_faces_per_edge(faces: np.ndarray) -> int:
@@ -83,7 +83,7 @@ def test_shipped_face_model_closes_box_and_cylinder(shipped, name):
     n_fp = shipped.face.cfg.encoder.n_points
     edges, logits = shipped.face.predict_edges(q, unit_pts[:n_fp], nrm[:n_fp], filtering=shipped.filter_config,
                                                return_logits=True)
-    cfg = FaceConfig(**{**shipped.face_config.__dict__, "selection": "surface", "remove_unreferenced": False})
+    cfg = TriangleConfig(**{**shipped.triangle_config.__dict__, "selection": "surface", "remove_unreferenced": False})
     v, f = mesh_from_adjacency(dequantize(q), edges, cfg, points=unit_pts, logits=logits)
     _assert_closed_on_surface(trimesh.Trimesh(norm.apply(m.vertices), m.faces), v, f, unit_pts)
     if name == "box":
@@ -104,7 +104,7 @@ def test_selection_never_puts_an_edge_in_three_faces():
     s /= np.linalg.norm(s, axis=1, keepdims=True)
     close = np.argwhere(np.linalg.norm(s[:, None] - s[None], axis=2) < 0.9)
     pts = trimesh.sample.sample_surface(trimesh.creation.icosphere(4), 8192, seed=0)[0]
-    f = sf.surface_mesh(s, close, pts, FaceConfig(selection="surface", support_tol=0.1))
+    f = sf.surface_mesh(s, close, pts, TriangleConfig(selection="surface", support_tol=0.1))
     assert len(f) and _max_faces_per_edge(f) <= 2
 
 

@@ -1,0 +1,225 @@
+"""What a worker does with one job: the function RQ calls, and the per-process model cache.
+
+RQ carries only ``(job id, attempt)``.  The job's input, parameters and state live in Redis
+(:mod:`service.store`), so a worker on another machine needs nothing but the Redis URL.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import socket
+import threading
+import time
+import uuid
+
+import redis
+from rq.timeouts import JobTimeoutException
+
+from fastmesh.io import ShapeError, with_normals
+from service.processes import wait_for
+from service.settings import Settings
+from service.store import Store, mesh_to_bytes, shape_from_bytes, timeout_error
+
+log = logging.getLogger("fastmesh.worker")
+
+
+class _State:
+    """Per-process: the loaded pipeline (once per process, never per job) and what is running now."""
+
+    def __init__(self):
+        self.settings: Settings | None = None
+        self.store: Store | None = None
+        self.name = f"fastmesh-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:4]}"
+        self.pipeline = None
+        self.loads = 0           # how many times this process built a Pipeline (the tests expect 1)
+        self.jobs = 0
+        self.current: tuple[str, int] | None = None   # (job id, attempt), read by the heartbeat thread
+        self.shutting_down = False
+        self.lock = threading.Lock()
+
+    def configure(self, settings: Settings, store: Store | None = None) -> None:
+        self.settings, self.store = settings, store or Store(settings)
+
+    def ensure(self) -> None:
+        if self.store is None:  # run by a plain `rq worker`: settings from the environment
+            self.configure(Settings())
+        with self.lock:
+            if self.pipeline is None:
+                self.pipeline = load_pipeline(self.settings)
+                self.loads += 1
+
+    def info(self) -> dict:
+        s = self.settings
+        limit = getattr(self.pipeline, "max_vertices", None)
+        return {"pid": os.getpid(), "host": socket.gethostname(), "loads": self.loads, "jobs": self.jobs,
+                "max_vertices": limit,
+                "weights": s.weights or "shipped", "device": s.device or "auto", "current": self.current}
+
+
+STATE = _State()
+
+
+def load_pipeline(settings: Settings):
+    """Build the pipeline from the configured weights (shipped ones when unset)."""
+    from fastmesh.pipeline import Pipeline
+
+    t0 = time.perf_counter()
+    pipe = Pipeline.from_pretrained(settings.weights, device=settings.device, threads=settings.torch_threads)
+    log.info("pipeline loaded from %s in %.2f s", settings.weights or "shipped weights", time.perf_counter() - t0)
+    return pipe
+
+
+class JobControl:
+    """The pipeline's ``progress`` and ``should_cancel`` callbacks for one attempt of one job.
+
+    Progress is written at most every ``progress_interval`` seconds (and at each new stage); the
+    cancel check reads the job's status at the same pace, so a DELETE or a requeue by the reaper
+    stops the decoder within a fraction of a second.  Past ``job_timeout`` it asks to stop too.
+    """
+
+    def __init__(self, store: Store, job_id: str, attempt: int):
+        self.store, self.job_id, self.attempt = store, job_id, attempt
+        s = store.settings
+        self.interval = s.progress_interval
+        self.delay = s.debug_step_delay
+        self.deadline = time.monotonic() + s.job_timeout
+        self.last_write = self.last_check = 0.0
+        self.stage = None
+        self.lost = False       # the job is no longer ours (cancelled, requeued, failed by the reaper)
+        self.timed_out = False
+
+    def progress(self, stage: str, fraction: float) -> None:
+        if self.delay:
+            time.sleep(self.delay)
+        now = time.monotonic()
+        if stage == self.stage and now - self.last_write < self.interval:
+            return
+        self.stage, self.last_write = stage, now
+        try:
+            if not self.store.progress(self.job_id, self.attempt, stage, min(max(float(fraction), 0.0), 1.0)):
+                self.lost = True
+        except redis.RedisError as e:  # a blip must not kill the job; the final write will tell
+            log.warning("progress write failed: %s", e)
+
+    def should_cancel(self) -> bool:
+        now = time.monotonic()
+        if now > self.deadline:
+            self.timed_out = True
+        elif not self.lost and now - self.last_check >= self.interval:
+            self.last_check = now
+            try:
+                self.lost = not self.store.still_mine(self.job_id, self.attempt)
+            except redis.RedisError as e:
+                log.warning("cancel check failed: %s", e)
+        return self.lost or self.timed_out or STATE.shutting_down
+
+
+def run_job(job_id: str, attempt: int) -> None:
+    """RQ entry point.  Never raises for a job's own failure: the outcome is written to the job."""
+    STATE.ensure()
+    store, name = STATE.store, STATE.name
+    if not store.start(job_id, attempt, name):
+        log.info("job %s attempt %d: not queued any more (cancelled or superseded), skipped", job_id, attempt)
+        return
+    STATE.current = (job_id, attempt)
+    try:
+        _run(store, job_id, attempt)
+    except JobTimeoutException:  # RQ's hard timeout, the backstop of our cooperative one
+        store.finish(job_id, attempt, "failed", error=timeout_error(store.settings.job_timeout))
+    except (redis.ConnectionError, redis.TimeoutError) as e:
+        # Redis went away mid-job (restart, failover): not the job's fault, and reporting a failure
+        # would fail too.  Wait for Redis, then hand the job back; only then return to RQ, whose own
+        # bookkeeping after a job would otherwise meet the outage and stop the worker for good.
+        log.warning("job %s: Redis unreachable (%s); handing it back when Redis returns", job_id, e)
+        try:
+            wait_for(lambda: _redis_answers(store), store.settings.redis_outage_wait, 0.5, what="Redis")
+        except TimeoutError:
+            raise e from None  # the worker exits; the API's reaper requeues the job once its heartbeat lapses
+        _release(store, job_id, attempt, "Redis was unreachable")
+    except Exception as e:  # a bug or Redis trouble: fail this job clearly rather than retry it forever
+        log.exception("job %s crashed", job_id)
+        store.finish(job_id, attempt, "failed",
+                     error={"code": "internal", "message": f"worker error: {type(e).__name__}: {e}"[:500]})
+    except BaseException:  # cold shutdown (SystemExit, KeyboardInterrupt): hand the job back, then go
+        _release(store, job_id, attempt, "worker shutting down")
+        raise
+    finally:
+        STATE.current = None
+        STATE.jobs += 1
+
+
+def _run(store: Store, job_id: str, attempt: int) -> None:
+    from fastmesh.pipeline import Cancelled, GenerateParams
+
+    job = store.get(job_id)
+    timings = {"queue": job["started_at"] - job["created_at"]}
+    blob = store.get_input(job_id)
+    if blob is None:
+        store.finish(job_id, attempt, "failed", timings=timings,
+                     error={"code": "input_missing", "message": "the job's input is no longer stored"})
+        return
+    ctl = JobControl(store, job_id, attempt)
+    names = {f.name for f in dataclasses.fields(GenerateParams)}
+    params = GenerateParams(**{k: v for k, v in job["params"].items() if k in names})
+    formats = job["params"].get("formats") or store.settings.default_formats
+    try:
+        t0 = time.perf_counter()
+        shape = with_normals(shape_from_bytes(blob))  # the API leaves a cloud's normal estimation to us
+        timings["load"] = float(job["timings"].get("load") or 0.0) + time.perf_counter() - t0
+        result = STATE.pipeline.generate(shape, params, progress=ctl.progress, should_cancel=ctl.should_cancel)
+        ctl.progress("export", 1.0)  # the pipeline reports overall fractions; it ended at 1
+        t0 = time.perf_counter()
+        files = {fmt: result.export(fmt) for fmt in formats}
+        files["npz"] = mesh_to_bytes(result.vertices, result.faces)
+        timings["export"] = time.perf_counter() - t0
+    except Cancelled:
+        if ctl.timed_out:
+            store.finish(job_id, attempt, "failed", timings=timings, error=timeout_error(store.settings.job_timeout))
+        elif STATE.shutting_down and not ctl.lost:
+            _release(store, job_id, attempt, "worker shutting down")
+        log.info("job %s attempt %d stopped (%s)", job_id, attempt,
+                 "timeout" if ctl.timed_out else "cancelled or superseded" if ctl.lost else "shutdown")
+        return
+    except ShapeError as e:
+        store.finish(job_id, attempt, "failed", timings=timings, error={"code": e.code, "message": e.message})
+        return
+    except ValueError as e:  # parameters the model refuses (e.g. more vertices than it was trained for)
+        store.finish(job_id, attempt, "failed", timings=timings, error={"code": "invalid_parameter",
+                                                                        "message": str(e)[:500]})
+        return
+    except (MemoryError, RuntimeError) as e:  # incl. GenerationError ("no_vertices", "no_faces")
+        if not hasattr(e, "code"):
+            log.exception("job %s failed", job_id)
+        store.finish(job_id, attempt, "failed", timings=timings, error={
+            "code": getattr(e, "code", "generation_failed"),
+            "message": getattr(e, "message", f"{type(e).__name__}: {e}")[:500]})
+        return
+    for fmt, data in files.items():
+        store.put_result(job_id, fmt, data)
+    timings.update({k: float(v) for k, v in result.timings.items()})
+    info = {"vertices": int(len(result.vertices)), "faces": int(len(result.faces)), "tokens": int(result.tokens),
+            "formats": list(formats), "seed": result.info.get("chosen_seed"), "quality": result.quality}
+    if not store.finish(job_id, attempt, "succeeded", result=info, timings=timings):
+        # Cancelled (or taken over) during export: drop what we wrote unless another attempt owns it now.
+        if (store.get(job_id) or {}).get("status") in (None, "cancelled", "failed"):
+            store.redis.delete(*store.result_keys(job_id))
+        return
+    log.info("job %s succeeded: %d vertices, %d faces", job_id, info["vertices"], info["faces"])
+
+
+def _redis_answers(store: Store) -> bool:
+    try:
+        return bool(store.redis.ping())
+    except redis.RedisError:
+        return False
+
+
+def _release(store: Store, job_id: str, attempt: int, reason: str) -> None:
+    """Give a job back to the queue for a reason that is not the job's fault."""
+    ok = store.transition(job_id, "running", {"status": "queued", "attempt": attempt + 1, "stage": "queued",
+                                              "fraction": 0.0, "worker": ""}, attempt=attempt, final=True)
+    if ok:
+        store.enqueue(job_id, attempt + 1)
+        log.warning("job %s handed back to the queue (%s)", job_id, reason)

@@ -32,6 +32,7 @@ class Bound:
     integer: bool = True
     lo_open: bool = False
     zero: bool = False
+    zero_means: str = ""  # what 0 does, named in the error message
 
     def check(self, name: str, value, hi: float | None = None) -> None:
         """Raise ValueError naming ``name`` unless ``value`` lies in the bound (``hi`` lowers its top)."""
@@ -46,7 +47,8 @@ class Bound:
             x = float("nan")  # fails every comparison below
         above_lo = x > self.lo if self.lo_open else x >= self.lo
         if not ((self.zero and x == 0) or (above_lo and x <= hi)):
-            raise ValueError(f"{name} must be {'0 or ' if self.zero else ''}in "
+            zero = f"0 ({self.zero_means}) or " if self.zero and self.zero_means else "0 or " if self.zero else ""
+            raise ValueError(f"{name} must be {zero}in "
                              f"{'(' if self.lo_open else '['}{self.lo:g}, {hi:g}]")
 
     def form_range(self) -> dict:
@@ -57,7 +59,7 @@ class Bound:
 BOUNDS = {
     # Candidate k samples with seed + k: every such seed must stay a valid int64 generator seed.
     "seed": Bound(0, 2**63 - 1 - MAX_CANDIDATES),
-    "temperature": Bound(MIN_TEMPERATURE, MAX_TEMPERATURE, integer=False, zero=True),  # 0: greedy
+    "temperature": Bound(MIN_TEMPERATURE, MAX_TEMPERATURE, integer=False, zero=True, zero_means="greedy"),
     "top_k": Bound(0, 1_000_000),  # 0 disables it; the cap keeps the number a sane size
     "top_p": Bound(0.0, 1.0, integer=False, lo_open=True),
     "max_vertices": Bound(3, 1_000_000),  # the decoder's own limit lowers the top (``validate``)

@@ -73,6 +73,8 @@ def test_config_tells_the_page_defaults_limits_and_auth(client):
     assert cfg["default_formats"] == ["glb", "obj"]
     assert set(cfg["formats"]) == {"glb", "obj", "ply"}
     assert {"seed", "temperature", "top_k", "top_p", "max_vertices", "enhancer", "filtering"} <= set(cfg["defaults"])
+    assert cfg["bounds"]["top_k"] == {"min": 0, "max": 1_000_000}  # the API's own bounds (params.BOUNDS)
+    assert cfg["bounds"]["temperature"]["min"] == 0 and cfg["bounds"]["candidates"] == {"min": 1, "max": 16}
     assert cfg["three_installed"] is True
     assert "k1" not in json.dumps(cfg)
 

@@ -17,6 +17,7 @@ from fastapi import APIRouter
 from fastapi.responses import FileResponse, JSONResponse, Response
 
 from fastmesh.io import EXPORT_FORMATS, SUPPORTED_FORMATS
+from fastmesh.params import BOUNDS
 
 from ..errors import ApiError
 from ..settings import Settings
@@ -54,6 +55,8 @@ def page_config(settings: Settings, defaults: dict) -> dict:
     return {
         "auth": bool(settings.api_keys),
         "defaults": defaults,
+        # The input fields' min/max, from the bounds the API validates with (0 where 0 switches a feature off).
+        "bounds": {name: {"min": 0 if b.zero else b.lo, "max": b.hi} for name, b in BOUNDS.items()},
         "default_formats": list(settings.default_formats),
         "formats": list(EXPORT_FORMATS),
         "input_formats": list(SUPPORTED_FORMATS),

@@ -133,9 +133,14 @@ function renderRecent() {
 
 function fillDefaults() {
   const d = state.config.defaults || {};
+  const bounds = state.config.bounds || {};
   const form = $('#job-form');
   for (const name of PARAMS) {
     const input = form.elements[name];
+    if (bounds[name]) {
+      input.min = bounds[name].min;
+      input.max = bounds[name].max;
+    }
     input.value = d[name] ?? '';
     input.placeholder = d[name] != null ? `default ${d[name]}` : 'auto (server decides)';
   }

@@ -240,23 +240,23 @@ class _Selection:
         self.sectors: dict[int, dict[tuple[int, int, int], tuple[float, float]]] = {}
         self.face_normals: dict[tuple[int, int, int], list[float]] = {}
 
-    def _sector(self, a: int, b: int, c: int) -> tuple[float, float]:
-        """(start, width) in radians of the corner of face (a, b, c) at ``a``, seen in a's tangent plane;
-        NaN where a has no tangent plane or the face lies across it."""
+    def _sector(self, a: int, b: int, c: int, f: list[float]) -> tuple[float, float]:
+        """(start, width) in radians of the corner of face (a, b, c) (unit normal ``f``) at ``a``, seen in
+        a's tangent plane; NaN where a has no tangent plane or the face lies across it."""
         n = self.normals[a]
-        f = _normal(self.v, a, b, c)
         if not abs(f[0] * n[0] + f[1] * n[1] + f[2] * n[2]) >= _CREASE:  # also False with a NaN frame
             return (math.nan, math.nan)
         return _arc(self.v, a, b, c, self.frames[a])
 
-    def _overlaps(self, a: int, b: int, c: int) -> bool:
-        """Whether the corner of face (a, b, c) at ``a`` overlaps a selected face's corner there.
+    def _overlaps(self, a: int, b: int, c: int, n: list[float]) -> bool:
+        """Whether the corner of face (a, b, c) (unit normal ``n``) at ``a`` overlaps a selected face's
+        corner there.
 
         In a's tangent plane where both corners have a sector there; otherwise (a crease, a corner, a
         face across the plane) only a selected face nearly parallel to this one can overlap it, and the
         two are compared in this face's own plane.
         """
-        s0, w0 = self._sector(a, b, c)
+        s0, w0 = self._sector(a, b, c, n)
         own = None
         for key, (s1, w1) in self.sectors.get(a, {}).items():
             if not (math.isnan(s0) or math.isnan(s1)):
@@ -264,13 +264,12 @@ class _Selection:
                     return True
                 continue
             if own is None:
-                n = _normal(self.v, a, b, c)
                 e = [self.v[b][i] - self.v[a][i] for i in range(3)]
                 k = sum(e[i] * n[i] for i in range(3))
                 u = _unit([e[i] - k * n[i] for i in range(3)])
                 frame = (u, _cross(n, u))
-                own = (n, frame, _arc(self.v, a, b, c, frame))
-            n, frame, (s2, w2) = own
+                own = (frame, _arc(self.v, a, b, c, frame))
+            frame, (s2, w2) = own
             m = self.face_normals[key]
             if abs(n[0] * m[0] + n[1] * m[1] + n[2] * m[2]) < _PARALLEL:
                 continue
@@ -286,15 +285,16 @@ class _Selection:
             others = self.third.get((x, y) if x < y else (y, x), ())
             if len(others) >= 2 or any(_folded(self.v, x, y, o, z, self.min_cos) for o in others):
                 return False
-        return not any(self._overlaps(x, y, z) for x, y, z in ((a, b, c), (b, c, a), (c, a, b)))
+        n = _normal(self.v, a, b, c)  # the same for every corner: they turn the same way
+        return not any(self._overlaps(x, y, z, n) for x, y, z in ((a, b, c), (b, c, a), (c, a, b)))
 
     def add(self, a: int, b: int, c: int) -> None:
         for x, y, z in ((a, b, c), (b, c, a), (a, c, b)):
             self.third.setdefault((x, y) if x < y else (y, x), []).append(z)
         key = tuple(sorted((a, b, c)))  # any winding of the face names it
-        self.face_normals[key] = _normal(self.v, a, b, c)
+        n = self.face_normals[key] = _normal(self.v, a, b, c)
         for x, y, z in ((a, b, c), (b, c, a), (c, a, b)):
-            self.sectors.setdefault(x, {})[key] = self._sector(x, y, z)
+            self.sectors.setdefault(x, {})[key] = self._sector(x, y, z, n)
 
     def remove(self, a: int, b: int, c: int) -> None:
         for x, y, z in ((a, b, c), (b, c, a), (a, c, b)):
@@ -449,8 +449,7 @@ def _reclip(v: np.ndarray, loop: list[int], kept: dict, book: _Selection, points
                 break
             done.extend(ears)
         else:
-            used = {x for t in done for x in t}.union(*[set(t) for t in kept.values()])
-            if used.issuperset(x for t in removed for x in t):
+            if all(book.sectors[x] for t in removed for x in t):  # the book holds kept + done
                 kept.update((tuple(sorted(t)), t) for t in done)
                 return True
         for t in done:

@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 PAIR_FEATURES = 5
 STRAY_CLIP = 8.0  # spacings; beyond this a segment is simply off the surface
-NODE_CHUNK = 8192  # grid nodes measured against the points at once (bounds the distance matrix)
+NODE_CHUNK = 8192  # grid nodes x shapes measured against the points at once (bounds the distance matrix)
 
 
 @dataclass
@@ -68,9 +68,9 @@ def distance_grid(points: torch.Tensor, size: int) -> torch.Tensor:
     z, y, x = torch.meshgrid(ax, ax, ax, indexing="ij")
     nodes = torch.stack([x, y, z], dim=-1).reshape(-1, 3)  # row-major over (z, y, x)
     out = torch.empty(points.shape[0], nodes.shape[0], device=points.device)
-    for s in range(0, len(nodes), NODE_CHUNK):
-        out[:, s:s + NODE_CHUNK] = torch.cdist(nodes[s:s + NODE_CHUNK].expand(len(points), -1, -1),
-                                               points).min(dim=2).values
+    step = max(1, NODE_CHUNK // len(points))  # a training batch measures all its shapes at once
+    for s in range(0, len(nodes), step):
+        out[:, s:s + step] = torch.cdist(nodes[s:s + step].expand(len(points), -1, -1), points).min(dim=2).values
     return out.view(-1, 1, size, size, size)
 
 

@@ -11,7 +11,7 @@ selection and hole filling.  The vertices are N distinct 7-bit cells on a sphere
 lattice), the input 8192 samples of that sphere.  Targets: peak RSS < 2 GB, < 20 s on 2 threads.
 
     python benchmarks/face_memory.py [--sizes 1000 2000 4000] [--threads 1] [--masked] [--pair-chunk K]
-    python benchmarks/face_memory.py --stage --threads 2 [--sizes 4000] [--no-filtering]
+    python benchmarks/face_memory.py --stage --threads 2 [--sizes 4000] [--filtering]
 
 Prints one JSON line per N: baseline RSS after building the model, peak RSS during the
 pass, seconds for the unmasked pass (and for a banded-mask pass with --masked); with --stage
@@ -112,12 +112,13 @@ def main() -> None:
     ap.add_argument("--masked", action="store_true", help="also time a pass with a band attention mask")
     ap.add_argument("--pair-chunk", type=int, default=0, help="override pair_chunk (e.g. 100000 = unchunked)")
     ap.add_argument("--stage", action="store_true", help="the whole face stage with the shipped model and settings")
-    ap.add_argument("--no-filtering", action="store_true", help="--stage: one network pass, no prediction filtering")
+    ap.add_argument("--filtering", action=argparse.BooleanOptionalAction, default=False,
+                    help="--stage: with prediction filtering (default: off, as the pipeline's default)")
     args = ap.parse_args()
     for n in args.sizes:
         if args.stage:
             r = subprocess.run([sys.executable, "-c", STAGE, str(n), str(args.threads),
-                                "0" if args.no_filtering else "1"], capture_output=True, text=True)
+                                "1" if args.filtering else "0"], capture_output=True, text=True)
             print(r.stdout.strip() if r.returncode == 0 else f"N={n} failed: {r.stderr[-2000:]}", flush=True)
             continue
         r = subprocess.run([sys.executable, "-c", CHILD, str(n), str(args.threads), "1" if args.masked else "0",

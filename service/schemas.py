@@ -16,7 +16,7 @@ JOB_EXAMPLE = {
     "started_at": "2025-05-01T12:00:00.210000Z",
     "finished_at": "2025-05-01T12:00:04.870000Z",
     "params": {"seed": 0, "temperature": 0.3, "top_k": 10, "top_p": 0.95, "max_vertices": 1000,
-               "enhancer": True, "filtering": True, "candidates": 2, "target_faces": None, "formats": ["glb"]},
+               "enhancer": True, "filtering": False, "candidates": 2, "target_faces": None, "formats": ["glb"]},
     "input": {"filename": "chair.ply", "kind": "points", "points": 20000, "vertices": None, "faces": None},
     "result": {"vertices": 412, "faces": 806, "tokens": 412, "formats": ["glb"], "seed": 1,
                "quality": {"cd": 2.61, "hd": 11.4, "boundary_edges": 18, "non_manifold_edges": 0, "components": 3,

@@ -9,10 +9,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from fastmesh.filtering import FilterConfig
+from fastmesh.filtering import FilterConfig, band_mask
 from fastmesh.metrics import edges_from_faces
 from fastmesh.models.encoder import EncoderConfig
-from fastmesh.models.face import FaceModel, FaceModelConfig, asymmetric_loss
+from fastmesh.models.face import OUTSIDE, FaceModel, FaceModelConfig, asymmetric_loss, mask_spans
 from fastmesh.tokenizer import quantize_mesh
 from fastmesh.tokenizer.grid import LEVELS
 from fastmesh.training.tasks import face_training_mask
@@ -134,9 +134,38 @@ def test_predictor_follows_order_and_mask(pairs):
         full = m(*_t(q, pts, nrm))[0]
     got = predict(order, mask)
     assert got.shape == (14, 14) and got.dtype == np.float32
-    np.testing.assert_allclose(got, want.numpy(), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(got[mask], want.numpy()[mask], rtol=1e-4, atol=1e-5)  # only these are read
     np.testing.assert_allclose(predict(np.arange(14), None), full.numpy(), rtol=1e-4, atol=1e-5)
-    assert not np.allclose(got, full.numpy()[order][:, order], atol=1e-4)  # the mask changed the answer
+    assert not np.allclose(got[mask], full.numpy()[order][:, order][mask], atol=1e-4)  # the mask changed it
+
+
+@pytest.mark.parametrize("pairs", [False, True])
+def test_edge_logits_over_column_spans_equal_the_whole_computation(pairs):
+    """The inference path: one triangle of the symmetric logits, and only each row chunk's span of columns."""
+    m = _model(pair_evidence=pairs)
+    if pairs:
+        torch.nn.init.normal_(m.pair_fc.weight)
+    qt, pt, nt = _t(*_shape(23))
+    radius = np.random.default_rng(2).integers(0, 6, 23)
+    mask = band_mask(23, radius)
+    mask = mask & mask.T
+    mask[5] = mask[:, 5] = False  # a vertex with no allowed pair
+    spans = mask_spans(mask)
+    assert spans[5].tolist() == [0, 0] and spans[0, 0] == 0 and spans[22, 1] == 23
+    with torch.no_grad():
+        h = m.backbone(qt, m.backbone.condition(pt, nt))
+        ctx = m.pair_context(qt, pt, nt)
+        whole = m.edge_logits(h, chunk=4, pairs=ctx)[0]
+        part = m.edge_logits(h, chunk=4, pairs=ctx, columns=spans)[0]
+        every = m.edge_logits(h, chunk=4, pairs=ctx, columns=np.tile([0, 23], (23, 1)))[0]
+    torch.testing.assert_close(every, whole, rtol=1e-5, atol=1e-5)
+    assert torch.equal(every, every.T) and torch.equal(part, part.T)
+    inside = torch.zeros(23, 23, dtype=torch.bool)
+    for i, (a, b) in enumerate(spans):
+        inside[i, a:b] = True
+    torch.testing.assert_close(part[inside], whole[inside], rtol=1e-5, atol=1e-5)  # up to the rounding of matmuls
+    assert (part[torch.from_numpy(~mask)] == OUTSIDE).any()  # columns no row of a chunk needs are skipped
+    assert (torch.isclose(part, whole, rtol=1e-5, atol=1e-5) | (part == OUTSIDE)).all()
 
 
 def test_predict_edges_with_and_without_filtering():

@@ -93,8 +93,9 @@ def redis_url():
 @pytest.fixture(scope="module")
 def stack(redis_url, weights, tmp_path_factory):
     """An open API (no keys) with one real worker."""
-    s = settings_for(redis_url, "browser", weights=weights, debug_step_delay=0.02,  # the page sees it running
-                     **FAST)
+    # Each progress call sleeps 0.1 s, so a tiny job runs for seconds and the page, polling every 0.4 s,
+    # sees it running.
+    s = settings_for(redis_url, "browser", weights=weights, debug_step_delay=0.1, **FAST)
     with served(s) as app:
         worker = WorkerProcess(s, s.queue_name + "-w1", tmp_path_factory.mktemp("logs") / "worker.log")
         try:

@@ -7,6 +7,7 @@ done, one line of progress per file on stderr; ``IN/a/chair.off`` becomes ``OUT/
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
@@ -33,7 +34,8 @@ def add_sampling_args(p) -> None:
                    help="meshes sampled (seeds SEED, SEED+1, ...); the one nearest the input is kept "
                         "(1 = fastest)")
     p.add_argument("--no-enhancer", action="store_true", help="skip the fidelity enhancer (7-bit cell centres)")
-    p.add_argument("--no-filtering", action="store_true", help="one face pass, no prediction filtering")
+    p.add_argument("--filtering", action=argparse.BooleanOptionalAction, default=d.filtering,
+                   help="prediction filtering: masked re-predictions of the edges (default: off, one face pass)")
     p.add_argument("--weights", metavar="DIR", help="weights folder (default: the shipped weights)")
     p.add_argument("--device", help="cpu, cuda, cuda:1 ... (default: cuda when present)")
     p.add_argument("--threads", type=int, default=None,
@@ -46,7 +48,7 @@ def params_from_args(args):
 
     return GenerateParams(seed=args.seed, temperature=args.temperature, top_k=args.top_k, top_p=args.top_p,
                           max_vertices=args.max_vertices, enhancer=not args.no_enhancer,
-                          filtering=not args.no_filtering, candidates=args.candidates,
+                          filtering=args.filtering, candidates=args.candidates,
                           target_faces=args.target_faces)
 
 

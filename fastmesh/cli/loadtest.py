@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 
@@ -32,7 +33,8 @@ def register(sub) -> None:
     p.add_argument("--candidates", type=int, default=None, help="meshes sampled per job (1 = fastest)")
     p.add_argument("--formats", default=None, help="formats exported with each job (e.g. glb,obj)")
     p.add_argument("--no-enhancer", action="store_true", help="skip the fidelity enhancer")
-    p.add_argument("--no-filtering", action="store_true", help="skip prediction filtering")
+    p.add_argument("--filtering", action=argparse.BooleanOptionalAction, default=None,
+                   help="prediction filtering on or off (default: the server's, off)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_loadtest)
 
@@ -47,8 +49,8 @@ def _loadtest(args) -> int:
     params = {k: str(getattr(args, k)) for k in PARAMS if getattr(args, k) is not None}
     if args.no_enhancer:
         params["enhancer"] = "false"
-    if args.no_filtering:
-        params["filtering"] = "false"
+    if args.filtering is not None:
+        params["filtering"] = str(args.filtering).lower()
     input_files(args.inputs)  # a missing or empty input folder is a usage error, before any request
     key = args.api_key if args.api_key is not None else os.environ.get("FASTMESH_API_KEY")
     try:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
@@ -24,7 +25,8 @@ def register(sub) -> None:
     p.add_argument("--target-faces", type=int, default=None, metavar="N",
                    help="faces to aim for (default: the model chooses)")
     p.add_argument("--no-enhancer", action="store_true", help="skip the fidelity enhancer")
-    p.add_argument("--no-filtering", action="store_true", help="skip prediction filtering")
+    p.add_argument("--filtering", action=argparse.BooleanOptionalAction, default=None,
+                   help="prediction filtering on or off (default: the server's, off)")
     p.add_argument("--timeout", type=float, default=None, help="give up after this many seconds")
     p.add_argument("--json", action="store_true", help="print the finished job as JSON on stdout")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
@@ -57,7 +59,7 @@ def _submit(args) -> int:
                                 top_p=args.top_p, max_vertices=args.max_vertices, candidates=args.candidates,
                                 target_faces=args.target_faces,
                                 enhancer=False if args.no_enhancer else None,
-                                filtering=False if args.no_filtering else None, formats=fmt)
+                                filtering=args.filtering, formats=fmt)
             job = client.wait(job["id"], progress=show, timeout=args.timeout)
             client.download(job["id"], out)
     except (ServiceError, TimeoutError) as e:

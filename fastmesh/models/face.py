@@ -36,6 +36,8 @@ from .encoder import EncoderConfig
 from .layers import init_weights
 from .pairs import PAIR_FEATURES, PairContext, pair_context, pair_features
 
+OUTSIDE = -1.0e4  # the logit given to a pair outside the columns asked for: no edge
+
 
 @dataclass
 class FaceModelConfig:
@@ -134,35 +136,64 @@ class FaceModel(nn.Module):
             raise ValueError("this face model reads pair evidence: it needs the input points and normals")
         return pair_context(dequantize(q), points, normals, self.cfg.pair_grid, self.cfg.pair_samples)
 
-    def edge_logits(self, h: torch.Tensor, chunk: int | None = None, pairs: PairContext | None = None) -> torch.Tensor:
+    def edge_logits(self, h: torch.Tensor, chunk: int | None = None, pairs: PairContext | None = None,
+                    columns: np.ndarray | None = None) -> torch.Tensor:
         """(B, N, dim) vertex features -> (B, N, N) float32 edge logits, ``chunk`` rows at a time.
 
         ``pairs`` (from :meth:`pair_context`, vertices in the order of ``h``) is required when the
         model reads pair evidence.
+
+        ``columns`` (N, 2) int: the inference path.  Row i needs only the logits of columns
+        ``columns[i, 0] <= j < columns[i, 1]``, the spans of a symmetric mask (:func:`mask_spans`; all
+        columns: ``[[0, N]] * N``).  The logits are symmetric in (i, j) (spacetime distances and pair
+        features both are), so each row chunk computes the columns its rows need from the diagonal on
+        and the lower triangle is their mirror image: half the work of a whole pass, and under a
+        filtering mask only its band.  Pairs no row asks for get ``OUTSIDE``.  Equal to the whole
+        computation up to the rounding of matrix products, and exactly symmetric.
         """
         if (pairs is None) != (self.pair_fc is None):
             raise ValueError("pair evidence: give a PairContext exactly when the model reads it")
         left, right = self.edge_factors(h)
-        b, heads, n, _ = left.shape
+        b, heads, n, hd = left.shape
         chunk = chunk or self.cfg.pair_chunk
         w1, b1 = self.edge_fc.weight.float(), self.edge_fc.bias.float()
         w2, b2 = self.edge_out.weight.float()[0], self.edge_out.bias.float()
+        k = w1.shape[0]
+        # The first layer of the MLP is linear in the H distances d_h = 2 left_h . right_h, so it folds into
+        # the left factor: pre_k(i, j) = sum_(h,c) (2 w1[k, h] left_h(i)_c) right_h(j)_c, one matrix product
+        # with a contraction of H * hd instead of H small ones and an (H, rows, N) intermediate.
+        folded = (2.0 * w1[None, :, :, None, None] * left[:, None]).permute(0, 1, 3, 2, 4).reshape(b, k, n, heads * hd)
+        flat_right = right.permute(0, 2, 1, 3).reshape(b, n, heads * hd).transpose(1, 2)[:, None]  # (B, 1, H*hd, N)
+        out = left.new_full((b, n, n), OUTSIDE) if columns is not None else None
         rows = []
-        rt = right.transpose(-1, -2)
         # float32 on purpose, outside autocast: these contractions are tiny (6, 32 and 16 wide) and
         # memory-bound, and under bf16 autocast oneDNN's AMX matmul dies on some of their shapes
         # (SIGFPE in its blocking heuristic, seen on Sapphire-Rapids-class CPUs with torch 2.13).
         with torch.autocast(device_type=h.device.type, enabled=False):
             for s in range(0, n, chunk):
-                d = 2.0 * (left[:, :, s:s + chunk] @ rt)  # (B, H, r, N): the H spacetime distances
-                r = d.shape[2]
-                pre = torch.einsum("kh,bhx->bkx", w1, d.reshape(b, heads, r * n)) + b1[:, None]
+                r = min(chunk, n - s)
+                c0, c1 = 0, n
+                if columns is not None:
+                    c0, c1 = max(s, int(columns[s:s + r, 0].min())), int(columns[s:s + r, 1].max())
+                    if c1 <= c0:
+                        continue
+                w = c1 - c0
+                pre = (folded[:, :, s:s + r] @ flat_right[..., c0:c1]).reshape(b, k, r * w) + b1[:, None]
                 if pairs is not None:
-                    f = pair_features(pairs, s, s + r).reshape(b, r * n, PAIR_FEATURES)
+                    f = pair_features(pairs, s, s + r, c0, c1).reshape(b, r * w, PAIR_FEATURES)
                     pre = pre + torch.einsum("kf,bxf->bkx", self.pair_fc.weight.float(), f)
                 hid = F.gelu(pre)
-                rows.append((torch.einsum("k,bkx->bx", w2, hid) + b2).view(b, r, n))
-        return torch.cat(rows, dim=1)
+                logit = (torch.einsum("k,bkx->bx", w2, hid) + b2).view(b, r, w)
+                if out is None:
+                    rows.append(logit)
+                    continue
+                if c0 == s:  # the chunk's own square: its upper triangle, mirrored
+                    sq = min(r, w)
+                    upper = torch.triu(logit[:, :, :sq])
+                    logit[:, :sq, :sq] = upper + torch.triu(upper, 1).transpose(1, 2)
+                out[:, s:s + r, c0:c1] = logit
+                out[:, c0:c1, s:s + r] = logit.transpose(1, 2)
+        return torch.cat(rows, dim=1) if out is None else out
 
     # ------------------------------------------------------------------ training
 
@@ -199,9 +230,16 @@ class FaceModel(nn.Module):
         def predict(order: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
             with torch.no_grad():
                 idx = torch.as_tensor(np.asarray(order), dtype=torch.long, device=dev)
-                m = None if mask is None else torch.as_tensor(np.asarray(mask, dtype=bool), device=dev)[None]
+                mask = None if mask is None else np.asarray(mask, dtype=bool)
+                m = None if mask is None else torch.as_tensor(mask, device=dev)[None]
                 h = self.backbone(qt[:, idx], prefix, mask=m)
-                return self.edge_logits(h, pairs=None if pairs is None else pairs.take(idx))[0].cpu().numpy()
+                # The edge head is most of a pass's cost: it computes one triangle of the symmetric logits,
+                # and under a mask (filtering, which reads a pair only where both of its rows allow it)
+                # only the band the mask allows.
+                n = len(idx)
+                cols = np.tile([0, n], (n, 1)) if mask is None else mask_spans(mask & mask.T)
+                return self.edge_logits(h, pairs=None if pairs is None else pairs.take(idx),
+                                        columns=cols)[0].cpu().numpy()
 
         return predict
 
@@ -221,6 +259,14 @@ class FaceModel(nn.Module):
         edges, logits = predict_edges(self.predictor(q, points, normals), n, filtering or FilterConfig(),
                                       filtering is not None)
         return (edges, logits) if return_logits else edges
+
+
+def mask_spans(mask: np.ndarray) -> np.ndarray:
+    """(N, N) bool -> (N, 2) int64: per row the first allowed column and one past the last (0, 0: none)."""
+    any_ = mask.any(1)
+    first = np.where(any_, mask.argmax(1), 0)
+    last = np.where(any_, mask.shape[1] - mask[:, ::-1].argmax(1), 0)
+    return np.stack([first, last], 1).astype(np.int64)
 
 
 def _f32(a, device) -> torch.Tensor:

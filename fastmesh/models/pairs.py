@@ -86,10 +86,12 @@ def pair_context(xyz: torch.Tensor, points: torch.Tensor, normals: torch.Tensor,
     return PairContext(xyz, normal, dist, spacing, samples)
 
 
-def pair_features(ctx: PairContext, start: int, stop: int) -> torch.Tensor:
-    """(B, r, N, PAIR_FEATURES) float32 features of the pairs (i, j), i in rows ``start:stop``."""
+def pair_features(ctx: PairContext, start: int, stop: int, col_start: int = 0,
+                  col_stop: int | None = None) -> torch.Tensor:
+    """(B, r, c, PAIR_FEATURES) float32 features of the pairs (i, j), i in rows ``start:stop`` and j in
+    columns ``col_start:col_stop`` (default: all)."""
     a = ctx.xyz[:, start:stop, None, :]  # (B, r, 1, 3)
-    b = ctx.xyz[:, None, :, :]  # (B, 1, N, 3)
+    b = ctx.xyz[:, None, col_start:col_stop, :]  # (B, 1, c, 3)
     seg = b - a
     bsz, r, n, _ = seg.shape
     s = ctx.samples
@@ -107,7 +109,7 @@ def pair_features(ctx: PairContext, start: int, stop: int) -> torch.Tensor:
     length = seg.norm(dim=-1)
     unit = seg / length.clamp(min=1e-9)[..., None]
     ci = (ctx.normal[:, start:stop, None, :] * unit).sum(-1).abs()
-    cj = (ctx.normal[:, None, :, :] * unit).sum(-1).abs()
+    cj = (ctx.normal[:, None, col_start:col_stop, :] * unit).sum(-1).abs()
     log_length = torch.log((length / ctx.spacing[:, None, None]).clamp(min=0.05))
     return torch.stack([d.max(dim=-1).values.clamp(max=STRAY_CLIP), stray_mean.clamp(max=STRAY_CLIP),
                         log_length, torch.maximum(ci, cj), torch.minimum(ci, cj)], dim=-1)

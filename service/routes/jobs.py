@@ -61,7 +61,8 @@ def jobs_router(settings: Settings) -> APIRouter:
                                                            f"({d('max_vertices')}).",
                                                examples=[defaults.get("max_vertices")]),
                enhancer: bool | None = Form(None, description=f"Run the vertex enhancer ({d('enhancer')})."),
-               filtering: bool | None = Form(None, description=f"Filter bad faces ({d('filtering')})."),
+               filtering: bool | None = Form(None, description=f"Prediction filtering, masked re-predictions of "
+                                                               f"the edges ({d('filtering')})."),
                candidates: int | None = Form(None, **BOUNDS["candidates"].form_range(),
                                              description="Meshes sampled (seeds seed, seed+1, ...); the one "
                                                          "nearest the input is returned; 1 is fastest "

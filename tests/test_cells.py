@@ -11,6 +11,7 @@ import trimesh
 from fastmesh.models.cells import (
     CELLS,
     FLOOR,
+    PLANE_FIT_RANK,
     SHIFTS,
     CellNet,
     CellNetConfig,
@@ -18,10 +19,11 @@ from fastmesh.models.cells import (
     cell_features,
     dense_grid,
     flat_index,
+    n_features,
     select_cells,
 )
 from fastmesh.models.encoder import EncoderConfig
-from fastmesh.models.evidence import GAIN
+from fastmesh.models.evidence import GAIN, PointEvidence
 from fastmesh.models.generate import SamplingConfig, generate, generate_uncached
 from fastmesh.models.vertex import VertexConfig, VertexDecoder
 from fastmesh.tokenizer import vertex as vt
@@ -80,15 +82,68 @@ def test_features_equal_a_loop_over_each_cells_neighbourhood():
     assert np.allclose(feats[:, -1], np.log1p(nearest.numpy()), atol=1e-6)
 
 
+def _plane_fit_by_loop(pts: torch.Tensor, nrm: torch.Tensor, cell: torch.Tensor, s: int) -> np.ndarray:
+    """The plane-fit features of one cell at scale ``s``: the planes of its neighbourhood's points, fitted by
+    least squares in the directions the normals fix."""
+    u = ((pts.double() + 0.5) * CELLS).numpy()
+    coarse = np.floor(u).clip(0, CELLS - 1).astype(int) >> s
+    near = (np.abs(coarse - (cell.numpy() >> s)) <= 1).all(1)
+    if not near.any():
+        return np.zeros(4)
+    p, n = u[near], nrm.double().numpy()[near]
+    x = cell.numpy() + 0.5
+    err = np.sqrt(np.mean(((x - p) * n).sum(1) ** 2))
+    # argmin sum (n.(y - p))^2 over y = centroid + sum of the fixed directions
+    a = n.T @ n / len(n)
+    evals, evecs = np.linalg.eigh(a)
+    fixed = evecs[:, evals > PLANE_FIT_RANK * evals[-1]]
+    mu = p.mean(0)
+    coef, *_ = np.linalg.lstsq(n @ fixed, ((p - mu) * n).sum(1), rcond=None)
+    off = np.linalg.norm(x - (mu + fixed @ coef))
+    return np.log1p([err, err / 2 ** s, off, off / 2 ** s])
+
+
+def test_plane_fit_features_equal_a_least_squares_fit_per_neighbourhood():
+    pts, nrm = _box_points(500)
+    # Noisy normals, as a scan's: every direction is a little fixed, and only the truncation keeps the
+    # weakly fixed ones at the centroid.
+    nrm = torch.nn.functional.normalize(nrm + 0.05 * torch.randn(nrm.shape, generator=torch.Generator().manual_seed(0)))
+    cells, nearest = candidate_cells(pts)
+    feats = cell_features(pts, nrm, cells, nearest, plane_fit=True).double().numpy()
+    assert feats.shape == (len(cells), n_features(True))
+    assert np.array_equal(feats[:, :n_features()], cell_features(pts, nrm, cells, nearest).double().numpy())
+    rng = np.random.default_rng(1)
+    for c in rng.choice(len(cells), 12, replace=False):
+        for k, s in enumerate(SHIFTS):
+            got = feats[c, n_features() + 4 * k:n_features() + 4 * (k + 1)]
+            assert np.allclose(got, _plane_fit_by_loop(pts, nrm, cells[c], s), atol=1e-4), (c, s)
+
+
+def test_plane_fit_finds_a_box_corner():
+    """At a corner the three faces' planes meet in one point: the fit lands in the corner's cell, and a cell
+    on the crease six cells from it, whose neighbourhood holds the same three faces, is told apart."""
+    pts, nrm = _box_points(4000)
+    cells, nearest = candidate_cells(pts)
+    feats = cell_features(pts, nrm, cells, nearest, plane_fit=True).double()
+    corner = ((torch.tensor([0.25, 0.2, 0.15]) + 0.5) * CELLS).floor().long()  # the box's (+, +, +) corner
+    on_crease = corner - torch.tensor([1, 0, 6])  # inside the x and y faces' crease, 6 cells down
+    k = SHIFTS.index(3)
+    err, off = feats[:, n_features() + 4 * k].expm1(), feats[:, n_features() + 4 * k + 2].expm1()
+    at, crease = (cells == corner).all(1), (cells == on_crease).all(1)
+    assert at.sum() == 1 and crease.sum() == 1
+    assert off[at].item() < 1.0 and err[at].item() < 1.0
+    assert off[crease].item() > 4.0 and err[crease].item() > 1.5
+
+
 def test_features_do_not_change_when_the_input_moves_by_whole_coarse_cells_or_turns_by_90_degrees():
     pts, nrm = _box_points(800)
     cells, nearest = candidate_cells(pts)
-    base = cell_features(pts, nrm, cells, nearest)
+    base = cell_features(pts, nrm, cells, nearest, plane_fit=True)
     step = (1 << max(SHIFTS)) / CELLS  # a whole coarse cell of the largest scale: every grid stays aligned
     moved = pts + torch.tensor([step, -step, 0.0])
     cm, nm = candidate_cells(moved)
     assert torch.equal(cm, cells + torch.tensor([1 << max(SHIFTS), -(1 << max(SHIFTS)), 0]))
-    assert torch.allclose(cell_features(moved, nrm, cm, nm), base, atol=1e-4)
+    assert torch.allclose(cell_features(moved, nrm, cm, nm, plane_fit=True), base, atol=1e-4)
     # x -> y, y -> -x about the centre of the grid, which maps cells onto cells.
     turn = lambda p: torch.stack([-p[:, 1], p[:, 0], p[:, 2]], 1)  # noqa: E731
     t_pts, t_nrm = turn(pts), torch.stack([-nrm[:, 1], nrm[:, 0], nrm[:, 2]], 1)
@@ -96,7 +151,7 @@ def test_features_do_not_change_when_the_input_moves_by_whole_coarse_cells_or_tu
     mapped = torch.stack([CELLS - 1 - cells[:, 1], cells[:, 0], cells[:, 2]], 1)
     order = torch.argsort(flat_index(mapped))
     assert torch.equal(tc, mapped[order])
-    assert torch.allclose(cell_features(t_pts, t_nrm, tc, tn), base[order], atol=1e-4)
+    assert torch.allclose(cell_features(t_pts, t_nrm, tc, tn, plane_fit=True), base[order], atol=1e-4)
 
 
 def test_selection_takes_the_best_cells_and_never_two_neighbours():
@@ -163,7 +218,7 @@ def test_decoder_reads_the_cell_log_odds():
             want = m.evidence.cell_gain * (grid[r, flat_index(cell)] - FLOOR)
             assert torch.allclose(diff[r, t, vt.OFFSET0:], want, atol=1e-4)
     # The expected vertex count of a block is the sum of its cells' probabilities.
-    p = torch.sigmoid(grid[0]).reshape(CELLS, CELLS, CELLS)
+    p = torch.where(grid[0] > FLOOR, torch.sigmoid(grid[0]), 0.0).reshape(CELLS, CELLS, CELLS)
     assert torch.allclose(ev.cell_expected[0, 7], p[0:16, 0:16, 112:128].sum(), rtol=1e-4)
 
 
@@ -180,3 +235,30 @@ def test_cached_equals_uncached_with_cell_evidence():
         row = b.tolist()
         assert a.tolist() == (row[: row.index(vt.EOS) + 1] if vt.EOS in row else [t for t in row if t != vt.PAD])
     assert any(len(a) > 4 for a in cached)
+
+
+def test_without_blocks_ahead_the_sequence_reads_the_cells_alone():
+    """``evidence_blocks_ahead=False``: EOS and skipped blocks are priced in the cells' expected vertices only, so
+    occupied blocks where the cells expect no vertex (a box's flat walls) cost nothing to leave out."""
+    with pytest.raises(ValueError, match="occupied blocks or the cells"):
+        PointEvidence(cells=False, blocks_ahead=False)
+    torch.manual_seed(0)
+    enc = EncoderConfig(n_points=64, n_latents=4, dim=32, depth=1, heads=2, n_freqs=4, anchors=8)
+    m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, evidence=True, evidence_cells=True,
+                                   evidence_blocks_ahead=False)).eval()
+    assert m.evidence.skip_table is None and m.evidence.eos_table is None
+    with torch.no_grad():
+        for t in (m.evidence.block_table, m.evidence.cell_block_table, m.evidence.cell_skip_table,
+                  m.evidence.cell_eos_table):
+            t.weight.normal_(0, 3.0 / GAIN)
+    pts = torch.rand(1, 64, 3) - 0.5
+    empty = torch.full((1, CELLS ** 3), FLOOR)  # no candidate cell: no expected vertex anywhere
+    ev = m.point_evidence(pts, None, empty)
+    block = torch.tensor([[-1, 3, 200]])
+    bias = ev.logit_bias(block)[0]
+    none = GAIN * m.evidence.cell_eos_table.weight[0, 0]  # level 0: nothing expected ahead
+    assert torch.allclose(bias[:, vt.EOS], none.expand(3))
+    # A block token's bias: its occupancy level and the cells' tables, whatever it skips.
+    occupancy = GAIN * (m.evidence.block_table(ev.levels[-1][0]).squeeze(-1)
+                        + m.evidence.cell_block_table.weight[0, 0] + m.evidence.cell_skip_table.weight[0, 0])
+    assert torch.allclose(bias[0, vt.BLOCK0:vt.OFFSET0], occupancy, atol=1e-5)

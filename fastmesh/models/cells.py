@@ -17,7 +17,15 @@ own):
   across it: a plane has one near zero, a crease or corner two);
 - the eigenvalues of the normals' second moment (1, 0, 0 on a plane, 1/2, 1/2, 0 along a crease,
   about 1/3 each at a corner; the sign of a normal does not matter);
-- the distance from the cell centre to the nearest point.
+- the distance from the cell centre to the nearest point;
+- with ``CellNetConfig.plane_fit``, the planes the input normals describe (each point with its
+  normal is a plane through it): the root mean squared distance of the cell centre from them, and
+  its distance from the point that fits them best, the quadric error minimiser dual contouring
+  places its vertex at (directions the normals leave free stay at the points' centroid).  A
+  corner is where three planes meet, a crease where two do: covariances say that some bend lies
+  within the cube, the fit says where.  Without these features a net scores 0.19 / 0.21
+  (precision / recall within one cell at the true count on held-out packages), with them 0.43 / 0.44
+  (same small training budget).
 
 All of them are invariant to translation and rotation.  A small MLP turns them into the log-odds
 that an artist vertex's cell is this cell (:class:`CellNet`), trained on every candidate cell of
@@ -39,7 +47,16 @@ from ..tokenizer.grid import N_CELLS, flat_index, grid_coords, quantize, unflat_
 SHIFTS = (1, 2, 3, 4)  # coarse cells of 2, 4, 8, 16 cells: neighbourhoods 6 to 48 cells wide
 CANDIDATE_RADIUS = 2  # cells within this Chebyshev distance of a point's cell are candidates
 PER_SCALE = 10
+PLANE_FIT_PER_SCALE = 4
 N_FEATURES = PER_SCALE * len(SHIFTS) + 1
+# Eigenvalues of the normals' second moment below this share of the largest are directions the planes
+# leave free: the fitted point stays at the centroid along them (the usual truncated pseudo-inverse).
+PLANE_FIT_RANK = 0.05
+
+
+def n_features(plane_fit: bool = False) -> int:
+    """Columns of :func:`cell_features`."""
+    return N_FEATURES + (PLANE_FIT_PER_SCALE * len(SHIFTS) if plane_fit else 0)
 _NEIGHBOURS = torch.tensor([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
 
 
@@ -68,7 +85,7 @@ def candidate_cells(points: torch.Tensor, radius: int = CANDIDATE_RADIUS) -> tup
 
 
 def cell_features(points: torch.Tensor, normals: torch.Tensor, cells: torch.Tensor,
-                  nearest: torch.Tensor) -> torch.Tensor:
+                  nearest: torch.Tensor, plane_fit: bool = False) -> torch.Tensor:
     """Features of candidate cells from the input points around them.
 
     Parameters
@@ -77,19 +94,25 @@ def cell_features(points: torch.Tensor, normals: torch.Tensor, cells: torch.Tens
     normals : (P, 3) float, unit (sign free)
     cells : (C, 3) int64
     nearest : (C,) float, distance to the nearest point (both from :func:`candidate_cells`)
+    plane_fit : add the features of the planes the normals describe (``PLANE_FIT_PER_SCALE`` per scale,
+        after the others)
 
     Returns
     -------
-    (C, N_FEATURES) float32
+    (C, n_features(plane_fit)) float32
     """
     u = grid_coords(points.double())  # positions in cell units
     own = quantize(points.double())
     n = normals.double()
     centre = cells.double() + 0.5
-    # Per point: 1, u, upper(u u^T), upper(n n^T).
+    # Per point: 1, u, upper(u u^T), upper(n n^T); for the plane fit also n (n.u) and (n.u)^2.
     iu, ju = torch.triu_indices(3, 3)
-    mom = torch.cat([torch.ones(len(u), 1, dtype=u.dtype), u, (u[:, iu] * u[:, ju]), (n[:, iu] * n[:, ju])], 1)
-    feats = []
+    parts = [torch.ones(len(u), 1, dtype=u.dtype), u, (u[:, iu] * u[:, ju]), (n[:, iu] * n[:, ju])]
+    if plane_fit:
+        nu = (n * u).sum(1, keepdim=True)
+        parts += [n * nu, nu ** 2]
+    mom = torch.cat(parts, 1)
+    feats, fits = [], []
     for s in SHIFTS:
         res = CELLS >> s
         coarse = own >> s
@@ -103,8 +126,10 @@ def cell_features(points: torch.Tensor, normals: torch.Tensor, cells: torch.Tens
         pos = torch.searchsorted(keys, ck).clamp(max=len(keys) - 1)
         hit = keys[pos] == ck
         feats.append(_cell_features(shape, pos, hit, centre, float(1 << s)))
+        if plane_fit:
+            fits.append(_plane_fit_features(sums, shape, pos, hit, centre, float(1 << s)))
     feats.append(torch.log1p(nearest.double())[:, None])
-    return torch.cat(feats, 1).float()
+    return torch.cat(feats + fits, 1).float()
 
 
 def _upper_to_sym(x: torch.Tensor) -> torch.Tensor:
@@ -139,11 +164,36 @@ def _cell_features(key: dict[str, torch.Tensor], pos: torch.Tensor, hit: torch.T
     return out * hit[:, None]
 
 
+def _plane_fit_features(m: torch.Tensor, key: dict[str, torch.Tensor], pos: torch.Tensor, hit: torch.Tensor,
+                        centre: torch.Tensor, scale: float) -> torch.Tensor:
+    """(K, 20) moments per coarse key -> (C, PLANE_FIT_PER_SCALE) features of the planes through the points.
+
+    Each point p with normal n is the plane n.x = n.p; the mean squared distance of x from them is
+    E(x) = x^T A x - 2 b.x + d with A = mean(n n^T), b = mean(n (n.p)), d = mean((n.p)^2).
+    """
+    c = m[:, 0].clamp(min=1)[:, None]
+    a = _upper_to_sym(m[:, 10:16] / c)
+    b = m[:, 16:19] / c
+    d = m[:, 19] / c[:, 0]
+    # Minimiser of E: the centroid moved along the directions the normals fix.
+    evals, evecs = torch.linalg.eigh(a)
+    keep = evals > PLANE_FIT_RANK * evals[:, -1:].clamp(min=1e-12)
+    inv = torch.where(keep, 1.0 / evals.clamp(min=1e-12), torch.zeros_like(evals))
+    r = b - (a @ key["mu"][:, :, None])[..., 0]
+    best = key["mu"] + (evecs @ (inv * (evecs.transpose(1, 2) @ r[:, :, None])[..., 0])[:, :, None])[..., 0]
+    x = centre
+    err = ((x * (a[pos] @ x[:, :, None])[..., 0]).sum(1) - 2 * (b[pos] * x).sum(1) + d[pos]).clamp(min=0).sqrt()
+    off = (x - best[pos]).norm(dim=1)
+    out = torch.stack([torch.log1p(err), torch.log1p(err / scale), torch.log1p(off), torch.log1p(off / scale)], 1)
+    return out * hit[:, None]
+
+
 @dataclass
 class CellNetConfig:
     hidden: int = 128
     depth: int = 3
     n_points: int = 8192  # input surface samples the features are computed from
+    plane_fit: bool = False  # features of the planes the input normals describe (see the module doc)
 
 
 class CellNet(nn.Module):
@@ -152,11 +202,11 @@ class CellNet(nn.Module):
     def __init__(self, cfg: CellNetConfig | None = None):
         super().__init__()
         self.cfg = cfg or CellNetConfig()
-        layers, d = [], N_FEATURES
+        layers, d = [], n_features(self.cfg.plane_fit)
+        self.norm = nn.BatchNorm1d(d, affine=False)
         for _ in range(self.cfg.depth):
             layers += [nn.Linear(d, self.cfg.hidden), nn.GELU()]
             d = self.cfg.hidden
-        self.norm = nn.BatchNorm1d(N_FEATURES, affine=False)
         self.mlp = nn.Sequential(*layers, nn.Linear(d, 1))
 
     def forward(self, feats: torch.Tensor) -> torch.Tensor:
@@ -169,7 +219,7 @@ class CellNet(nn.Module):
         p = torch.as_tensor(np.asarray(points), dtype=torch.float32).cpu()
         nrm = torch.as_tensor(np.asarray(normals), dtype=torch.float32).cpu()
         cells, nearest = candidate_cells(p)
-        feats = cell_features(p, nrm, cells, nearest)
+        feats = cell_features(p, nrm, cells, nearest, self.cfg.plane_fit)
         was = self.training
         self.eval()
         dev = self.norm.running_mean.device

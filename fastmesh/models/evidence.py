@@ -27,7 +27,10 @@ over (``skipped``):
 
 Without them a decoder that has not learned its input well stops early or leaves whole
 parts of the shape out (both seen with decoders trained without these tables): ending while occupied
-blocks remain, or jumping over them, costs what training finds it costs.
+blocks remain, or jumping over them, costs what training finds it costs.  They also keep a decoder
+from leaving out the occupied blocks that need no vertex (the flat walls of a box), so with the cell
+evidence below they can be left out (``PointEvidence(blocks_ahead=False)``): the sequence is then
+read in expected vertices only.
 
 Optionally (``PointEvidence(normals=True)``) a last table reads the input *normals*: artist
 vertices sit where the surface bends (corners, creases), rarely inside a flat region, and point
@@ -70,6 +73,7 @@ from ..tokenizer.grid import (
     quantize,
 )
 from ..tokenizer.grid import LEVELS as CELLS
+from .cells import FLOOR
 
 SHIFTS = (1, 2, 3)  # cube sides 2, 4, 8 cells: the 2048 condition points cover a surface sparsely at 1 cell
 LEVELS = 6  # count levels 0, 1, 2-3, 4-7, 8-15, 16+
@@ -125,7 +129,10 @@ class Evidence:
             self.cell_part = flat_index(oxyz)
             # Expected vertices per block, in block id order (the block of cell (x, y, z) is its top 3 bits).
             per_block = (BLOCKS_PER_AXIS, BLOCK_SIDE) * 3  # (bx, ox, by, oy, bz, oz)
-            expected = torch.sigmoid(self.cells).reshape(b, *per_block).sum((2, 4, 6)).reshape(b, -1)
+            # Cells at FLOOR are no candidates: they expect nothing (sigmoid(FLOOR) over the 2M cells of the grid
+            # would add 13 phantom vertices, and "nothing ahead" would never be seen before the last blocks).
+            p = torch.where(self.cells > FLOOR, torch.sigmoid(self.cells), 0.0)
+            expected = p.reshape(b, *per_block).sum((2, 4, 6)).reshape(b, -1)
             self.cell_expected = expected
             self.cell_incl = expected.cumsum(1)
             self.cell_excl = self.cell_incl - expected
@@ -146,10 +153,11 @@ class Evidence:
         done = self.occ_incl[rows, block.clamp(min=0)] * (block >= 0)  # occupied blocks emitted so far
         remaining = self.occ_incl[rows, -1] - done  # occupied blocks after the current one
         skipped = (self.occ_excl[rows] - done[:, None]).clamp(min=0)  # occupied blocks strictly between
-        block_bias = self.tables.block_table(self.levels[-1][rows]).squeeze(-1) \
-            + self.tables.skip_table(_level(skipped, SEQ_LEVELS)).squeeze(-1)
+        block_bias = self.tables.block_table(self.levels[-1][rows]).squeeze(-1)
         special = block_bias.new_zeros(len(rows), vt.N_SPECIAL)
-        special[:, vt.EOS] = self.tables.eos_table(_level(remaining, SEQ_LEVELS)).squeeze(-1)
+        if self.tables.skip_table is not None:
+            block_bias = block_bias + self.tables.skip_table(_level(skipped, SEQ_LEVELS)).squeeze(-1)
+            special[:, vt.EOS] = self.tables.eos_table(_level(remaining, SEQ_LEVELS)).squeeze(-1)
         if self.cells is not None:  # the same reading of the sequence, in expected vertices
             done = self.cell_incl[rows, block.clamp(min=0)] * (block >= 0)
             ahead = self.cell_incl[rows, -1] - done
@@ -198,15 +206,17 @@ def _spread_states(coarse: torch.Tensor, normals: torch.Tensor, res: int) -> tor
 
 
 class PointEvidence(nn.Module):
-    """The learned tables of :class:`Evidence` (LEVELS^3 + BLOCK_LEVELS + 2 * SEQ_LEVELS scalars,
-    SPREAD_STATES^2 with ``normals``, 1 + 3 * CELL_LEVELS with ``cells``)."""
+    """The learned tables of :class:`Evidence` (LEVELS^3 + BLOCK_LEVELS scalars, 2 * SEQ_LEVELS with
+    ``blocks_ahead``, SPREAD_STATES^2 with ``normals``, 1 + 3 * CELL_LEVELS with ``cells``)."""
 
-    def __init__(self, normals: bool = False, cells: bool = False):
+    def __init__(self, normals: bool = False, cells: bool = False, blocks_ahead: bool = True):
         super().__init__()
+        if not (blocks_ahead or cells):
+            raise ValueError("the sequence needs one reading of what is ahead: occupied blocks or the cells")
         self.table = nn.Embedding(LEVELS ** len(SHIFTS), 1)
         self.block_table = nn.Embedding(BLOCK_LEVELS, 1)
-        self.skip_table = nn.Embedding(SEQ_LEVELS, 1)
-        self.eos_table = nn.Embedding(SEQ_LEVELS, 1)
+        self.skip_table = nn.Embedding(SEQ_LEVELS, 1) if blocks_ahead else None
+        self.eos_table = nn.Embedding(SEQ_LEVELS, 1) if blocks_ahead else None
         self.corner_table = nn.Embedding(SPREAD_STATES ** len(NORMAL_SHIFTS), 1) if normals else None
         # The cell log-odds are calibrated: added at full weight from the start (a product of experts).  Not
         # scaled by GAIN like the tables: its gradient (a mean of log-odds, several nats) would then dominate

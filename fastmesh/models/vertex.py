@@ -38,6 +38,7 @@ class VertexConfig:
     evidence: bool = False  # add the learned point-evidence logit bias (models.evidence)
     evidence_normals: bool = False  # ... and its normal-spread ("corner") table
     evidence_cells: bool = False  # ... and the cell log-odds of models.cells
+    evidence_blocks_ahead: bool = True  # EOS and block skips also read the occupied blocks ahead (models.evidence)
     count_condition: bool = False  # one more prefix token: the face count asked for (or "the model's choice")
 
     @property
@@ -107,7 +108,8 @@ class VertexDecoder(nn.Module):
         self.count_emb = nn.Embedding(COUNT_BUCKETS, cfg.dim) if cfg.count_condition else None
         init_weights(self)
         # after init_weights: its tables start at zero (no bias until training finds the evidence useful)
-        self.evidence = PointEvidence(normals=cfg.evidence_normals, cells=cfg.evidence_cells) if cfg.evidence else None
+        self.evidence = PointEvidence(normals=cfg.evidence_normals, cells=cfg.evidence_cells,
+                                      blocks_ahead=cfg.evidence_blocks_ahead) if cfg.evidence else None
 
     # ------------------------------------------------------------------ pieces
 

@@ -332,6 +332,7 @@ class CellTask:
         from ..models.cells import CellNetConfig, candidate_cells, cell_features
 
         n_points = int(cfg.model.get("n_points", CellNetConfig.n_points))
+        plane_fit = bool(cfg.model.get("plane_fit", CellNetConfig.plane_fit))
         feats, labels, weights = [], [], []
         for i in indices:
             rec = ds[int(i)]
@@ -339,7 +340,8 @@ class CellTask:
             cells, nearest = candidate_cells(torch.from_numpy(pts))
             label = np.isin(flat_index(cells).numpy(), flat_index(torch.from_numpy(q)).numpy())
             keep = label | (rng.random(len(label)) < CELL_NEGATIVES)
-            feats.append(cell_features(torch.from_numpy(pts), torch.from_numpy(nrm), cells[keep], nearest[keep]))
+            feats.append(cell_features(torch.from_numpy(pts), torch.from_numpy(nrm), cells[keep], nearest[keep],
+                                       plane_fit))
             labels.append(torch.from_numpy(label[keep]))
             weights.append(torch.from_numpy(np.where(label[keep], 1.0, 1.0 / CELL_NEGATIVES)).float())
         return {"features": torch.cat(feats), "label": torch.cat(labels).float(), "weight": torch.cat(weights)}

@@ -339,8 +339,42 @@ def boundary_loops(faces: np.ndarray) -> list[list[int]]:
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     uniq, cnt = np.unique(e, axis=0, return_counts=True)
+    return _walk_loops(uniq[cnt == 1].tolist())
+
+
+def _loops_through(book: _Selection, seeds) -> list[list[int]]:
+    """The loops :func:`boundary_loops` finds in the selected faces (``book``) on the boundary edges
+    connected to the edges ``seeds``, in the same order, found from the seeds outward (a repair
+    looks at one hole; walking the whole mesh's boundary for each would cost most of the stage).
+
+    The same loops: the walk of :func:`boundary_loops` never crosses from one connected set of
+    boundary edges to another, and on a subset of whole sets it meets their vertices in the same
+    relative order.
+    """
+    def boundary(e: tuple[int, int]) -> bool:
+        return len(book.third.get(e, ())) == 1
+
+    stack = [x for e in seeds if boundary(e) for x in e]
+    seen, found = set(), set()
+    while stack:
+        x = stack.pop()
+        if x in seen:
+            continue
+        seen.add(x)
+        for key in book.sectors.get(x, ()):  # the faces at x
+            for y in key:
+                e = (x, y) if x < y else (y, x)
+                if y != x and e not in found and boundary(e):
+                    found.add(e)
+                    stack.append(y)
+    return _walk_loops(sorted(found))
+
+
+def _walk_loops(edges: list) -> list[list[int]]:
+    """Loops of boundary edges (``edges``: [a, b] with a < b, in lexicographic order); see
+    :func:`boundary_loops`."""
     nbr: dict[int, list[int]] = {}
-    for a, b in uniq[cnt == 1].tolist():
+    for a, b in edges:
         nbr.setdefault(a, []).append(b)
         nbr.setdefault(b, []).append(a)
     loops = []
@@ -438,8 +472,7 @@ def _reclip(v: np.ndarray, loop: list[int], kept: dict, book: _Selection, points
             del kept[tuple(sorted(t))]
         removed += ring
         opened.update(tuple(sorted(e)) for a, b, c in ring for e in ((a, b), (b, c), (a, c)))
-        loops = [x for x in boundary_loops(np.asarray(list(kept.values()), dtype=np.int64).reshape(-1, 3))
-                 if _loop_edges(x) & opened]
+        loops = [x for x in _loops_through(book, opened) if _loop_edges(x) & opened]
         if not loops or sum(map(len, loops)) > max_loop + 2 * len(loop):
             break
         done: list[tuple[int, int, int]] = []

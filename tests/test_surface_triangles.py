@@ -221,3 +221,26 @@ def test_eval_end_to_end_save_and_topology(tmp_path, capsys, weights):
         assert (save / f"{row['name']}.ply").exists()
     assert "more_pieces_than_reference" in doc["summary"]["fastmesh"] or doc["summary"]["fastmesh"]["failures"]
     assert row["reference"]["watertight"] is True
+
+
+def test_loops_found_from_seed_edges_equal_the_whole_walk_restricted_to_them():
+    """The repair's local walk (from a hole's edges outward) finds the loops of ``boundary_loops`` that
+    hold those edges' connected boundary, in the same order: here on a sphere with many holes."""
+    m = trimesh.creation.icosphere(3)
+    rng = np.random.default_rng(0)
+    keep = np.ones(len(m.faces), bool)
+    keep[rng.choice(len(m.faces), 120, replace=False)] = False
+    f = np.asarray(m.faces)[keep]
+    book = sf._Selection(m.vertices, np.full((len(m.vertices), 2, 3), np.nan), 30.0)
+    for t in f.tolist():
+        book.add(*t)
+    everything = sf.boundary_loops(f)
+    assert len(everything) > 20 and any(len(x) > 3 for x in everything)
+    edges = [sf._loop_edges(x) for x in everything]
+    for i in (0, 5, len(everything) - 1):
+        seeds = edges[i] | {(0, 1)}  # a seed that is no boundary edge is ignored
+        local = sf._loops_through(book, seeds)
+        touching = [x for x in everything if x in local]
+        assert local == touching and everything[i] in local
+        assert [x for x in local if sf._loop_edges(x) & seeds] == [x for x in everything if sf._loop_edges(x) & seeds]
+    assert sf._loops_through(book, set()) == []

@@ -46,15 +46,21 @@ def _t(q, pts, nrm):
     return torch.from_numpy(q)[None], torch.from_numpy(pts)[None], torch.from_numpy(nrm)[None]
 
 
-@pytest.mark.parametrize("pairs", [False, True])
-def test_chunked_edge_logits_equal_unchunked(pairs):
+def _edge_head_inputs(pairs: bool, n: int = 23):
+    """A tiny model (random pair weights when it reads pairs), and its edge head's vertex features and
+    pair context for an n-vertex shape."""
     m = _model(pair_evidence=pairs)
     if pairs:
         torch.nn.init.normal_(m.pair_fc.weight)
-    qt, pt, nt = _t(*_shape(23))
+    qt, pt, nt = _t(*_shape(n))
     with torch.no_grad():
-        h = m.backbone(qt, m.backbone.condition(pt, nt))
-        ctx = m.pair_context(qt, pt, nt)
+        return m, m.backbone(qt, m.backbone.condition(pt, nt)), m.pair_context(qt, pt, nt)
+
+
+@pytest.mark.parametrize("pairs", [False, True])
+def test_chunked_edge_logits_equal_unchunked(pairs):
+    m, h, ctx = _edge_head_inputs(pairs)
+    with torch.no_grad():
         a = m.edge_logits(h, chunk=5, pairs=ctx)
         b = m.edge_logits(h, chunk=1000, pairs=ctx)
     assert a.shape == (1, 23, 23)
@@ -142,10 +148,7 @@ def test_predictor_follows_order_and_mask(pairs):
 @pytest.mark.parametrize("pairs", [False, True])
 def test_edge_logits_over_column_spans_equal_the_whole_computation(pairs):
     """The inference path: one triangle of the symmetric logits, and only each row chunk's span of columns."""
-    m = _model(pair_evidence=pairs)
-    if pairs:
-        torch.nn.init.normal_(m.pair_fc.weight)
-    qt, pt, nt = _t(*_shape(23))
+    m, h, ctx = _edge_head_inputs(pairs)
     radius = np.random.default_rng(2).integers(0, 6, 23)
     mask = band_mask(23, radius)
     mask = mask & mask.T
@@ -153,8 +156,6 @@ def test_edge_logits_over_column_spans_equal_the_whole_computation(pairs):
     spans = mask_spans(mask)
     assert spans[5].tolist() == [0, 0] and spans[0, 0] == 0 and spans[22, 1] == 23
     with torch.no_grad():
-        h = m.backbone(qt, m.backbone.condition(pt, nt))
-        ctx = m.pair_context(qt, pt, nt)
         whole = m.edge_logits(h, chunk=4, pairs=ctx)[0]
         part = m.edge_logits(h, chunk=4, pairs=ctx, columns=spans)[0]
         every = m.edge_logits(h, chunk=4, pairs=ctx, columns=np.tile([0, 23], (23, 1)))[0]

@@ -448,13 +448,35 @@ def _loop_edges(loop: list[int]) -> set[tuple[int, int]]:
     return {(a, b) if a < b else (b, a) for a, b in zip(loop, loop[1:] + loop[:1], strict=True)}
 
 
+def _bridge(v: np.ndarray, x: int, loops: list[list[int]], book: _Selection, points: np.ndarray, limit: float,
+            tree: cKDTree) -> tuple[int, int, int] | None:
+    """Join vertex ``x`` (in no face) to a hole: the best-supported triangle (a, x, b) over an edge (a, b)
+    of one of ``loops`` that lies on the surface and fits is added to ``book``, and x goes between a and
+    b in that loop.  Returns the triangle, or None (nothing changed)."""
+    tris = [(a, x, b, k, i) for k, lp in enumerate(loops)
+            for i, (a, b) in enumerate(zip(lp, lp[1:] + lp[:1], strict=True))]
+    if not tris:
+        return None
+    d = support_distance(v, np.array([t[:3] for t in tris], dtype=np.int64), points, tree)
+    for j in np.argsort(d, kind="stable"):
+        a, _, b, k, i = tris[j]
+        if d[j] > limit:
+            break
+        if book.fits(a, x, b):
+            book.add(a, x, b)
+            loops[k].insert(i + 1, x)
+            return (a, x, b)
+    return None
+
+
 def _reclip(v: np.ndarray, loop: list[int], kept: dict, book: _Selection, points: np.ndarray, limit: float,
             tree: cKDTree, max_loop: int) -> bool:
     """Close a boundary ``loop`` no ear fits by clipping again without the faces along it.
 
     Up to ``REPAIR_RINGS`` rings of faces around the hole are taken out, one ring at a time, until
-    the hole they leave closes; a closing is kept only if every vertex of the removed faces is still
-    in some face (one that drops a vertex has cut across the base of a spike the ring held).
+    the hole they leave closes.  A vertex left in no face is first joined to the hole's boundary
+    (:func:`_bridge`); a closing is kept only if every vertex of the removed faces is in some face
+    again (one that drops a vertex has cut across the base of a spike the ring held).
     Otherwise everything goes back.  ``kept`` (sorted face -> face) and ``book`` are updated in place.
     """
     edges = _loop_edges(loop)
@@ -475,7 +497,10 @@ def _reclip(v: np.ndarray, loop: list[int], kept: dict, book: _Selection, points
         loops = [x for x in _loops_through(book, opened) if _loop_edges(x) & opened]
         if not loops or sum(map(len, loops)) > max_loop + 2 * len(loop):
             break
-        done: list[tuple[int, int, int]] = []
+        # A vertex whose faces all went (the tip of a spike, or of a shallow cone whose artist fan is no
+        # restricted-Delaunay candidate) joins the hole's boundary first, or clipping would leave it out.
+        isolated = sorted({x for t in removed for x in t if not book.sectors[x]})
+        done = [t for x in isolated if (t := _bridge(v, x, loops, book, points, limit, tree))]
         for x in loops:
             ears = _clip_loop(v, x, book, points, limit, tree)
             if ears is None:

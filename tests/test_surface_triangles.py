@@ -142,11 +142,12 @@ def test_overlapping_faces_at_a_vertex_without_tangent_plane_are_not_both_select
     assert sorted(map(tuple, np.sort(f, 1).tolist())) == [(0, 1, 2), (0, 5, 6)]
 
 
-@pytest.mark.parametrize("seed", [1, 3])
-def test_fill_replaces_wrong_faces_that_block_a_hole(seed):
+@pytest.mark.parametrize("seed, wrong", [(1, 6), (3, 6), (2, 6), (6, 10), (0, 16)])
+def test_fill_replaces_wrong_faces_that_block_a_hole(seed, wrong):
     """A few wrong restricted-Delaunay triangles taken first leave holes no ear fits (they fold onto the
     ears or hold the edges the ears need); re-clipping without the faces along such a hole closes the
-    sphere, and never puts an edge in three faces or leaves a vertex out."""
+    sphere, and never puts an edge in three faces or leaves a vertex out.  In the last three cases the
+    faces taken out include every face of some vertex: it must join the hole's boundary first."""
     m = trimesh.creation.icosphere(2, radius=0.45)
     pts = trimesh.sample.sample_surface(m, 8192, seed=0)[0]
     f, _, limit = sf.on_surface(m.vertices, sf.delaunay_triangles(m.vertices), pts)
@@ -154,7 +155,7 @@ def test_fill_replaces_wrong_faces_that_block_a_hole(seed):
     is_true = np.array([tuple(t) in true for t in f.tolist()])
     rng = np.random.default_rng(seed)
     score = np.where(is_true, 1.0, -1.0) + rng.uniform(0, 0.1, len(f))
-    score[rng.choice(np.flatnonzero(~is_true), size=6, replace=False)] = 5.0
+    score[rng.choice(np.flatnonzero(~is_true), size=wrong, replace=False)] = 5.0
     sel, book = sf.select_faces(m.vertices, f, score, sf.vertex_frames(m.vertices, pts))
     assert len(sf.boundary_loops(sel)) > 0
     filled = sf.fill_holes(m.vertices, sf.orient_faces(m.vertices, sel), book, pts, limit)

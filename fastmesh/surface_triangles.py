@@ -500,8 +500,9 @@ def _reclip(v: np.ndarray, loop: list[int], kept: dict, book: _Selection, points
         # A vertex whose faces all went (the tip of a spike, or of a shallow cone whose artist fan is no
         # restricted-Delaunay candidate) joins the hole's boundary first, or clipping would leave it out.
         isolated = sorted({x for t in removed for x in t if not book.sectors[x]})
-        done = [t for x in isolated if (t := _bridge(v, x, loops, book, points, limit, tree))]
-        for x in loops:
+        bridged = [list(x) for x in loops]  # the next ring grows from ``loops`` as they were
+        done = [t for x in isolated if (t := _bridge(v, x, bridged, book, points, limit, tree))]
+        for x in bridged:
             ears = _clip_loop(v, x, book, points, limit, tree)
             if ears is None:
                 break

@@ -51,14 +51,21 @@ def test_candidates_surround_every_point_and_know_their_nearest_point():
     assert torch.allclose(nearest[nearest <= 1.0], brute[nearest <= 1.0])
 
 
-def _features_by_loop(pts: torch.Tensor, nrm: torch.Tensor, cell: torch.Tensor, s: int) -> np.ndarray:
-    """The features of one cell at scale ``s``, from the points of its 3 x 3 x 3 coarse neighbourhood."""
+def _neighbourhood(pts: torch.Tensor, nrm: torch.Tensor, cell: torch.Tensor, s: int):
+    """The points (in cell units) and normals of the 3 x 3 x 3 coarse neighbourhood of ``cell`` at scale
+    ``s``, or None when it holds none."""
     u = ((pts.double() + 0.5) * CELLS).numpy()
     coarse = np.floor(u).clip(0, CELLS - 1).astype(int) >> s
     near = (np.abs(coarse - (cell.numpy() >> s)) <= 1).all(1)
-    if not near.any():
+    return (u[near], nrm.double().numpy()[near]) if near.any() else None
+
+
+def _features_by_loop(pts: torch.Tensor, nrm: torch.Tensor, cell: torch.Tensor, s: int) -> np.ndarray:
+    """The features of one cell at scale ``s``, from the points of its 3 x 3 x 3 coarse neighbourhood."""
+    hood = _neighbourhood(pts, nrm, cell, s)
+    if hood is None:
         return np.zeros(10)
-    p, n = u[near], nrm.double().numpy()[near]
+    p, n = hood
     mu = p.mean(0)
     evals = np.linalg.eigvalsh(np.cov(p.T, bias=True) + 1e-9 * np.eye(3))
     d = (mu - (cell.numpy() + 0.5)) / 2 ** s
@@ -85,12 +92,10 @@ def test_features_equal_a_loop_over_each_cells_neighbourhood():
 def _plane_fit_by_loop(pts: torch.Tensor, nrm: torch.Tensor, cell: torch.Tensor, s: int) -> np.ndarray:
     """The plane-fit features of one cell at scale ``s``: the planes of its neighbourhood's points, fitted by
     least squares in the directions the normals fix."""
-    u = ((pts.double() + 0.5) * CELLS).numpy()
-    coarse = np.floor(u).clip(0, CELLS - 1).astype(int) >> s
-    near = (np.abs(coarse - (cell.numpy() >> s)) <= 1).all(1)
-    if not near.any():
+    hood = _neighbourhood(pts, nrm, cell, s)
+    if hood is None:
         return np.zeros(4)
-    p, n = u[near], nrm.double().numpy()[near]
+    p, n = hood
     x = cell.numpy() + 0.5
     err = np.sqrt(np.mean(((x - p) * n).sum(1) ** 2))
     # argmin sum (n.(y - p))^2 over y = centroid + sum of the fixed directions

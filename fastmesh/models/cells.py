@@ -54,10 +54,12 @@ N_FEATURES = PER_SCALE * len(SHIFTS) + 1
 PLANE_FIT_RANK = 0.05
 
 
+_NEIGHBOURS = torch.tensor([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
+
+
 def n_features(plane_fit: bool = False) -> int:
     """Columns of :func:`cell_features`."""
     return N_FEATURES + (PLANE_FIT_PER_SCALE * len(SHIFTS) if plane_fit else 0)
-_NEIGHBOURS = torch.tensor([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
 
 
 def candidate_cells(points: torch.Tensor, radius: int = CANDIDATE_RADIUS) -> tuple[torch.Tensor, torch.Tensor]:

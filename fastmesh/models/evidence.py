@@ -150,18 +150,14 @@ class Evidence:
 
     def _sequence_rows(self, rows: torch.Tensor, block: torch.Tensor) -> list[torch.Tensor]:
         """(U,) shape index and current block (-1: none) -> [(U, 3) special, (U, 512) block] bias."""
-        done = self.occ_incl[rows, block.clamp(min=0)] * (block >= 0)  # occupied blocks emitted so far
-        remaining = self.occ_incl[rows, -1] - done  # occupied blocks after the current one
-        skipped = (self.occ_excl[rows] - done[:, None]).clamp(min=0)  # occupied blocks strictly between
         block_bias = self.tables.block_table(self.levels[-1][rows]).squeeze(-1)
         special = block_bias.new_zeros(len(rows), vt.N_SPECIAL)
-        if self.tables.skip_table is not None:
+        if self.tables.skip_table is not None:  # in occupied blocks
+            remaining, skipped = _ahead(self.occ_incl, self.occ_excl, rows, block)
             block_bias = block_bias + self.tables.skip_table(_level(skipped, SEQ_LEVELS)).squeeze(-1)
             special[:, vt.EOS] = self.tables.eos_table(_level(remaining, SEQ_LEVELS)).squeeze(-1)
         if self.cells is not None:  # the same reading of the sequence, in expected vertices
-            done = self.cell_incl[rows, block.clamp(min=0)] * (block >= 0)
-            ahead = self.cell_incl[rows, -1] - done
-            skipped = (self.cell_excl[rows] - done[:, None]).clamp(min=0)
+            ahead, skipped = _ahead(self.cell_incl, self.cell_excl, rows, block)
             block_bias = block_bias + (self.tables.cell_block_table(_level(self.cell_expected[rows], CELL_LEVELS))
                                        + self.tables.cell_skip_table(_level(skipped, CELL_LEVELS))).squeeze(-1)
             special[:, vt.EOS] += self.tables.cell_eos_table(_level(ahead, CELL_LEVELS)).squeeze(-1)
@@ -187,6 +183,18 @@ class Evidence:
             cell = flat_index(bxyz * BLOCK_SIDE)[:, None] + self.cell_part  # (U, 4096) flat cells of the offsets
             bias = bias + self.tables.cell_gain * self.cells[rows[:, None], cell]
         return bias * (block >= 0)[:, None]  # no block yet: no evidence
+
+
+def _ahead(incl: torch.Tensor, excl: torch.Tensor, rows: torch.Tensor, block: torch.Tensor
+           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """What lies ahead of the current block, from per-block amounts summed in block order.
+
+    ``incl`` / ``excl`` (B, N_BLOCKS): running sums with / without each block; ``rows`` (U,) shape index,
+    ``block`` (U,) current block (-1: none yet).  Returns (U,) the amount after the current block and
+    (U, N_BLOCKS) the amount a jump to each block would pass over (strictly between).
+    """
+    done = incl[rows, block.clamp(min=0)] * (block >= 0)  # emitted so far
+    return incl[rows, -1] - done, (excl[rows] - done[:, None]).clamp(min=0)
 
 
 def _spread_states(coarse: torch.Tensor, normals: torch.Tensor, res: int) -> torch.Tensor:

@@ -5,7 +5,7 @@ input surface (a surface-restricted Delaunay triangulation: Delaunay triangles n
 other) plus the triangles of the face model's predicted edges that pass the same support test
 (:func:`fastmesh.support.support_distance`).  :func:`select_faces` takes them best first while the
 result stays a surface: every edge in at most two faces, and no face folded onto a face it
-shares an edge with.  :func:`fill_holes` then closes boundary loops by ear clipping, each ear
+shares an edge with.  :func:`fastmesh.holes.fill_holes` then closes boundary loops, each face
 checked against the input surface, so a closed input gives a closed result.
 
 :func:`restricted_delaunay_mesh` is the anchor without learning: restricted Delaunay
@@ -19,6 +19,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .holes import fill_holes
 from .support import support_distance, support_limit
 from .triangles import TriangleConfig, drop_degenerate, limit_faces_per_edge, orient_faces, triangles_from_adjacency
 
@@ -33,8 +34,6 @@ _MIN_FACING = 0.7
 _CREASE = 0.5
 # Faces at a vertex without a usable tangent plane overlap only when closer than acos(this) in angle.
 _PARALLEL = 0.9
-# Rings of faces around a hole that :func:`fill_holes` may take out to close it.
-REPAIR_RINGS = 2
 # Edge probability given to a pair the model scores lower (log-probabilities stay finite).
 PROB_FLOOR = 1e-4
 
@@ -327,230 +326,6 @@ def select_faces(vertices: np.ndarray, faces: np.ndarray, score: np.ndarray, fra
             book.add(a, b, c)
             out.append((a, b, c))
     return np.asarray(out, dtype=np.int64).reshape(-1, 3), book
-
-
-def boundary_loops(faces: np.ndarray) -> list[list[int]]:
-    """Closed loops of the edges that have one face (vertex lists, unclosed).
-
-    Loops are walked on the undirected boundary edges, so faces that cannot be oriented
-    consistently still give their loops; where several loops meet at a vertex the walk takes the
-    first free edge.  Open chains (possible only with edges in three faces) are left out.
-    """
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    uniq, cnt = np.unique(e, axis=0, return_counts=True)
-    return _walk_loops(uniq[cnt == 1].tolist())
-
-
-def _loops_through(book: _Selection, seeds) -> list[list[int]]:
-    """The loops :func:`boundary_loops` finds in the selected faces (``book``) on the boundary edges
-    connected to the edges ``seeds``, in the same order, found from the seeds outward (a repair
-    looks at one hole; walking the whole mesh's boundary for each would cost most of the stage).
-
-    The same loops: the walk of :func:`boundary_loops` never crosses from one connected set of
-    boundary edges to another, and on a subset of whole sets it meets their vertices in the same
-    relative order.
-    """
-    def boundary(e: tuple[int, int]) -> bool:
-        return len(book.third.get(e, ())) == 1
-
-    stack = [x for e in seeds if boundary(e) for x in e]
-    seen, found = set(), set()
-    while stack:
-        x = stack.pop()
-        if x in seen:
-            continue
-        seen.add(x)
-        for key in book.sectors.get(x, ()):  # the faces at x
-            for y in key:
-                e = (x, y) if x < y else (y, x)
-                if y != x and e not in found and boundary(e):
-                    found.add(e)
-                    stack.append(y)
-    return _walk_loops(sorted(found))
-
-
-def _walk_loops(edges: list) -> list[list[int]]:
-    """Loops of boundary edges (``edges``: [a, b] with a < b, in lexicographic order); see
-    :func:`boundary_loops`."""
-    nbr: dict[int, list[int]] = {}
-    for a, b in edges:
-        nbr.setdefault(a, []).append(b)
-        nbr.setdefault(b, []).append(a)
-    loops = []
-    while nbr:
-        start = next(iter(nbr))
-        loop, cur = [start], start
-        while True:
-            succ = nbr[cur].pop()
-            nbr[succ].remove(cur)
-            for x in (cur, succ):
-                if not nbr[x]:
-                    del nbr[x]
-            if succ == start or succ not in nbr:
-                break
-            loop.append(succ)
-            cur = succ
-        if succ == start:
-            loops.extend(x for x in _simple_loops(loop) if len(x) >= 3)
-    return loops
-
-
-def _simple_loops(loop: list[int]) -> list[list[int]]:
-    """Split a closed vertex walk at repeated vertices (two holes touching at a vertex) into simple loops."""
-    out, stack, at = [], [], {}
-    for x in loop:
-        if x in at:  # the walk since x's last visit is a loop of its own
-            i = at[x]
-            out.append(stack[i:])
-            for y in stack[i + 1:]:
-                del at[y]
-            stack = stack[:i + 1]
-        else:
-            at[x] = len(stack)
-            stack.append(x)
-    out.append(stack)
-    return out
-
-
-def _clip_loop(v: np.ndarray, loop: list[int], book: _Selection, points: np.ndarray, limit: float,
-               tree: cKDTree) -> list[tuple[int, int, int]] | None:
-    """Ear clipping of one boundary loop, best-supported ear first (see :func:`fill_holes`).
-
-    Returns the ears (already in ``book``), or None when some part of the loop cannot be closed
-    (``book`` is then as before)."""
-    poly, added = list(loop), []
-    while len(poly) >= 3:
-        k = len(poly)
-        ears = np.array([[poly[i - 1], poly[i], poly[(i + 1) % k]] for i in range(k)])
-        d = support_distance(v, ears, points, tree)
-        placed = False
-        for i in np.argsort(d, kind="stable"):
-            if d[i] > limit:
-                break
-            a, b, c = ears[i].tolist()
-            new_edge = (a, c) if a < c else (c, a)
-            if (k > 3 and book.third.get(new_edge)) or not book.fits(a, b, c):
-                continue
-            book.add(a, b, c)
-            added.append((a, b, c))
-            poly.pop(int(i))
-            placed = True
-            break
-        if not placed:
-            for t in added:
-                book.remove(*t)
-            return None
-    return added
-
-
-def _loop_edges(loop: list[int]) -> set[tuple[int, int]]:
-    return {(a, b) if a < b else (b, a) for a, b in zip(loop, loop[1:] + loop[:1], strict=True)}
-
-
-def _bridge(v: np.ndarray, x: int, loops: list[list[int]], book: _Selection, points: np.ndarray, limit: float,
-            tree: cKDTree) -> tuple[int, int, int] | None:
-    """Join vertex ``x`` (in no face) to a hole: the best-supported triangle (a, x, b) over an edge (a, b)
-    of one of ``loops`` that lies on the surface and fits is added to ``book``, and x goes between a and
-    b in that loop.  Returns the triangle, or None (nothing changed)."""
-    tris = [(a, x, b, k, i) for k, lp in enumerate(loops)
-            for i, (a, b) in enumerate(zip(lp, lp[1:] + lp[:1], strict=True))]
-    if not tris:
-        return None
-    d = support_distance(v, np.array([t[:3] for t in tris], dtype=np.int64), points, tree)
-    for j in np.argsort(d, kind="stable"):
-        a, _, b, k, i = tris[j]
-        if d[j] > limit:
-            break
-        if book.fits(a, x, b):
-            book.add(a, x, b)
-            loops[k].insert(i + 1, x)
-            return (a, x, b)
-    return None
-
-
-def _reclip(v: np.ndarray, loop: list[int], kept: dict, book: _Selection, points: np.ndarray, limit: float,
-            tree: cKDTree, max_loop: int) -> bool:
-    """Close a boundary ``loop`` no ear fits by clipping again without the faces along it.
-
-    Up to ``REPAIR_RINGS`` rings of faces around the hole are taken out, one ring at a time, until
-    the hole they leave closes.  A vertex left in no face is first joined to the hole's boundary
-    (:func:`_bridge`); a closing is kept only if every vertex of the removed faces is in some face
-    again (one that drops a vertex has cut across the base of a spike the ring held).
-    Otherwise everything goes back.  ``kept`` (sorted face -> face) and ``book`` are updated in place.
-    """
-    edges = _loop_edges(loop)
-    if any(len(book.third.get(e, ())) != 1 for e in edges):  # changed by an earlier repair
-        return False
-    removed: list[tuple[int, int, int]] = []
-    opened = set(edges)
-    for _ in range(REPAIR_RINGS):
-        ring = [kept[key] for key in {tuple(sorted((a, b, *book.third[(a, b)]))) for a, b in edges
-                                      if len(book.third.get((a, b), ())) == 1}]
-        if not ring:
-            break
-        for t in ring:
-            book.remove(*t)
-            del kept[tuple(sorted(t))]
-        removed += ring
-        opened.update(tuple(sorted(e)) for a, b, c in ring for e in ((a, b), (b, c), (a, c)))
-        loops = [x for x in _loops_through(book, opened) if _loop_edges(x) & opened]
-        if not loops or sum(map(len, loops)) > max_loop + 2 * len(loop):
-            break
-        # A vertex whose faces all went (the tip of a spike, or of a shallow cone whose artist fan is no
-        # restricted-Delaunay candidate) joins the hole's boundary first, or clipping would leave it out.
-        isolated = sorted({x for t in removed for x in t if not book.sectors[x]})
-        bridged = [list(x) for x in loops]  # the next ring grows from ``loops`` as they were
-        done = [t for x in isolated if (t := _bridge(v, x, bridged, book, points, limit, tree))]
-        for x in bridged:
-            ears = _clip_loop(v, x, book, points, limit, tree)
-            if ears is None:
-                break
-            done.extend(ears)
-        else:
-            if all(book.sectors[x] for t in removed for x in t):  # the book holds kept + done
-                kept.update((tuple(sorted(t)), t) for t in done)
-                return True
-        for t in done:
-            book.remove(*t)
-        edges = set().union(*map(_loop_edges, loops))
-    for t in removed:
-        book.add(*t)
-        kept[tuple(sorted(t))] = t
-    return False
-
-
-def fill_holes(vertices: np.ndarray, faces: np.ndarray, book: _Selection, points: np.ndarray, limit: float,
-               tree: cKDTree | None = None, max_loop: int = 64) -> np.ndarray:
-    """Close boundary loops that lie on the input surface by ear clipping.
-
-    Each loop of at most ``max_loop`` edges is clipped ear by ear, best-supported ear first; an ear is
-    allowed when it lies on the surface (support distance at most ``limit``), adds no edge that
-    already exists, and fits the selection (:meth:`_Selection.fits`).  A loop with no allowed ear
-    left is tried again without the faces along it (:func:`_reclip`): a wrong face beside a hole is
-    what most often blocks its ears (it folds onto them, or holds the edge they need), so the faces
-    bordering the loop are taken out and the larger hole they leave is clipped instead; if that does
-    not close either, the faces go back and the loop stays open (an open input stays open).
-
-    Returns
-    -------
-    (F', 3) int64 faces: the selection, with at most the faces bordering re-clipped loops exchanged.
-    """
-    v = np.asarray(vertices, dtype=np.float64)
-    tree = tree if tree is not None else cKDTree(np.asarray(points, dtype=np.float64))
-    kept = {tuple(sorted(t)): tuple(t) for t in np.asarray(faces, dtype=np.int64).reshape(-1, 3).tolist()}
-    stuck = []
-    for loop in boundary_loops(faces):
-        if len(loop) > max_loop:
-            continue
-        ears = _clip_loop(v, loop, book, points, limit, tree)
-        if ears is None:
-            stuck.append(loop)
-        else:
-            kept.update((tuple(sorted(t)), t) for t in ears)
-    for loop in stuck:
-        _reclip(v, loop, kept, book, points, limit, tree, max_loop)
-    return np.asarray(list(kept.values()), dtype=np.int64).reshape(-1, 3)
 
 
 def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, config: TriangleConfig | None = None,

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from fastmesh import holes
 from fastmesh import surface_triangles as sf
 from fastmesh.cli import main
 from fastmesh.io import Normalization
@@ -122,7 +123,7 @@ def test_fill_closes_a_hole_and_leaves_an_open_input_open():
     book = sf._Selection(m.vertices, sf.vertex_frames(m.vertices, pts), 30.0)
     for t in f.tolist():
         book.add(*t)
-    filled = sf.fill_holes(m.vertices, f, book, pts, support_limit(pts, 0.0))
+    filled = holes.fill_holes(m.vertices, f, book, pts, support_limit(pts, 0.0))
     assert mesh_topology(m.vertices, filled)["watertight"]
     # A flat open grid: its outer boundary is not a hole of the surface.
     k = 6
@@ -157,8 +158,8 @@ def test_fill_replaces_wrong_faces_that_block_a_hole(seed, wrong):
     score = np.where(is_true, 1.0, -1.0) + rng.uniform(0, 0.1, len(f))
     score[rng.choice(np.flatnonzero(~is_true), size=wrong, replace=False)] = 5.0
     sel, book = sf.select_faces(m.vertices, f, score, sf.vertex_frames(m.vertices, pts))
-    assert len(sf.boundary_loops(sel)) > 0
-    filled = sf.fill_holes(m.vertices, sf.orient_faces(m.vertices, sel), book, pts, limit)
+    assert len(holes.boundary_loops(sel)) > 0
+    filled = holes.fill_holes(m.vertices, sf.orient_faces(m.vertices, sel), book, pts, limit)
     assert _max_faces_per_edge(filled) == 2 and len(np.unique(filled)) == len(m.vertices)
     assert mesh_topology(m.vertices, filled)["watertight"]
 
@@ -167,7 +168,7 @@ def test_boundary_loops_of_an_open_cylinder():
     m = trimesh.creation.cylinder(radius=1, height=1, sections=8)
     m.merge_vertices()
     side = m.faces[np.abs(m.face_normals[:, 2]) < 0.5]
-    loops = sf.boundary_loops(side)
+    loops = holes.boundary_loops(side)
     assert sorted(len(x) for x in loops) == [8, 8]
 
 
@@ -235,13 +236,79 @@ def test_loops_found_from_seed_edges_equal_the_whole_walk_restricted_to_them():
     book = sf._Selection(m.vertices, np.full((len(m.vertices), 2, 3), np.nan), 30.0)
     for t in f.tolist():
         book.add(*t)
-    everything = sf.boundary_loops(f)
+    everything = holes.boundary_loops(f)
     assert len(everything) > 20 and any(len(x) > 3 for x in everything)
-    edges = [sf._loop_edges(x) for x in everything]
+    edges = [holes._loop_edges(x) for x in everything]
     for i in (0, 5, len(everything) - 1):
         seeds = edges[i] | {(0, 1)}  # a seed that is no boundary edge is ignored
-        local = sf._loops_through(book, seeds)
+        local = holes._loops_through(book, seeds)
         touching = [x for x in everything if x in local]
         assert local == touching and everything[i] in local
-        assert [x for x in local if sf._loop_edges(x) & seeds] == [x for x in everything if sf._loop_edges(x) & seeds]
-    assert sf._loops_through(book, set()) == []
+        meets = [x for x in everything if holes._loop_edges(x) & seeds]
+        assert [x for x in local if holes._loop_edges(x) & seeds] == meets
+    assert holes._loops_through(book, set()) == []
+
+
+def _sphere_with_hole(n_faces: int = 7):
+    """Icosphere faces less those nearest one point (one hole), their bookkeeping, points, limit, hole loop."""
+    m, pts = _primitive("icosphere2")
+    order = np.argsort(np.linalg.norm(m.triangles_center - m.triangles_center[0], axis=1))
+    f = np.asarray(m.faces)[np.sort(order[n_faces:])]
+    book = sf._Selection(m.vertices, sf.vertex_frames(m.vertices, pts), 30.0)
+    for t in f.tolist():
+        book.add(*t)
+    (loop,) = holes.boundary_loops(f)
+    return m, f, book, pts, support_limit(pts, 0.0), loop
+
+
+def _all_triangulations(chain: list[int]):
+    """Every triangulation of the polygon ``chain`` (closed by its first and last vertex): exhaustive."""
+    if len(chain) < 3:
+        yield []
+        return
+    for m in range(1, len(chain) - 1):
+        for left in _all_triangulations(chain[: m + 1]):
+            for right in _all_triangulations(chain[m:]):
+                yield [(chain[0], chain[m], chain[-1]), *left, *right]
+
+
+@pytest.mark.parametrize("taken_chord", [False, True])
+def test_best_whole_triangulation_equals_the_cheapest_of_all_triangulations(taken_chord):
+    """The dynamic programme against its slow twin: every triangulation of the hole enumerated, those
+    with a face off the surface, not fitting the selection or adding an edge it has ruled out, the least
+    total support distance kept.  With a face standing on one of the hole's chords, that chord is never used."""
+    m, f, book, pts, limit, loop = _sphere_with_hole()
+    v = np.asarray(m.vertices, dtype=np.float64)
+    tree = sf.cKDTree(pts)
+    if taken_chord:  # a face on the chord (loop[0], loop[3]), standing far off the hole
+        v = np.vstack([v, 3 * v[loop[0]]])
+        book = sf._Selection(v, np.concatenate([sf.vertex_frames(m.vertices, pts), np.full((1, 2, 3), np.nan)]), 30.0)
+        for t in [*f.tolist(), (loop[0], loop[3], len(v) - 1)]:
+            book.add(*t)
+    chords = {tuple(sorted(e)) for e in holes._loop_edges(loop)}
+
+    def allowed(t):
+        new = [tuple(sorted(e)) for e in ((t[0], t[1]), (t[1], t[2]), (t[0], t[2]))]
+        return (support_distance(v, np.array([t]), pts, tree)[0] <= limit and book.fits(*t)
+                and not any(e not in chords and book.third.get(e) for e in new))
+
+    costs = [sum(support_distance(v, np.array(tr), pts, tree)) for tr in _all_triangulations(loop)
+             if all(allowed(t) for t in tr)]
+    got = holes._best_triangulation(v, loop, book, pts, limit, tree)
+    assert got is not None and len(got) == len(loop) - 2
+    assert sum(support_distance(v, np.array(got), pts, tree)) == pytest.approx(min(costs), abs=1e-9)
+    assert all(tuple(sorted(t)) in {tuple(sorted(x)) for x in book.face_normals} for t in got)
+    if taken_chord:
+        assert not any({loop[0], loop[3]} <= set(t) for t in got)
+
+
+def test_a_hole_ear_clipping_leaves_is_closed_by_the_whole_triangulation(monkeypatch):
+    """With ear clipping stuck on every loop, holes up to ``WHOLE_LOOP_MAX`` edges still close; above it
+    they stay open (and nothing else changes)."""
+    m, f, book, pts, limit, loop = _sphere_with_hole()
+    monkeypatch.setattr(holes, "_clip_loop", lambda *args: None)
+    filled = holes.fill_holes(m.vertices, f, book, pts, limit)
+    assert mesh_topology(m.vertices, filled)["watertight"] and _max_faces_per_edge(filled) == 2
+    m, f, book, pts, limit, loop = _sphere_with_hole()
+    monkeypatch.setattr(holes, "WHOLE_LOOP_MAX", len(loop) - 1)
+    assert len(holes.fill_holes(m.vertices, f, book, pts, limit)) == len(f)

@@ -157,6 +157,16 @@ def _best_triangulation(v: np.ndarray, loop: list[int], book: _Selection, points
     ijm = np.array(list(itertools.combinations(range(k), 3)), dtype=np.int64)  # i < m < j
     tris = np.asarray(loop, dtype=np.int64)[ijm]
     d = support_distance(v, tris, points, tree)
+    # Every edge of the loop lies in exactly one face of a triangulation: one no supported triangle
+    # covers rules it out before any triangle is checked against the selection (most stuck loops).
+    i, m, j = ijm.T
+    on = d <= limit
+    covered = np.zeros(k, dtype=bool)  # edge (p, p + 1), and (k - 1, 0) as edge k - 1
+    covered[i[on & (m == i + 1)]] = True
+    covered[m[on & (j == m + 1)]] = True
+    covered[k - 1] = bool((on & (i == 0) & (j == k - 1)).any())
+    if not covered.all():
+        return None
 
     def new_edge_taken(p: int, q: int) -> bool:  # a chord of the loop that the selection already has
         a, b = sorted((loop[p], loop[q]))
@@ -197,9 +207,10 @@ def _best_triangulation(v: np.ndarray, loop: list[int], book: _Selection, points
 
 def _close_loop(v: np.ndarray, loop: list[int], book: _Selection, points: np.ndarray, limit: float,
                 tree: cKDTree) -> list[tuple[int, int, int]] | None:
-    """Ear clipping, then (loops up to ``WHOLE_LOOP_MAX`` edges) the best whole triangulation."""
+    """Ear clipping, then (loops of 4 to ``WHOLE_LOOP_MAX`` edges) the best whole triangulation; a
+    triangle's only triangulation is itself, which ear clipping has tried."""
     ears = _clip_loop(v, loop, book, points, limit, tree)
-    if ears is None and len(loop) <= WHOLE_LOOP_MAX:
+    if ears is None and 4 <= len(loop) <= WHOLE_LOOP_MAX:
         ears = _best_triangulation(v, loop, book, points, limit, tree)
     return ears
 

@@ -12,6 +12,9 @@ Systems (vertex metrics of ``fastmesh.metrics.vertex_metrics``, in the reference
 - ``cells@own``: the same, as many as the cells' expected count (the sum of their probabilities);
 - ``random@decoder``: as many random candidate cells (the no-learning floor).
 
+Per system the summary also gives ``count_log_correlation``: how closely log(count) follows log(reference
+count) over the meshes (a count that follows the shape, not a fixed length).
+
 The decoders are scored on the vertices of the returned mesh (those its faces use: what a user gets); the
 cells-alone systems take as many cells as the decoder generated before faces were built.
 """
@@ -38,6 +41,16 @@ from fastmesh.pipeline import CELL_SEED, Pipeline  # noqa: E402
 from fastmesh.tokenizer import dequantize  # noqa: E402
 
 KEYS = ("precision_1", "recall_1", "precision_2", "recall_2", "on_surface", "count_ratio")
+
+
+def _log_correlation(rows: list[dict], system: str) -> float:
+    """Correlation of log(count) with log(reference count) over the meshes: does the count follow the shape?
+    (NaN when the counts do not vary.)"""
+    gen = np.log([max(r[system]["generated"], 1) for r in rows])
+    ref = np.log([r[system]["reference"] for r in rows])
+    if len(rows) < 2 or gen.std() == 0 or ref.std() == 0:
+        return float("nan")
+    return round(float(np.corrcoef(gen, ref)[0, 1]), 3)
 
 
 def main() -> int:
@@ -91,7 +104,8 @@ def main() -> int:
                                                for k in row if isinstance(row[k], dict)), file=sys.stderr, flush=True)
     systems = [k for k in rows[0] if isinstance(rows[0][k], dict)]
     summary = {s: {**{k: round(float(np.mean([r[s][k] for r in rows])), 4) for k in KEYS},
-                   "median_count_ratio": round(float(np.median([r[s]["count_ratio"] for r in rows])), 3)}
+                   "median_count_ratio": round(float(np.median([r[s]["count_ratio"] for r in rows])), 3),
+                   "count_log_correlation": _log_correlation(rows, s)}
                for s in systems}
     summary["meshes"] = len(rows)
     summary["mean_seconds"] = round(float(np.mean([r["seconds"] for r in rows])), 3)

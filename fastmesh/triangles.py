@@ -68,7 +68,7 @@ class TriangleConfig:
     fold_angle : float
         ``"surface"``: degrees; two faces on an edge closer than this around it overlap.
     fill_max_loop : int
-        ``"surface"``: longest boundary loop closed by ear clipping (0 = no filling).
+        ``"surface"``: longest boundary loop closed (``fastmesh.holes.fill_holes``; 0 = no filling).
     support_weight : float
         ``"surface"``: a triangle's score loses this much per support limit it strays.
     model_weight : float

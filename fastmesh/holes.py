@@ -157,14 +157,14 @@ def _best_triangulation(v: np.ndarray, loop: list[int], book: _Selection, points
     ijm = np.array(list(itertools.combinations(range(k), 3)), dtype=np.int64)  # i < m < j
     tris = np.asarray(loop, dtype=np.int64)[ijm]
     d = support_distance(v, tris, points, tree)
-    # Every edge of the loop lies in exactly one face of a triangulation: one no supported triangle
-    # covers rules it out before any triangle is checked against the selection (most stuck loops).
-    i, m, j = ijm.T
+    # Every edge of the loop lies in exactly one face of a triangulation: one that no supported
+    # triangle covers rules the loop out before any triangle is checked against the selection.
+    lo, mid, hi = ijm.T
     on = d <= limit
     covered = np.zeros(k, dtype=bool)  # edge (p, p + 1), and (k - 1, 0) as edge k - 1
-    covered[i[on & (m == i + 1)]] = True
-    covered[m[on & (j == m + 1)]] = True
-    covered[k - 1] = bool((on & (i == 0) & (j == k - 1)).any())
+    covered[lo[on & (mid == lo + 1)]] = True
+    covered[mid[on & (hi == mid + 1)]] = True
+    covered[k - 1] = bool((on & (lo == 0) & (hi == k - 1)).any())
     if not covered.all():
         return None
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
 from fastmesh import holes
 from fastmesh import surface_triangles as sf
@@ -279,7 +280,7 @@ def test_best_whole_triangulation_equals_the_cheapest_of_all_triangulations(take
     total support distance kept.  With a face standing on one of the hole's chords, that chord is never used."""
     m, f, book, pts, limit, loop = _sphere_with_hole()
     v = np.asarray(m.vertices, dtype=np.float64)
-    tree = sf.cKDTree(pts)
+    tree = cKDTree(pts)
     if taken_chord:  # a face on the chord (loop[0], loop[3]), standing far off the hole
         v = np.vstack([v, 3 * v[loop[0]]])
         book = sf._Selection(v, np.concatenate([sf.vertex_frames(m.vertices, pts), np.full((1, 2, 3), np.nan)]), 30.0)

@@ -173,8 +173,8 @@ def _best_triangulation(v: np.ndarray, loop: list[int], book: _Selection, points
         return q - p != 1 and (p, q) != (0, k - 1) and bool(book.third.get((a, b)))
 
     cost = {}
-    for (i, m, j), t, dt in zip(ijm.tolist(), tris.tolist(), d.tolist(), strict=True):
-        if dt <= limit and not any(new_edge_taken(p, q) for p, q in ((i, m), (m, j), (i, j))) and book.fits(*t):
+    for (i, m, j), t, dt in zip(ijm[on].tolist(), tris[on].tolist(), d[on].tolist(), strict=True):
+        if not any(new_edge_taken(p, q) for p, q in ((i, m), (m, j), (i, j))) and book.fits(*t):
             cost[(i, m, j)] = dt
     # best[(i, j)]: least cost of triangulating the chain loop[i..j] closed by the chord (i, j).
     best: dict[tuple[int, int], tuple[float, int]] = {}

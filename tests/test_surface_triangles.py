@@ -118,12 +118,18 @@ def test_folded_faces_are_not_both_selected():
     assert sorted(map(tuple, np.sort(f, 1).tolist())) == [(0, 1, 2), (0, 2, 3)]
 
 
+def _book(vertices, frames, faces) -> sf._Selection:
+    """The selection's bookkeeping holding ``faces`` (fold angle 30 degrees)."""
+    book = sf._Selection(vertices, frames, 30.0)
+    for t in np.asarray(faces).tolist():
+        book.add(*t)
+    return book
+
+
 def test_fill_closes_a_hole_and_leaves_an_open_input_open():
     m, pts = _primitive("icosphere2")
     f = np.asarray(m.faces)[np.r_[0:5, 12:len(m.faces)]]  # a hole where 7 faces were
-    book = sf._Selection(m.vertices, sf.vertex_frames(m.vertices, pts), 30.0)
-    for t in f.tolist():
-        book.add(*t)
+    book = _book(m.vertices, sf.vertex_frames(m.vertices, pts), f)
     filled = holes.fill_holes(m.vertices, f, book, pts, support_limit(pts, 0.0))
     assert mesh_topology(m.vertices, filled)["watertight"]
     # A flat open grid: its outer boundary is not a hole of the surface.
@@ -234,9 +240,7 @@ def test_loops_found_from_seed_edges_equal_the_whole_walk_restricted_to_them():
     keep = np.ones(len(m.faces), bool)
     keep[rng.choice(len(m.faces), 120, replace=False)] = False
     f = np.asarray(m.faces)[keep]
-    book = sf._Selection(m.vertices, np.full((len(m.vertices), 2, 3), np.nan), 30.0)
-    for t in f.tolist():
-        book.add(*t)
+    book = _book(m.vertices, np.full((len(m.vertices), 2, 3), np.nan), f)
     everything = holes.boundary_loops(f)
     assert len(everything) > 20 and any(len(x) > 3 for x in everything)
     edges = [holes._loop_edges(x) for x in everything]
@@ -255,9 +259,7 @@ def _sphere_with_hole(n_faces: int = 7):
     m, pts = _primitive("icosphere2")
     order = np.argsort(np.linalg.norm(m.triangles_center - m.triangles_center[0], axis=1))
     f = np.asarray(m.faces)[np.sort(order[n_faces:])]
-    book = sf._Selection(m.vertices, sf.vertex_frames(m.vertices, pts), 30.0)
-    for t in f.tolist():
-        book.add(*t)
+    book = _book(m.vertices, sf.vertex_frames(m.vertices, pts), f)
     (loop,) = holes.boundary_loops(f)
     return m, f, book, pts, support_limit(pts, 0.0), loop
 
@@ -283,9 +285,8 @@ def test_best_whole_triangulation_equals_the_cheapest_of_all_triangulations(take
     tree = cKDTree(pts)
     if taken_chord:  # a face on the chord (loop[0], loop[3]), standing far off the hole
         v = np.vstack([v, 3 * v[loop[0]]])
-        book = sf._Selection(v, np.concatenate([sf.vertex_frames(m.vertices, pts), np.full((1, 2, 3), np.nan)]), 30.0)
-        for t in [*f.tolist(), (loop[0], loop[3], len(v) - 1)]:
-            book.add(*t)
+        frames = np.concatenate([sf.vertex_frames(m.vertices, pts), np.full((1, 2, 3), np.nan)])
+        book = _book(v, frames, [*f.tolist(), (loop[0], loop[3], len(v) - 1)])
     chords = {tuple(sorted(e)) for e in holes._loop_edges(loop)}
 
     def allowed(t):

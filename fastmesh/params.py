@@ -65,6 +65,10 @@ BOUNDS = {
     "max_vertices": Bound(3, 1_000_000),  # the decoder's own limit lowers the top (``validate``)
     "candidates": Bound(1, MAX_CANDIDATES),
     "target_faces": Bound(*TARGET_FACES),
+    # The decoder's sampling loop only (SamplingConfig): see models.generate.choose_next and pace_mask.
+    "structure_temperature": Bound(MIN_TEMPERATURE, MAX_TEMPERATURE, integer=False, zero=True, zero_means="greedy"),
+    "cell_weight": Bound(0.0, 20.0, integer=False),
+    "pace": Bound(0.1, 100.0, integer=False, zero=True, zero_means="off"),
 }
 
 
@@ -91,8 +95,8 @@ class GenerateParams:
 
     def validate(self, limit: int = LARGEST_VERTEX_LIMIT) -> None:
         """Raise ValueError naming the first bad field; ``limit`` is the vertex decoder's ``max_vertices``."""
-        for name, bound in BOUNDS.items():
-            value = getattr(self, name)
+        for name in (f.name for f in fields(self) if f.name in BOUNDS):
+            bound, value = BOUNDS[name], getattr(self, name)
             if value is None and getattr(GenerateParams, name) is None:  # unset: the pipeline decides
                 continue
             bound.check(name, value, hi=min(bound.hi, limit) if name == "max_vertices" else None)
@@ -114,6 +118,18 @@ class SamplingConfig:
     top_p: float = GenerateParams.top_p
     max_vertices: int = DEFAULT_VERTEX_LIMIT
     seed: int = GenerateParams.seed
+    # Each token is chosen in two steps (models.generate.choose_next): its kind (the end, a new block, another
+    # vertex in this block) from the decoder's probabilities at structure_temperature, then which token of that
+    # kind at ``temperature``.  One temperature for both sharpened the decoder's many stay-or-go decisions: at 0.3
+    # it ended big shapes after one vertex per block (an airliner: 38 vertices for 1,685) and ran away on small
+    # ones (docs/results.md).
+    structure_temperature: float = 1.0
+    # Weight of the cell evidence's log-odds in the choice among a block's offsets (1: as trained); the share
+    # of the offsets as a kind is the decoder's own, so the count does not move with it.
+    cell_weight: float = 3.0
+    # Another vertex in the current block only while the vertices emitted stay under pace x the cells' expected
+    # vertices up to this block + models.generate.PACE_SLACK (0: off; decoders that read the cells).
+    pace: float = 1.0
 
     def validate(self) -> None:
         """Raise ValueError naming the first field outside ``BOUNDS``."""

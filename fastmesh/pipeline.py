@@ -363,8 +363,9 @@ class Pipeline:
         pts_t = torch.from_numpy(pts).to(self.device)[None, :n_vp]
         nrm_t = torch.from_numpy(nrm).to(self.device)[None, :n_vp]
         with torch.inference_mode():
-            prefix = self.vertex.condition(pts_t, nrm_t, self._target(params))
-            evidence = self.vertex.point_evidence(pts_t, nrm_t, cells)
+            target = self._target(params)
+            prefix = self.vertex.condition(pts_t, nrm_t, target)
+            evidence = self.vertex.point_evidence(pts_t, nrm_t, cells, target)
         return pts, nrm, prefix, evidence
 
     def _decode(self, shape: Shape, unit: np.ndarray, params: GenerateParams, n_cand: int,

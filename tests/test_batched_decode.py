@@ -23,17 +23,19 @@ torch.set_num_threads(1)
 B = 4
 
 
-def _model(seed: int = 0, cells: bool = False) -> VertexDecoder:
+def _model(seed: int = 0, cells: bool = False, counts: bool = False) -> VertexDecoder:
     torch.manual_seed(seed)
     enc = EncoderConfig(n_points=64, n_latents=4, dim=32, depth=1, heads=2, n_freqs=4, anchors=8)
     m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, evidence=True, evidence_normals=True,
-                                   evidence_cells=cells))
+                                   evidence_cells=cells, evidence_counts=counts))
     with torch.no_grad():  # spread the logits and make the evidence matter, as if trained
         m.head.weight.normal_(0, 1.0)
         m.tok_emb.weight.normal_(0, 0.5)
         tables = (m.evidence.cell_block_table, m.evidence.cell_skip_table, m.evidence.cell_eos_table) if cells else (
             m.evidence.table, m.evidence.block_table, m.evidence.skip_table, m.evidence.eos_table,
             m.evidence.corner_table)
+        if counts:
+            tables += (m.evidence.stay_table, m.evidence.rest_table, m.evidence.count_table)
         for t in tables:
             t.weight.normal_(0, 3.0 / GAIN)
     return m.eval()
@@ -69,9 +71,10 @@ class _Spy:
 
 
 @pytest.mark.parametrize("backend", ["torch", "onnx"])
-@pytest.mark.parametrize("temperature,top_k,cells", [(1.0, 0, False), (0.7, 20, False), (1.0, 0, True)])
-def test_batch_rows_equal_each_seed_decoded_alone(backend, temperature, top_k, cells):
-    m = _model(1, cells)
+@pytest.mark.parametrize("temperature,top_k,cells,counts", [(1.0, 0, False, False), (0.7, 20, False, False),
+                                                           (1.0, 0, True, False), (1.0, 0, True, True)])
+def test_batch_rows_equal_each_seed_decoded_alone(backend, temperature, top_k, cells, counts):
+    m = _model(1, cells, counts)
     dec = _Spy(OrtDecoder(m) if backend == "onnx" else m)
     prefix, evidence = _inputs(m, 1)
     cfg = SamplingConfig(temperature=temperature, top_k=top_k, top_p=0.95, max_vertices=12, seed=7)
@@ -140,3 +143,72 @@ def test_pipeline_candidates_are_each_seed_alone():
             assert np.allclose(both.vertices, alone.vertices) and np.array_equal(both.faces, alone.faces)
             assert both.tokens == alone.tokens
     assert both.info["fits"] == pytest.approx(fits, abs=2e-6)
+
+
+def _kind(tokens: torch.Tensor) -> torch.Tensor:
+    return torch.where(tokens < vt.BLOCK0, 0, torch.where(tokens < vt.OFFSET0, 1, 2))
+
+
+def test_the_kind_of_the_next_token_is_the_decoders_and_the_cell_weight_only_picks_among_offsets():
+    """``choose_next``: the kind (EOS / block / offset) is drawn from the decoder's probability mass of each kind at
+    ``structure_temperature``, before the offset bias is looked at; the bias then decides which offset."""
+    from fastmesh.models.generate import choose_next
+
+    g = torch.Generator().manual_seed(0)
+    logits = torch.randn(1, vt.VOCAB_SIZE, generator=g) * 2
+    logits[0, vt.PAD] = logits[0, vt.BOS] = float("-inf")
+    favourite = torch.zeros(1, vt.N_OFFSETS)
+    favourite[0, 1234] = 100.0  # an offset the bias makes certain once an offset is chosen
+    cfg = SamplingConfig(temperature=0.3, top_k=50, top_p=0.95, structure_temperature=1.0)
+    plain = torch.cat([choose_next(logits, cfg, [torch.Generator().manual_seed(s)]) for s in range(3000)])
+    biased = torch.cat([choose_next(logits, cfg, [torch.Generator().manual_seed(s)], favourite) for s in range(3000)])
+    assert torch.equal(_kind(plain), _kind(biased))  # same draws: the bias never moves the kind
+    assert (biased[_kind(biased) == 2] == vt.OFFSET0 + 1234).all()
+    p = logits.softmax(-1)[0]
+    want = torch.stack([p[:vt.BLOCK0].sum(), p[vt.BLOCK0:vt.OFFSET0].sum(), p[vt.OFFSET0:].sum()])
+    got = torch.bincount(_kind(plain), minlength=3) / len(plain)
+    assert (got - want).abs().max() < 0.03, (got, want)
+    # Greedy: the kind with the most mass, then the best token of that kind.
+    greedy = choose_next(logits, SamplingConfig(temperature=0), None, favourite)
+    assert int(_kind(greedy)) == int(want.argmax())
+
+
+def test_pacing_closes_the_block_once_the_sequence_runs_ahead_of_the_cells():
+    """With ``pace``, no sequence stays in a block (another offset after an offset) once its vertices reach
+    pace x the cells' expected vertices up to that block + PACE_SLACK; without it the same decoder stays on."""
+    from fastmesh.models.cells import CELLS, FLOOR, flat_index
+    from fastmesh.models.generate import PACE_SLACK
+    from fastmesh.tokenizer.grid import sort_key
+
+    m = _model(2, cells=True)
+    with torch.no_grad():  # as if trained: go to the block the cells fill, take its cells, end when it is done
+        m.evidence.cell_gain.fill_(10.0)
+        m.evidence.cell_block_table.weight[6:] = 1.0  # 64 or more expected vertices
+        m.evidence.cell_eos_table.weight[1:] = -1.0  # vertices expected ahead
+    g = torch.Generator().manual_seed(2)
+    pts = torch.rand(B, 64, 3, generator=g) - 0.5
+    nrm = torch.nn.functional.normalize(torch.randn(B, 64, 3, generator=g), dim=-1)
+    prefix, evidence = [], []
+    for i in range(B):  # 80 likely cells in one block, likelier in sequence order: the decoder stays there
+        grid = torch.full((1, CELLS ** 3), FLOOR)
+        cells = torch.randint(16 * i, 16 * i + 16, (80, 3), generator=g).unique(dim=0)
+        cells = cells[sort_key(cells).argsort()]
+        grid[0, flat_index(cells)] = 8.0 - 0.1 * torch.arange(len(cells))
+        with torch.inference_mode():
+            prefix.append(m.condition(pts[i:i + 1], nrm[i:i + 1]))
+            evidence.append(m.point_evidence(pts[i:i + 1], nrm[i:i + 1], grid))
+    seen = {True: 0, False: 0}
+    for pace in (0.0, 0.5):
+        cfg = SamplingConfig(temperature=0, max_vertices=100, pace=pace)
+        seqs = generate(m, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
+        for row, ev in zip(seqs, evidence, strict=True):
+            n, block = 0, -1
+            for prev, tok in zip(row[:-1].tolist(), row[1:].tolist(), strict=True):
+                if vt.BLOCK0 <= tok < vt.OFFSET0:
+                    block = tok - vt.BLOCK0
+                stays = prev >= vt.OFFSET0 and tok >= vt.OFFSET0
+                if stays:
+                    over = n >= 0.5 * float(ev.expected_through(torch.tensor([block]))) + PACE_SLACK
+                    seen[pace > 0] += over
+                n += tok >= vt.OFFSET0
+    assert seen[True] == 0 and seen[False] > 0

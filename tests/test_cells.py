@@ -182,15 +182,18 @@ def test_dense_grid_and_net_scores_line_up():
     assert torch.equal(dense_grid(cells, logits), grid)
 
 
-def _decoder(seed: int = 0) -> VertexDecoder:
+def _decoder(seed: int = 0, counts: bool = False) -> VertexDecoder:
     torch.manual_seed(seed)
     enc = EncoderConfig(n_points=64, n_latents=4, dim=32, depth=1, heads=2, n_freqs=4, anchors=8)
     m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, evidence=True, evidence_normals=True,
-                                   evidence_cells=True)).eval()
+                                   evidence_cells=True, evidence_counts=counts, count_condition=counts)).eval()
     with torch.no_grad():
         m.head.weight.normal_(0, 1.0)
         for t in (m.evidence.cell_block_table, m.evidence.cell_skip_table, m.evidence.cell_eos_table):
             t.weight.normal_(0, 3.0 / GAIN)
+        if counts:
+            for t in (m.evidence.stay_table, m.evidence.rest_table, m.evidence.count_table):
+                t.weight.normal_(0, 3.0 / GAIN)
     return m
 
 
@@ -227,13 +230,15 @@ def test_decoder_reads_the_cell_log_odds():
     assert torch.allclose(ev.cell_expected[0, 7], p[0:16, 0:16, 112:128].sum(), rtol=1e-4)
 
 
-def test_cached_equals_uncached_with_cell_evidence():
-    m = _decoder(3)
+@pytest.mark.parametrize("counts,target", [(False, None), (True, None), (True, (40, 0))])
+def test_cached_equals_uncached_with_cell_evidence(counts, target):
+    m = _decoder(3, counts)
     pts = torch.rand(2, 64, 3) - 0.5
     nrm = torch.nn.functional.normalize(torch.randn(2, 64, 3), dim=-1)
+    target = None if target is None else torch.tensor(target)
     with torch.no_grad():
-        prefix = m.condition(pts, nrm)
-    ev = m.point_evidence(pts, nrm, _cell_grids(2, 1))
+        prefix = m.condition(pts, nrm, target)
+    ev = m.point_evidence(pts, nrm, _cell_grids(2, 1), target)
     cached = generate(m, prefix, SamplingConfig(temperature=0, max_vertices=10), evidence=ev)
     uncached = generate_uncached(m, prefix, max_vertices=10, evidence=ev)
     for a, b in zip(cached, uncached, strict=True):
@@ -267,3 +272,78 @@ def test_without_blocks_ahead_the_sequence_reads_the_cells_alone():
     occupancy = GAIN * (m.evidence.block_table(ev.levels[-1][0]).squeeze(-1)
                         + m.evidence.cell_block_table.weight[0, 0] + m.evidence.cell_skip_table.weight[0, 0])
     assert torch.allclose(bias[0, vt.BLOCK0:vt.OFFSET0], occupancy, atol=1e-5)
+
+
+def test_count_reading_weighs_the_vertices_emitted_against_the_cells():
+    """``evidence_counts``: staying in a block reads the vertices emitted in it against the block's expected
+    vertices and those left after the current offset; EOS reads all vertices emitted against all expected.
+    Checked per position against sums over the cells, taken one by one in sequence order."""
+    import bisect
+
+    from fastmesh.models.evidence import CELL_LEVELS, RATIO_EDGES, RATIO_LEVELS, STAY_LEVELS
+    from fastmesh.models.vertex import grammar_state, sequence_counts
+    from fastmesh.tokenizer.grid import sort_key, unflat_index
+
+    m = _decoder(5, counts=True)
+    g = torch.Generator().manual_seed(2)
+    grid = torch.full((1, CELLS ** 3), FLOOR)  # candidates in the eight blocks of one 32-cell cube
+    grid[0, flat_index(torch.randint(16, 48, (400, 3), generator=g))] = torch.randn(400, generator=g) * 4
+    pts = torch.rand(1, 64, 3) - 0.5
+    ev = m.point_evidence(pts, None if m.evidence.corner_table is None else torch.nn.functional.normalize(
+        torch.randn(1, 64, 3), dim=-1), grid)
+    # A sequence through some of the likeliest cells: several per block, several blocks.
+    flat = grid[0].topk(40).indices
+    cells = unflat_index(flat)
+    tokens = torch.from_numpy(vt.encode(cells.numpy()))[None]
+    block, offset = grammar_state(tokens)
+    n_vert, n_in_block = sequence_counts(tokens)
+    eos, stay = ev.count_bias(block, offset, n_vert, n_in_block)
+
+    p = torch.where(grid[0] > FLOOR, torch.sigmoid(grid[0]), 0.0)
+    cand = (p > 0).nonzero()[:, 0]
+    keys, probs = sort_key(unflat_index(cand)), p[cand]
+    total = float(probs.sum())
+
+    def level(x, n):
+        return min(int(np.floor(np.log2(1 + x))), n - 1)
+
+    t_ = m.evidence
+    seen_blocks, emitted, in_blk, checked = set(), 0, 0, 0
+    for t, tok in enumerate(tokens[0].tolist()):
+        if vt.BLOCK0 <= tok < vt.OFFSET0:
+            seen_blocks.add(tok)
+            in_blk = 0
+        elif tok >= vt.OFFSET0:
+            emitted, in_blk = emitted + 1, in_blk + 1
+        b, o = int(block[0, t]), int(offset[0, t])
+        if b < 0:
+            assert eos[0, t] == 0 and stay[0, t] == 0
+            continue
+        in_block = float(probs[keys // vt.N_OFFSETS == b].sum())
+        rest = float(probs[(keys // vt.N_OFFSETS == b) & (keys % vt.N_OFFSETS > o)].sum())
+        assert (emitted, in_blk) == (int(n_vert[0, t]), int(n_in_block[0, t]))
+        stay_row = level(in_blk, STAY_LEVELS) * CELL_LEVELS + level(in_block, CELL_LEVELS)
+        want_stay = GAIN * (t_.stay_table.weight[stay_row] + t_.rest_table.weight[level(rest, CELL_LEVELS)])
+        ratio = bisect.bisect_left(RATIO_EDGES, np.log2(max(emitted, 0.5) / max(total, 1.0)))
+        assert ratio < RATIO_LEVELS
+        if not any(abs(x - round(x)) < 1e-3 for x in (in_block, rest)):  # sums in another order: same level
+            checked += 1
+            assert torch.allclose(stay[0, t], want_stay[0], atol=1e-4)
+        assert torch.allclose(eos[0, t], GAIN * t_.count_table.weight[ratio, 0], atol=1e-4)
+    assert len(seen_blocks) > 1 and int(n_in_block.max()) > 1 and checked > len(tokens[0]) // 2
+
+
+def test_a_face_count_target_scales_what_the_cells_expect_to_it():
+    from fastmesh.models.vertex import FACES_PER_VERTEX
+
+    m = _decoder(6, counts=True)
+    grid = _cell_grids(2, 3)
+    pts = torch.rand(2, 64, 3) - 0.5
+    nrm = torch.nn.functional.normalize(torch.randn(2, 64, 3), dim=-1)
+    own = m.point_evidence(pts, nrm, grid)
+    asked = m.point_evidence(pts, nrm, grid, torch.tensor([340, 0]))
+    assert torch.allclose(asked.cell_cum[0, -1], torch.tensor(340 / FACES_PER_VERTEX))
+    assert torch.allclose(asked.cell_cum[1], own.cell_cum[1])  # no target: the cells' own count
+    scale = 340 / FACES_PER_VERTEX / own.cell_expected[0].sum()
+    assert torch.allclose(asked.cell_expected[0], own.cell_expected[0] * scale, rtol=1e-4)
+    assert asked.given.tolist() == [1, 0]

@@ -54,6 +54,19 @@ local geometry), given as a dense (B, 128^3) grid:
 
 where a block's expected vertex count is the sum of sigmoid(logodds) over its cells: the decoder
 stops when what the cells say is left is covered, and decides which of the likely cells to emit.
+
+Those tables read what lies *ahead* of the current block, never what was emitted, so nothing tells the
+decoder it has put 20 vertices in a block that expects one: it ran away on thin shapes (a needle: 421
+vertices for 24).  With ``PointEvidence(counts=True)`` three more tables read the sequence's *counts*
+against the cells (n: vertices emitted, m: of them in the current block, o: the current offset):
+
+    offset token (stay in the block):  stay_table[level(m), level(expected in the block)]
+                                       + rest_table[level(expected in the block after offset o)]
+    EOS:                               count_table[given, ratio bucket of n / expected in all]
+
+A face-count target (``target_vertices``) scales every expected amount of the shape by
+target / (expected in all), so the same tables that follow the cells follow the target; ``given`` keeps
+the EOS reading of a target apart from that of the cells' own estimate, which is looser.
 """
 
 from __future__ import annotations
@@ -87,6 +100,21 @@ SPREAD_STATES = len(SPREAD_EDGES) + 2
 # there in about a hundred, at the learning rate the transformer needs.
 GAIN = 32.0
 CELL_LEVELS = 10  # expected vertices: 0, 1, 2-3, ..., 256+
+STAY_LEVELS = 8  # vertices emitted in the current block: 0, 1, 2-3, ..., 64+
+# log2(emitted / expected) bucket edges of the EOS count reading: a ratio of 1 is the edge at 0.
+RATIO_EDGES = (-2.0, -1.0, -0.5, -0.25, -0.1, 0.0, 0.1, 0.25, 0.5, 1.0, 2.0)
+RATIO_LEVELS = len(RATIO_EDGES) + 1
+_KEY_ORDER: dict = {}  # device -> (128^3,) flat cell index of each (block, offset) key in sequence order
+
+
+def _key_order(device) -> torch.Tensor:
+    """The flat index of cell ``block * N_OFFSETS + offset`` for every key: the grid in the order a
+    sequence visits it."""
+    if device not in _KEY_ORDER:
+        key = torch.arange(N_OFFSETS * BLOCKS_PER_AXIS ** 3, device=device)
+        cells = block_coords(key // N_OFFSETS) * BLOCK_SIDE + offset_coords(key % N_OFFSETS)
+        _KEY_ORDER[device] = flat_index(cells)
+    return _KEY_ORDER[device]
 
 
 def _level(count: torch.Tensor, levels: int) -> torch.Tensor:
@@ -97,7 +125,7 @@ class Evidence:
     """Point counts of one batch of shapes; turns the current block into a logit bias."""
 
     def __init__(self, module: PointEvidence, points: torch.Tensor, normals: torch.Tensor | None = None,
-                 cells: torch.Tensor | None = None):
+                 cells: torch.Tensor | None = None, target_vertices: torch.Tensor | None = None):
         self.tables = module
         b = points.shape[0]
         point_cells = quantize(points.detach().float())  # (B, P, 3)
@@ -133,6 +161,15 @@ class Evidence:
             # would add 13 phantom vertices, and "nothing ahead" would never be seen before the last blocks).
             p = torch.where(self.cells > FLOOR, torch.sigmoid(self.cells), 0.0)
             expected = p.reshape(b, *per_block).sum((2, 4, 6)).reshape(b, -1)
+            if module.count_table is not None:
+                # A target scales what the cells expect to it: (B,) target / expected in all, or 1.
+                total = expected.sum(1).clamp(min=1.0)
+                given = torch.zeros(b, device=points.device) if target_vertices is None else target_vertices.float()
+                self.given = (given > 0).long()
+                scale = torch.where(given > 0, given / total, 1.0)
+                expected = expected * scale[:, None]
+                # Expected vertices up to and including each cell, in sequence order (B, 128^3).
+                self.cell_cum = (p[:, _key_order(points.device)] * scale[:, None]).cumsum(1)
             self.cell_expected = expected
             self.cell_incl = expected.cumsum(1)
             self.cell_excl = self.cell_incl - expected
@@ -147,6 +184,30 @@ class Evidence:
         u_rows, u_block = key // (vt.N_BLOCKS + 1), key % (vt.N_BLOCKS + 1) - 1
         return torch.cat(self._sequence_rows(u_rows, u_block) + [self._offset_rows(u_rows, u_block)],
                          dim=-1)[inverse]
+
+    def count_bias(self, block: torch.Tensor, offset: torch.Tensor, n_vert: torch.Tensor,
+                   n_in_block: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The reading of the sequence's counts, per position.
+
+        (B, T) current block and offset (-1: none), vertices emitted and of them in the current block ->
+        (B, T) bias of EOS and (B, T) bias of every offset token (both 0 before the first block).
+        """
+        rows = torch.arange(block.shape[0], device=block.device)[:, None].expand_as(block)
+        blk = block.clamp(min=0)
+        t = self.tables
+        in_block = self.cell_expected[rows, blk]
+        # Expected in the block after offset o: the running sum at the block's last cell less that at o.
+        end = self.cell_cum[rows, blk * N_OFFSETS + N_OFFSETS - 1]
+        key = blk * N_OFFSETS + offset
+        rest = (end - torch.where(key >= 0, self.cell_cum[rows, key.clamp(min=0)], 0.0)).clamp(min=0)
+        stay = (t.stay_table(_level(n_in_block.float(), STAY_LEVELS) * CELL_LEVELS + _level(in_block, CELL_LEVELS))
+                + t.rest_table(_level(rest, CELL_LEVELS))).squeeze(-1)
+        total = self.cell_cum[:, -1].clamp(min=1.0)[:, None]
+        ratio = torch.bucketize(torch.log2(n_vert.float().clamp(min=0.5) / total),
+                                torch.tensor(RATIO_EDGES, device=block.device))
+        eos = t.count_table(self.given[:, None] * RATIO_LEVELS + ratio).squeeze(-1)
+        on = (block >= 0).float()
+        return GAIN * eos * on, GAIN * stay * on
 
     def _sequence_rows(self, rows: torch.Tensor, block: torch.Tensor) -> list[torch.Tensor]:
         """(U,) shape index and current block (-1: none) -> [(U, 3) special, (U, 512) block] bias."""
@@ -180,9 +241,27 @@ class Evidence:
             bias = bias + self.tables.corner_table(idx).squeeze(-1)
         bias = GAIN * bias
         if self.cells is not None:
-            cell = flat_index(bxyz * BLOCK_SIDE)[:, None] + self.cell_part  # (U, 4096) flat cells of the offsets
-            bias = bias + self.tables.cell_gain * self.cells[rows[:, None], cell]
+            bias = bias + self._cell_rows(rows, blk)
         return bias * (block >= 0)[:, None]  # no block yet: no evidence
+
+    def _cell_rows(self, rows: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
+        """(U,) shape index and block id (>= 0) -> (U, 4096) cell term of every offset token's bias."""
+        cell = flat_index(block_coords(block) * BLOCK_SIDE)[:, None] + self.cell_part  # flat cells of the offsets
+        return self.tables.cell_gain * self.cells[rows[:, None], cell]
+
+    @property
+    def reads_cells(self) -> bool:
+        return self.cells is not None
+
+    def offset_cells(self, block: torch.Tensor) -> torch.Tensor:
+        """(B,) current blocks -> (B, 4096) the cell term of the offsets' bias (0 before the first block)."""
+        rows = torch.arange(len(block), device=block.device)
+        return self._cell_rows(rows, block.clamp(min=0)) * (block >= 0)[:, None]
+
+    def expected_through(self, block: torch.Tensor) -> torch.Tensor:
+        """(B,) current blocks -> (B,) the cells' expected vertices in the blocks up to and including them."""
+        rows = torch.arange(len(block), device=block.device)
+        return self.cell_incl[rows, block.clamp(min=0)] * (block >= 0)
 
 
 def _ahead(incl: torch.Tensor, excl: torch.Tensor, rows: torch.Tensor, block: torch.Tensor
@@ -215,12 +294,15 @@ def _spread_states(coarse: torch.Tensor, normals: torch.Tensor, res: int) -> tor
 
 class PointEvidence(nn.Module):
     """The learned tables of :class:`Evidence` (LEVELS^3 + BLOCK_LEVELS scalars, 2 * SEQ_LEVELS with
-    ``blocks_ahead``, SPREAD_STATES^2 with ``normals``, 1 + 3 * CELL_LEVELS with ``cells``)."""
+    ``blocks_ahead``, SPREAD_STATES^2 with ``normals``, 1 + 3 * CELL_LEVELS with ``cells``,
+    (STAY_LEVELS + 1) * CELL_LEVELS + 2 * RATIO_LEVELS with ``counts``)."""
 
-    def __init__(self, normals: bool = False, cells: bool = False, blocks_ahead: bool = True):
+    def __init__(self, normals: bool = False, cells: bool = False, blocks_ahead: bool = True, counts: bool = False):
         super().__init__()
         if not (blocks_ahead or cells):
             raise ValueError("the sequence needs one reading of what is ahead: occupied blocks or the cells")
+        if counts and not cells:
+            raise ValueError("the count reading compares the sequence with the cells: it needs cells=True")
         self.table = nn.Embedding(LEVELS ** len(SHIFTS), 1)
         self.block_table = nn.Embedding(BLOCK_LEVELS, 1)
         self.skip_table = nn.Embedding(SEQ_LEVELS, 1) if blocks_ahead else None
@@ -233,13 +315,17 @@ class PointEvidence(nn.Module):
         self.cell_block_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
         self.cell_skip_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
         self.cell_eos_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
+        self.stay_table = nn.Embedding(STAY_LEVELS * CELL_LEVELS, 1) if counts else None
+        self.rest_table = nn.Embedding(CELL_LEVELS, 1) if counts else None
+        self.count_table = nn.Embedding(2 * RATIO_LEVELS, 1) if counts else None
         for t in (self.table, self.block_table, self.skip_table, self.eos_table, self.corner_table,
-                  self.cell_block_table, self.cell_skip_table, self.cell_eos_table):
+                  self.cell_block_table, self.cell_skip_table, self.cell_eos_table, self.stay_table,
+                  self.rest_table, self.count_table):
             if t is not None:
                 nn.init.zeros_(t.weight)
 
     def forward(self, points: torch.Tensor, normals: torch.Tensor | None = None,
-                cells: torch.Tensor | None = None) -> Evidence:
-        """(B, P, 3) points in the unit cube (and their normals, and (B, 128^3) cell log-odds) -> their
-        :class:`Evidence`."""
-        return Evidence(self, points, normals, cells)
+                cells: torch.Tensor | None = None, target_vertices: torch.Tensor | None = None) -> Evidence:
+        """(B, P, 3) points in the unit cube (and their normals, (B, 128^3) cell log-odds and (B,) vertex
+        counts asked for, 0: none) -> their :class:`Evidence`."""
+        return Evidence(self, points, normals, cells, target_vertices)

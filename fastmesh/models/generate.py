@@ -5,6 +5,12 @@ allows (block then offsets, strictly increasing, EOS only after a vertex), so
 every sequence decodes to distinct, valid vertices.  ``max_vertices`` forces EOS
 once the budget is spent.  Temperature 0 is greedy decoding.
 
+Each token is chosen in two steps (``choose_next``): its kind (EOS, a new block, another
+vertex in this block) from the decoder's own probabilities at ``structure_temperature``,
+then the token of that kind at ``temperature``, the offsets with the cell evidence weighted
+by ``cell_weight``.  With cell evidence, ``pace_mask`` also closes the current block once the
+sequence runs ahead of the cells' expected vertices.
+
 A batch of sequences is decoded in lockstep, one decode step for all of them (the step
 is bound by reading the weights, so B sequences cost little more than one).  Each row
 keeps its own grammar state, evidence and random generator (row k draws from seed
@@ -23,10 +29,14 @@ from ..params import SamplingConfig
 from ..tokenizer import vertex as vt
 from .evidence import Evidence
 from .kv_cache import KVCache
-from .vertex import VertexDecoder, grammar_mask, grammar_state
+from .vertex import VertexDecoder, add_count_bias, grammar_mask, grammar_state
 
 if TYPE_CHECKING:
     from .onnx_decode import OrtDecoder
+
+
+PACE_SLACK = 4  # vertices a sequence may run ahead of pace x the cells' expected count
+KIND_EOS, KIND_BLOCK, KIND_OFFSET = 0, 1, 2  # token kinds of ``choose_next`` (PAD counts as EOS)
 
 
 class Cancelled(Exception):
@@ -46,6 +56,25 @@ class StackedEvidence:
     def logit_bias(self, block: torch.Tensor) -> torch.Tensor:
         """(B, T) current block ids -> (B, T, VOCAB) bias, row i from ``rows[i]``."""
         return torch.cat([e.logit_bias(block[i:i + 1]) for i, e in enumerate(self.rows)])
+
+    def count_bias(self, block: torch.Tensor, offset: torch.Tensor, n_vert: torch.Tensor,
+                   n_in_block: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, T) sequence state -> (B, T) EOS and (B, T) offset bias, row i from ``rows[i]``."""
+        parts = [e.count_bias(block[i:i + 1], offset[i:i + 1], n_vert[i:i + 1], n_in_block[i:i + 1])
+                 for i, e in enumerate(self.rows)]
+        return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+
+    @property
+    def reads_cells(self) -> bool:
+        return self.rows[0].reads_cells
+
+    def offset_cells(self, block: torch.Tensor) -> torch.Tensor:
+        """(B,) current blocks -> (B, N_OFFSETS) cell term of the offsets' bias, row i from ``rows[i]``."""
+        return torch.cat([e.offset_cells(block[i:i + 1]) for i, e in enumerate(self.rows)])
+
+    def expected_through(self, block: torch.Tensor) -> torch.Tensor:
+        """(B,) current blocks -> (B,) the cells' expected vertices up to and including them."""
+        return torch.cat([e.expected_through(block[i:i + 1]) for i, e in enumerate(self.rows)])
 
 
 def filter_logits(logits: torch.Tensor, top_k: int, top_p: float) -> torch.Tensor:
@@ -89,6 +118,39 @@ def sample_next(logits: torch.Tensor, cfg: SamplingConfig,
     else:
         draw = torch.multinomial(probs, 1, generator=gen)
     return ids.gather(-1, draw).squeeze(-1)
+
+
+def choose_next(logits: torch.Tensor, cfg: SamplingConfig, gen: list[torch.Generator] | None,
+                offset_bias: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, V) masked logits -> (B,) token ids, in two steps.
+
+    First the kind of the next token (EOS, a new block, another vertex in this block) from the decoder's
+    own probabilities at ``cfg.structure_temperature`` (summed over the tokens of each kind), then the token
+    among those of that kind at ``cfg.temperature`` (top-k / top-p within the kind), with ``offset_bias``
+    (B, N_OFFSETS) added to the offsets: a weight on the cells among the offsets that leaves the decoder's
+    count alone.  Temperature 0 is greedy in both steps.  Row i draws from ``gen[i]`` alone.
+    """
+    t_kind = cfg.structure_temperature if cfg.temperature > 0 else 0.0
+    p = (logits / (t_kind or 1.0)).softmax(-1)
+    mass = torch.stack([p[:, :vt.BLOCK0].sum(-1), p[:, vt.BLOCK0:vt.OFFSET0].sum(-1), p[:, vt.OFFSET0:].sum(-1)], -1)
+    if t_kind > 0:
+        kind = torch.cat([torch.multinomial(mass[i:i + 1], 1, generator=g) for i, g in enumerate(gen)])[:, 0]
+    else:
+        kind = mass.argmax(-1)
+    if offset_bias is not None:
+        logits = torch.cat([logits[:, :vt.OFFSET0], logits[:, vt.OFFSET0:] + offset_bias], dim=-1)
+    ids = torch.arange(logits.shape[-1], device=logits.device)
+    of_kind = torch.where(ids < vt.BLOCK0, KIND_EOS, torch.where(ids < vt.OFFSET0, KIND_BLOCK, KIND_OFFSET))
+    return sample_next(logits.masked_fill(of_kind != kind[:, None], float("-inf")), cfg, gen)
+
+
+def pace_mask(evidence, block: torch.Tensor, prev: torch.Tensor, n_vert: torch.Tensor,
+              cfg: SamplingConfig) -> torch.Tensor:
+    """(B,) rows that may not stay in their block: the previous token was a vertex and the vertices emitted
+    reach ``cfg.pace`` x the cells' expected vertices up to this block + ``PACE_SLACK`` (they may still end
+    or go on to a later block, so the parts of the shape ahead are not cut off as a cap on the count would)."""
+    through = evidence.expected_through(block)
+    return (prev >= vt.OFFSET0) & (n_vert >= cfg.pace * through + PACE_SLACK)
 
 
 @torch.inference_mode()
@@ -139,15 +201,26 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
     offset = torch.full((b,), -1, dtype=torch.long, device=device)
     prev = tokens[:, 0]
     n_vert = torch.zeros(b, dtype=torch.long, device=device)
+    n_in_block = torch.zeros(b, dtype=torch.long, device=device)
     live = torch.arange(b, device=device)
-    ev_block = ev_bias = None
+    ev_block = ev_bias = cell_bias = None
+    counts = evidence is not None and model.cfg.evidence_counts
+    cells = evidence is not None and evidence.reads_cells
     for step in range(1, max_tokens):
         if evidence is not None:  # the bias changes only when a sequence enters a new block
             if ev_block is None or not torch.equal(block, ev_block):
                 ev_bias, ev_block = evidence.logit_bias(block[:, None])[:, 0], block.clone()
+                if cells:
+                    cell_bias = (cfg.cell_weight - 1.0) * evidence.offset_cells(block)
             logits = logits + ev_bias[live]
+            if counts:  # ... and the count reading with every vertex
+                eos, stay = evidence.count_bias(block[:, None], offset[:, None], n_vert[:, None], n_in_block[:, None])
+                logits = add_count_bias(logits, eos[live, 0], stay[live, 0])
         mask = grammar_mask(prev[live], block[live], offset[live], eos_only=n_vert[live] >= cfg.max_vertices)
-        picked = sample_next(logits.masked_fill(~mask, float("-inf")), cfg, [gens[int(k)] for k in live])
+        if cells and cfg.pace > 0:
+            mask[:, vt.OFFSET0:] &= ~pace_mask(evidence, block, prev, n_vert, cfg)[live, None]
+        picked = choose_next(logits.masked_fill(~mask, float("-inf")), cfg, [gens[int(k)] for k in live],
+                             None if cell_bias is None else cell_bias[live])
         nxt = torch.full((b,), vt.PAD, dtype=torch.long, device=device)
         nxt[live] = picked
         out.append(nxt)
@@ -156,6 +229,7 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
         block = torch.where(is_block, nxt - vt.BLOCK0, block)
         offset = torch.where(is_off, nxt - vt.OFFSET0, torch.where(is_block, -1, offset))
         n_vert += is_off.long()
+        n_in_block = torch.where(is_block, 0, n_in_block + is_off.long())
         prev = nxt
         if step % progress_every == 0:
             if should_cancel is not None and should_cancel():
@@ -180,8 +254,10 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
 
 @torch.inference_mode()
 def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: int,
-                      evidence: Evidence | None = None) -> torch.Tensor:
-    """Greedy decoding without a cache: the slow reference the cached path must equal."""
+                      evidence: Evidence | None = None, cfg: SamplingConfig | None = None) -> torch.Tensor:
+    """Greedy decoding without a cache (``cfg`` at temperature 0): the slow reference the cached path must equal."""
+    cfg = SamplingConfig(temperature=0, max_vertices=max_vertices) if cfg is None else cfg
+    cells = evidence is not None and evidence.reads_cells
     tokens = torch.full((prefix.shape[0], 1), vt.BOS, dtype=torch.long, device=prefix.device)
     for _ in range(2 * max_vertices + 1):
         logits = model(tokens, prefix=prefix, evidence=evidence)[:, -1]
@@ -189,7 +265,10 @@ def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: 
         block, offset = grammar_state(tokens)
         eos_only = n_vert >= max_vertices
         mask = grammar_mask(tokens[:, -1], block[:, -1], offset[:, -1], eos_only=eos_only)
-        nxt = logits.masked_fill(~mask, float("-inf")).argmax(-1)
+        if cells and cfg.pace > 0:
+            mask[:, vt.OFFSET0:] &= ~pace_mask(evidence, block[:, -1], tokens[:, -1], n_vert, cfg)[:, None]
+        cell_bias = (cfg.cell_weight - 1.0) * evidence.offset_cells(block[:, -1]) if cells else None
+        nxt = choose_next(logits.masked_fill(~mask, float("-inf")), cfg, None, cell_bias)
         tokens = torch.cat([tokens, nxt[:, None]], dim=1)
         if bool(((tokens == vt.EOS).any(1)).all()):
             break

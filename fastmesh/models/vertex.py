@@ -40,6 +40,7 @@ class VertexConfig:
     evidence_cells: bool = False  # ... and the cell log-odds of models.cells
     evidence_blocks_ahead: bool = True  # EOS and block skips also read the occupied blocks ahead (models.evidence)
     count_condition: bool = False  # one more prefix token: the face count asked for (or "the model's choice")
+    evidence_counts: bool = False  # EOS and staying in a block also read the counts emitted against the cells
 
     @property
     def head_dim(self) -> int:
@@ -54,6 +55,16 @@ def grammar_state(tokens: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     block = torch.where(is_block, tokens - vt.BLOCK0, torch.full_like(tokens, -1)).cummax(dim=1).values
     offset = torch.where(is_off, tokens - vt.OFFSET0, torch.full_like(tokens, -1))
     return block, offset
+
+
+def sequence_counts(tokens: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Vertices emitted up to each position of (B, T) token ids, and of them those in the current block."""
+    is_off = (tokens >= vt.OFFSET0).long()
+    n_vert = is_off.cumsum(1)
+    is_block = (tokens >= vt.BLOCK0) & (tokens < vt.OFFSET0)
+    # n_vert never decreases, so its value at the last block token is a running max.
+    at_block = torch.where(is_block, n_vert, torch.zeros_like(n_vert)).cummax(dim=1).values
+    return n_vert, n_vert - at_block
 
 
 def grammar_mask(prev: torch.Tensor, block: torch.Tensor, offset: torch.Tensor,
@@ -78,6 +89,8 @@ def grammar_mask(prev: torch.Tensor, block: torch.Tensor, offset: torch.Tensor,
 # Face counts asked for, in buckets of a quarter octave from 16 to 4096 faces; bucket 0 is "no target".
 COUNT_MIN, COUNT_MAX, COUNT_STEPS_PER_OCTAVE = 16, 4096, 4
 COUNT_BUCKETS = 2 + COUNT_STEPS_PER_OCTAVE * 8
+# Faces per vertex of a target: the median of the corpus's meshes (1.69; a closed mesh has about 2).
+FACES_PER_VERTEX = 1.7
 
 
 def count_bucket(target_faces: torch.Tensor) -> torch.Tensor:
@@ -85,6 +98,20 @@ def count_bucket(target_faces: torch.Tensor) -> torch.Tensor:
     t = target_faces.float()
     b = 1 + (COUNT_STEPS_PER_OCTAVE * torch.log2(t.clamp(COUNT_MIN, COUNT_MAX) / COUNT_MIN)).round().long()
     return torch.where(t > 0, b, 0)
+
+
+def target_vertices(target_faces: torch.Tensor | None) -> torch.Tensor | None:
+    """(B,) face counts asked for (0 or less: none) -> (B,) vertex counts the evidence reads (0: none)."""
+    if target_faces is None:
+        return None
+    return torch.where(target_faces > 0, target_faces.float() / FACES_PER_VERTEX, 0.0)
+
+
+def add_count_bias(logits: torch.Tensor, eos: torch.Tensor, stay: torch.Tensor) -> torch.Tensor:
+    """(…, VOCAB) logits plus the count reading of ``Evidence.count_bias``: (…) on EOS, (…) on every offset."""
+    bias = torch.zeros_like(logits[..., :vt.OFFSET0])
+    bias[..., vt.EOS] = eos
+    return logits + torch.cat([bias, stay[..., None].expand(*stay.shape, vt.N_OFFSETS)], dim=-1)
 
 
 def next_token_loss(logits: torch.Tensor, tokens: torch.Tensor) -> torch.Tensor:
@@ -109,7 +136,8 @@ class VertexDecoder(nn.Module):
         init_weights(self)
         # after init_weights: its tables start at zero (no bias until training finds the evidence useful)
         self.evidence = PointEvidence(normals=cfg.evidence_normals, cells=cfg.evidence_cells,
-                                      blocks_ahead=cfg.evidence_blocks_ahead) if cfg.evidence else None
+                                      blocks_ahead=cfg.evidence_blocks_ahead,
+                                      counts=cfg.evidence_counts) if cfg.evidence else None
 
     # ------------------------------------------------------------------ pieces
 
@@ -134,10 +162,13 @@ class VertexDecoder(nn.Module):
         return prefix
 
     def point_evidence(self, points: torch.Tensor, normals: torch.Tensor | None = None,
-                       cells: torch.Tensor | None = None) -> Evidence | None:
-        """(B, P, 3) points (and normals, and (B, 128^3) cell log-odds from ``models.cells``) -> the
-        :class:`Evidence` whose logit bias ``forward``/``generate`` add (None if off)."""
-        return None if self.evidence is None else self.evidence(points, normals, cells)
+                       cells: torch.Tensor | None = None, target_faces: torch.Tensor | None = None
+                       ) -> Evidence | None:
+        """(B, P, 3) points (and normals, (B, 128^3) cell log-odds from ``models.cells`` and (B,) face counts
+        asked for) -> the :class:`Evidence` whose logit bias ``forward``/``generate`` add (None if off)."""
+        if self.evidence is None:
+            return None
+        return self.evidence(points, normals, cells, target_vertices(target_faces))
 
     def embed(self, tokens: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
         """(B, T) tokens and their current block (from ``grammar_state``) -> (B, T, dim)."""
@@ -170,12 +201,14 @@ class VertexDecoder(nn.Module):
         """
         if prefix is None:
             prefix = self.condition(points, normals, target_faces)
-            evidence = self.point_evidence(points, normals, cells)
+            evidence = self.point_evidence(points, normals, cells, target_faces)
         block, offset = grammar_state(tokens)
         x = torch.cat([prefix.to(self.tok_emb.weight.dtype), self.embed(tokens, block)], dim=1)
         logits = self._run(x, 0)[:, prefix.shape[1]:].float()
         if evidence is not None:
             logits = logits + evidence.logit_bias(block)
+            if self.cfg.evidence_counts:
+                logits = add_count_bias(logits, *evidence.count_bias(block, offset, *sequence_counts(tokens)))
         return logits.masked_fill(~grammar_mask(tokens, block, offset), float("-inf"))
 
     def loss(self, tokens: torch.Tensor, **cond) -> torch.Tensor:

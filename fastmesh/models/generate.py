@@ -257,6 +257,8 @@ def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: 
                       evidence: Evidence | None = None, cfg: SamplingConfig | None = None) -> torch.Tensor:
     """Greedy decoding without a cache (``cfg`` at temperature 0): the slow reference the cached path must equal."""
     cfg = SamplingConfig(temperature=0, max_vertices=max_vertices) if cfg is None else cfg
+    if cfg.temperature != 0:
+        raise ValueError("generate_uncached decodes greedily: cfg.temperature must be 0")
     cells = evidence is not None and evidence.reads_cells
     tokens = torch.full((prefix.shape[0], 1), vt.BOS, dtype=torch.long, device=prefix.device)
     for _ in range(2 * max_vertices + 1):

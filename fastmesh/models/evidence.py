@@ -170,6 +170,7 @@ class Evidence:
                 expected = expected * scale[:, None]
                 # Expected vertices up to and including each cell, in sequence order (B, 128^3).
                 self.cell_cum = (p[:, _key_order(points.device)] * scale[:, None]).cumsum(1)
+                self.ratio_edges = torch.tensor(RATIO_EDGES, device=points.device)  # read at every decode step
             self.cell_expected = expected
             self.cell_incl = expected.cumsum(1)
             self.cell_excl = self.cell_incl - expected
@@ -203,8 +204,7 @@ class Evidence:
         stay = (t.stay_table(_level(n_in_block.float(), STAY_LEVELS) * CELL_LEVELS + _level(in_block, CELL_LEVELS))
                 + t.rest_table(_level(rest, CELL_LEVELS))).squeeze(-1)
         total = self.cell_cum[:, -1].clamp(min=1.0)[:, None]
-        ratio = torch.bucketize(torch.log2(n_vert.float().clamp(min=0.5) / total),
-                                torch.tensor(RATIO_EDGES, device=block.device))
+        ratio = torch.bucketize(torch.log2(n_vert.float().clamp(min=0.5) / total), self.ratio_edges)
         eos = t.count_table(self.given[:, None] * RATIO_LEVELS + ratio).squeeze(-1)
         on = (block >= 0).float()
         return GAIN * eos * on, GAIN * stay * on

@@ -144,12 +144,11 @@ def choose_next(logits: torch.Tensor, cfg: SamplingConfig, gen: list[torch.Gener
     return sample_next(logits.masked_fill(of_kind != kind[:, None], float("-inf")), cfg, gen)
 
 
-def pace_mask(evidence, block: torch.Tensor, prev: torch.Tensor, n_vert: torch.Tensor,
-              cfg: SamplingConfig) -> torch.Tensor:
+def pace_mask(through: torch.Tensor, prev: torch.Tensor, n_vert: torch.Tensor, cfg: SamplingConfig) -> torch.Tensor:
     """(B,) rows that may not stay in their block: the previous token was a vertex and the vertices emitted
-    reach ``cfg.pace`` x the cells' expected vertices up to this block + ``PACE_SLACK`` (they may still end
-    or go on to a later block, so the parts of the shape ahead are not cut off as a cap on the count would)."""
-    through = evidence.expected_through(block)
+    reach ``cfg.pace`` x ``through``, the cells' expected vertices up to this block (``expected_through`` of the
+    evidence), + ``PACE_SLACK`` (they may still end or go on to a later block, so the parts of the shape ahead
+    are not cut off as a cap on the count would)."""
     return (prev >= vt.OFFSET0) & (n_vert >= cfg.pace * through + PACE_SLACK)
 
 
@@ -203,7 +202,7 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
     n_vert = torch.zeros(b, dtype=torch.long, device=device)
     n_in_block = torch.zeros(b, dtype=torch.long, device=device)
     live = torch.arange(b, device=device)
-    ev_block = ev_bias = cell_bias = None
+    ev_block = ev_bias = cell_bias = through = None
     counts = evidence is not None and model.cfg.evidence_counts
     cells = evidence is not None and evidence.reads_cells
     for step in range(1, max_tokens):
@@ -212,13 +211,14 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
                 ev_bias, ev_block = evidence.logit_bias(block[:, None])[:, 0], block.clone()
                 if cells:
                     cell_bias = (cfg.cell_weight - 1.0) * evidence.offset_cells(block)
+                    through = evidence.expected_through(block)
             logits = logits + ev_bias[live]
             if counts:  # ... and the count reading with every vertex
                 eos, stay = evidence.count_bias(block[:, None], offset[:, None], n_vert[:, None], n_in_block[:, None])
                 logits = add_count_bias(logits, eos[live, 0], stay[live, 0])
         mask = grammar_mask(prev[live], block[live], offset[live], eos_only=n_vert[live] >= cfg.max_vertices)
         if cells and cfg.pace > 0:
-            mask[:, vt.OFFSET0:] &= ~pace_mask(evidence, block, prev, n_vert, cfg)[live, None]
+            mask[:, vt.OFFSET0:] &= ~pace_mask(through, prev, n_vert, cfg)[live, None]
         picked = choose_next(logits.masked_fill(~mask, float("-inf")), cfg, [gens[int(k)] for k in live],
                              None if cell_bias is None else cell_bias[live])
         nxt = torch.full((b,), vt.PAD, dtype=torch.long, device=device)
@@ -268,7 +268,8 @@ def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: 
         eos_only = n_vert >= max_vertices
         mask = grammar_mask(tokens[:, -1], block[:, -1], offset[:, -1], eos_only=eos_only)
         if cells and cfg.pace > 0:
-            mask[:, vt.OFFSET0:] &= ~pace_mask(evidence, block[:, -1], tokens[:, -1], n_vert, cfg)[:, None]
+            through = evidence.expected_through(block[:, -1])
+            mask[:, vt.OFFSET0:] &= ~pace_mask(through, tokens[:, -1], n_vert, cfg)[:, None]
         cell_bias = (cfg.cell_weight - 1.0) * evidence.offset_cells(block[:, -1]) if cells else None
         nxt = choose_next(logits.masked_fill(~mask, float("-inf")), cfg, None, cell_bias)
         tokens = torch.cat([tokens, nxt[:, None]], dim=1)

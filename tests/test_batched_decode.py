@@ -176,27 +176,9 @@ def test_the_kind_of_the_next_token_is_the_decoders_and_the_cell_weight_only_pic
 def test_pacing_closes_the_block_once_the_sequence_runs_ahead_of_the_cells():
     """With ``pace``, no sequence stays in a block (another offset after an offset) once its vertices reach
     pace x the cells' expected vertices up to that block + PACE_SLACK; without it the same decoder stays on."""
-    from fastmesh.models.cells import CELLS, FLOOR, flat_index
     from fastmesh.models.generate import PACE_SLACK
-    from fastmesh.tokenizer.grid import sort_key
 
-    m = _model(2, cells=True)
-    with torch.no_grad():  # as if trained: go to the block the cells fill, take its cells, end when it is done
-        m.evidence.cell_gain.fill_(10.0)
-        m.evidence.cell_block_table.weight[6:] = 1.0  # 64 or more expected vertices
-        m.evidence.cell_eos_table.weight[1:] = -1.0  # vertices expected ahead
-    g = torch.Generator().manual_seed(2)
-    pts = torch.rand(B, 64, 3, generator=g) - 0.5
-    nrm = torch.nn.functional.normalize(torch.randn(B, 64, 3, generator=g), dim=-1)
-    prefix, evidence = [], []
-    for i in range(B):  # 80 likely cells in one block, likelier in sequence order: the decoder stays there
-        grid = torch.full((1, CELLS ** 3), FLOOR)
-        cells = torch.randint(16 * i, 16 * i + 16, (80, 3), generator=g).unique(dim=0)
-        cells = cells[sort_key(cells).argsort()]
-        grid[0, flat_index(cells)] = 8.0 - 0.1 * torch.arange(len(cells))
-        with torch.inference_mode():
-            prefix.append(m.condition(pts[i:i + 1], nrm[i:i + 1]))
-            evidence.append(m.point_evidence(pts[i:i + 1], nrm[i:i + 1], grid))
+    m, prefix, evidence = _crowded()
     seen = {True: 0, False: 0}
     for pace in (0.0, 0.5):
         cfg = SamplingConfig(temperature=0, max_vertices=100, pace=pace)
@@ -208,7 +190,76 @@ def test_pacing_closes_the_block_once_the_sequence_runs_ahead_of_the_cells():
                     block = tok - vt.BLOCK0
                 stays = prev >= vt.OFFSET0 and tok >= vt.OFFSET0
                 if stays:
-                    over = n >= 0.5 * float(ev.expected_through(torch.tensor([block]))) + PACE_SLACK
+                    over = n >= float(ev.expected_through(torch.tensor([block]), 0.5)) + PACE_SLACK
                     seen[pace > 0] += over
                 n += tok >= vt.OFFSET0
     assert seen[True] == 0 and seen[False] > 0
+
+
+def test_stacked_count_reading_equals_each_row_read_alone():
+    """``StackedEvidence.count_bias`` reads all rows at once; each row must read what its own evidence gives,
+    rows with and without a face-count target mixed."""
+    m = _model(3, cells=True, counts=True)
+    g = torch.Generator().manual_seed(3)
+    pts = torch.rand(B, 64, 3, generator=g) - 0.5
+    nrm = torch.nn.functional.normalize(torch.randn(B, 64, 3, generator=g), dim=-1)
+    grids = _cell_grids(B, 3)[:, None]
+    targets = [None, torch.tensor([40]), None, torch.tensor([300])]
+    with torch.inference_mode():
+        evidence = [m.point_evidence(pts[i:i + 1], nrm[i:i + 1], grids[i], targets[i]) for i in range(B)]
+    stacked = StackedEvidence(evidence)
+    for step in range(5):  # the stacked inputs are made on the first reading and kept
+        block = torch.randint(-1, vt.N_BLOCKS, (B, 1), generator=g)
+        offset = torch.randint(-1, 4096, (B, 1), generator=g)
+        n_vert = torch.randint(0, 400, (B, 1), generator=g)
+        n_in_block = torch.randint(0, 70, (B, 1), generator=g)
+        eos, stay = stacked.count_bias(block, offset, n_vert, n_in_block)
+        for i, ev in enumerate(evidence):
+            e1, s1 = ev.count_bias(block[i:i + 1], offset[i:i + 1], n_vert[i:i + 1], n_in_block[i:i + 1])
+            assert torch.equal(eos[i:i + 1], e1) and torch.equal(stay[i:i + 1], s1), (step, i)
+    assert eos.abs().sum() > 0 and stay.abs().sum() > 0
+
+
+def _crowded():
+    """A decoder with cell evidence, as if trained, and B shapes whose cells crowd into one block each: it goes
+    to the block the cells fill, takes its cells (likelier in sequence order) and ends when they are done."""
+    from fastmesh.models.cells import CELLS, FLOOR, flat_index
+    from fastmesh.tokenizer.grid import sort_key
+
+    m = _model(2, cells=True)
+    with torch.no_grad():
+        m.evidence.cell_gain.fill_(10.0)
+        m.evidence.cell_block_table.weight[6:] = 1.0  # 64 or more expected vertices
+        m.evidence.cell_eos_table.weight[1:] = -1.0  # vertices expected ahead
+    g = torch.Generator().manual_seed(2)
+    pts = torch.rand(B, 64, 3, generator=g) - 0.5
+    nrm = torch.nn.functional.normalize(torch.randn(B, 64, 3, generator=g), dim=-1)
+    prefix, evidence = [], []
+    for i in range(B):  # 80 likely cells in one block
+        grid = torch.full((1, CELLS ** 3), FLOOR)
+        cells = torch.randint(16 * i, 16 * i + 16, (80, 3), generator=g).unique(dim=0)
+        cells = cells[sort_key(cells).argsort()]
+        grid[0, flat_index(cells)] = 8.0 - 0.1 * torch.arange(len(cells))
+        with torch.inference_mode():
+            prefix.append(m.condition(pts[i:i + 1], nrm[i:i + 1]))
+            evidence.append(m.point_evidence(pts[i:i + 1], nrm[i:i + 1], grid))
+    return m, prefix, evidence
+
+
+
+def test_pace_scales_the_cells_own_estimate_and_leaves_a_target_as_asked():
+    """``expected_through(block, pace)``: pace x the cells' expected vertices up to the block, but a face-count
+    target's share of them unscaled (the target is the count asked for, not an estimate to correct)."""
+    m = _model(3, cells=True, counts=True)
+    g = torch.Generator().manual_seed(4)
+    pts = torch.rand(2, 64, 3, generator=g) - 0.5
+    nrm = torch.nn.functional.normalize(torch.randn(2, 64, 3, generator=g), dim=-1)
+    grids = _cell_grids(2, 4)
+    block = torch.tensor([300, 300])
+    with torch.inference_mode():
+        own = m.point_evidence(pts, nrm, grids)
+        asked = m.point_evidence(pts, nrm, grids, torch.tensor([500, 500]))
+    full, paced = own.expected_through(block), own.expected_through(block, 0.8)
+    assert float(full.min()) > 0 and torch.allclose(paced, 0.8 * full)
+    assert torch.equal(asked.expected_through(block, 0.8), asked.expected_through(block))
+    assert not torch.allclose(asked.expected_through(block), full)  # scaled to the target

@@ -188,26 +188,9 @@ class Evidence:
 
     def count_bias(self, block: torch.Tensor, offset: torch.Tensor, n_vert: torch.Tensor,
                    n_in_block: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The reading of the sequence's counts, per position.
-
-        (B, T) current block and offset (-1: none), vertices emitted and of them in the current block ->
-        (B, T) bias of EOS and (B, T) bias of every offset token (both 0 before the first block).
-        """
-        rows = torch.arange(block.shape[0], device=block.device)[:, None].expand_as(block)
-        blk = block.clamp(min=0)
-        t = self.tables
-        in_block = self.cell_expected[rows, blk]
-        # Expected in the block after offset o: the running sum at the block's last cell less that at o.
-        end = self.cell_cum[rows, blk * N_OFFSETS + N_OFFSETS - 1]
-        key = blk * N_OFFSETS + offset
-        rest = (end - torch.where(key >= 0, self.cell_cum[rows, key.clamp(min=0)], 0.0)).clamp(min=0)
-        stay = (t.stay_table(_level(n_in_block.float(), STAY_LEVELS) * CELL_LEVELS + _level(in_block, CELL_LEVELS))
-                + t.rest_table(_level(rest, CELL_LEVELS))).squeeze(-1)
-        total = self.cell_cum[:, -1].clamp(min=1.0)[:, None]
-        ratio = torch.bucketize(torch.log2(n_vert.float().clamp(min=0.5) / total), self.ratio_edges)
-        eos = t.count_table(self.given[:, None] * RATIO_LEVELS + ratio).squeeze(-1)
-        on = (block >= 0).float()
-        return GAIN * eos * on, GAIN * stay * on
+        """The reading of the sequence's counts, per position: :func:`read_counts` of this batch's cells."""
+        return read_counts(self.tables, self.cell_expected, self.cell_cum, self.given, self.ratio_edges,
+                           block, offset, n_vert, n_in_block)
 
     def _sequence_rows(self, rows: torch.Tensor, block: torch.Tensor) -> list[torch.Tensor]:
         """(U,) shape index and current block (-1: none) -> [(U, 3) special, (U, 512) block] bias."""
@@ -258,10 +241,41 @@ class Evidence:
         rows = torch.arange(len(block), device=block.device)
         return self._cell_rows(rows, block.clamp(min=0)) * (block >= 0)[:, None]
 
-    def expected_through(self, block: torch.Tensor) -> torch.Tensor:
-        """(B,) current blocks -> (B,) the cells' expected vertices in the blocks up to and including them."""
+    def expected_through(self, block: torch.Tensor, pace: float = 1.0) -> torch.Tensor:
+        """(B,) current blocks -> (B,) the cells' expected vertices in the blocks up to and including them, x
+        ``pace`` where they are the cells' own estimate: scaled to a face-count target they are the count asked
+        for, which ``pace`` leaves as it is."""
         rows = torch.arange(len(block), device=block.device)
-        return self.cell_incl[rows, block.clamp(min=0)] * (block >= 0)
+        given = getattr(self, "given", None)  # only a decoder that reads its counts reads a target
+        factor = pace if given is None else torch.where(given > 0, 1.0, pace)
+        return self.cell_incl[rows, block.clamp(min=0)] * (block >= 0) * factor
+
+
+def read_counts(tables: PointEvidence, expected: torch.Tensor, cum: torch.Tensor, given: torch.Tensor,
+                ratio_edges: torch.Tensor, block: torch.Tensor, offset: torch.Tensor, n_vert: torch.Tensor,
+                n_in_block: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The count tables' reading of B sequences against their shapes' cells.
+
+    ``expected`` (B, N_BLOCKS) expected vertices per block, ``cum`` (B, 128^3) expected vertices up to each
+    cell in sequence order, ``given`` (B,) 1 where a target scaled them (all as ``Evidence`` keeps them);
+    (B, T) current block and offset (-1: none), vertices emitted and of them in the current block ->
+    (B, T) bias of EOS and (B, T) bias of every offset token (both 0 before the first block).  Gathers and
+    table lookups only, so a row reads the same alone or stacked with others.
+    """
+    rows = torch.arange(block.shape[0], device=block.device)[:, None].expand_as(block)
+    blk = block.clamp(min=0)
+    in_block = expected[rows, blk]
+    # Expected in the block after offset o: the running sum at the block's last cell less that at o.
+    end = cum[rows, blk * N_OFFSETS + N_OFFSETS - 1]
+    key = blk * N_OFFSETS + offset
+    rest = (end - torch.where(key >= 0, cum[rows, key.clamp(min=0)], 0.0)).clamp(min=0)
+    stay = (tables.stay_table(_level(n_in_block.float(), STAY_LEVELS) * CELL_LEVELS + _level(in_block, CELL_LEVELS))
+            + tables.rest_table(_level(rest, CELL_LEVELS))).squeeze(-1)
+    total = cum[:, -1].clamp(min=1.0)[:, None]
+    ratio = torch.bucketize(torch.log2(n_vert.float().clamp(min=0.5) / total), ratio_edges)
+    eos = tables.count_table(given[:, None] * RATIO_LEVELS + ratio).squeeze(-1)
+    on = (block >= 0).float()
+    return GAIN * eos * on, GAIN * stay * on
 
 
 def _ahead(incl: torch.Tensor, excl: torch.Tensor, rows: torch.Tensor, block: torch.Tensor

@@ -27,7 +27,7 @@ import torch
 
 from ..params import SamplingConfig
 from ..tokenizer import vertex as vt
-from .evidence import Evidence
+from .evidence import Evidence, read_counts
 from .kv_cache import KVCache
 from .vertex import VertexDecoder, add_count_bias, grammar_mask, grammar_state
 
@@ -52,6 +52,7 @@ class StackedEvidence:
 
     def __init__(self, rows: list[Evidence]):
         self.rows = rows
+        self._counts = None  # the rows' count inputs stacked, made on the first count reading
 
     def logit_bias(self, block: torch.Tensor) -> torch.Tensor:
         """(B, T) current block ids -> (B, T, VOCAB) bias, row i from ``rows[i]``."""
@@ -59,10 +60,15 @@ class StackedEvidence:
 
     def count_bias(self, block: torch.Tensor, offset: torch.Tensor, n_vert: torch.Tensor,
                    n_in_block: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, T) sequence state -> (B, T) EOS and (B, T) offset bias, row i from ``rows[i]``."""
-        parts = [e.count_bias(block[i:i + 1], offset[i:i + 1], n_vert[i:i + 1], n_in_block[i:i + 1])
-                 for i, e in enumerate(self.rows)]
-        return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+        """(B, T) sequence state -> (B, T) EOS and (B, T) offset bias, row i from ``rows[i]``.
+
+        One reading over the rows stacked (it is read at every step): gathers and lookups, the same per row.
+        """
+        if self._counts is None:
+            self._counts = [torch.cat([getattr(e, name) for e in self.rows])
+                            for name in ("cell_expected", "cell_cum", "given")]
+        first = self.rows[0]
+        return read_counts(first.tables, *self._counts, first.ratio_edges, block, offset, n_vert, n_in_block)
 
     @property
     def reads_cells(self) -> bool:
@@ -72,9 +78,9 @@ class StackedEvidence:
         """(B,) current blocks -> (B, N_OFFSETS) cell term of the offsets' bias, row i from ``rows[i]``."""
         return torch.cat([e.offset_cells(block[i:i + 1]) for i, e in enumerate(self.rows)])
 
-    def expected_through(self, block: torch.Tensor) -> torch.Tensor:
-        """(B,) current blocks -> (B,) the cells' expected vertices up to and including them."""
-        return torch.cat([e.expected_through(block[i:i + 1]) for i, e in enumerate(self.rows)])
+    def expected_through(self, block: torch.Tensor, pace: float = 1.0) -> torch.Tensor:
+        """(B,) current blocks -> (B,) ``Evidence.expected_through`` of each row."""
+        return torch.cat([e.expected_through(block[i:i + 1], pace) for i, e in enumerate(self.rows)])
 
 
 def filter_logits(logits: torch.Tensor, top_k: int, top_p: float) -> torch.Tensor:
@@ -144,12 +150,13 @@ def choose_next(logits: torch.Tensor, cfg: SamplingConfig, gen: list[torch.Gener
     return sample_next(logits.masked_fill(of_kind != kind[:, None], float("-inf")), cfg, gen)
 
 
-def pace_mask(through: torch.Tensor, prev: torch.Tensor, n_vert: torch.Tensor, cfg: SamplingConfig) -> torch.Tensor:
+def pace_mask(through: torch.Tensor, prev: torch.Tensor, n_vert: torch.Tensor) -> torch.Tensor:
     """(B,) rows that may not stay in their block: the previous token was a vertex and the vertices emitted
-    reach ``cfg.pace`` x ``through``, the cells' expected vertices up to this block (``expected_through`` of the
-    evidence), + ``PACE_SLACK`` (they may still end or go on to a later block, so the parts of the shape ahead
-    are not cut off as a cap on the count would)."""
-    return (prev >= vt.OFFSET0) & (n_vert >= cfg.pace * through + PACE_SLACK)
+    reach ``through`` + ``PACE_SLACK``, ``through`` being the evidence's ``expected_through(block, cfg.pace)``:
+    ``cfg.pace`` x the cells' expected vertices up to this block, or a face-count target's share of them as it
+    is (they may still end or go on to a later block, so the parts of the shape ahead are not cut off as a cap
+    on the count would)."""
+    return (prev >= vt.OFFSET0) & (n_vert >= through + PACE_SLACK)
 
 
 @torch.inference_mode()
@@ -211,14 +218,14 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
                 ev_bias, ev_block = evidence.logit_bias(block[:, None])[:, 0], block.clone()
                 if cells:
                     cell_bias = (cfg.cell_weight - 1.0) * evidence.offset_cells(block)
-                    through = evidence.expected_through(block)
+                    through = evidence.expected_through(block, cfg.pace)
             logits = logits + ev_bias[live]
             if counts:  # ... and the count reading with every vertex
                 eos, stay = evidence.count_bias(block[:, None], offset[:, None], n_vert[:, None], n_in_block[:, None])
                 logits = add_count_bias(logits, eos[live, 0], stay[live, 0])
         mask = grammar_mask(prev[live], block[live], offset[live], eos_only=n_vert[live] >= cfg.max_vertices)
         if cells and cfg.pace > 0:
-            mask[:, vt.OFFSET0:] &= ~pace_mask(through, prev, n_vert, cfg)[live, None]
+            mask[:, vt.OFFSET0:] &= ~pace_mask(through, prev, n_vert)[live, None]
         picked = choose_next(logits.masked_fill(~mask, float("-inf")), cfg, [gens[int(k)] for k in live],
                              None if cell_bias is None else cell_bias[live])
         nxt = torch.full((b,), vt.PAD, dtype=torch.long, device=device)
@@ -268,8 +275,8 @@ def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: 
         eos_only = n_vert >= max_vertices
         mask = grammar_mask(tokens[:, -1], block[:, -1], offset[:, -1], eos_only=eos_only)
         if cells and cfg.pace > 0:
-            through = evidence.expected_through(block[:, -1])
-            mask[:, vt.OFFSET0:] &= ~pace_mask(through, tokens[:, -1], n_vert, cfg)[:, None]
+            through = evidence.expected_through(block[:, -1], cfg.pace)
+            mask[:, vt.OFFSET0:] &= ~pace_mask(through, tokens[:, -1], n_vert)[:, None]
         cell_bias = (cfg.cell_weight - 1.0) * evidence.offset_cells(block[:, -1]) if cells else None
         nxt = choose_next(logits.masked_fill(~mask, float("-inf")), cfg, None, cell_bias)
         tokens = torch.cat([tokens, nxt[:, None]], dim=1)

@@ -235,7 +235,7 @@ def _crowded():
     pts = torch.rand(B, 64, 3, generator=g) - 0.5
     nrm = torch.nn.functional.normalize(torch.randn(B, 64, 3, generator=g), dim=-1)
     prefix, evidence = [], []
-    for i in range(B):  # 80 likely cells in one block
+    for i in range(B):  # 80 likely cells in one block, likelier in sequence order: the decoder stays there
         grid = torch.full((1, CELLS ** 3), FLOOR)
         cells = torch.randint(16 * i, 16 * i + 16, (80, 3), generator=g).unique(dim=0)
         cells = cells[sort_key(cells).argsort()]
@@ -244,7 +244,6 @@ def _crowded():
             prefix.append(m.condition(pts[i:i + 1], nrm[i:i + 1]))
             evidence.append(m.point_evidence(pts[i:i + 1], nrm[i:i + 1], grid))
     return m, prefix, evidence
-
 
 
 def test_pace_scales_the_cells_own_estimate_and_leaves_a_target_as_asked():

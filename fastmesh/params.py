@@ -126,7 +126,8 @@ class SamplingConfig:
     structure_temperature: float = 1.0
     # Weight of the cell evidence's log-odds in the choice among a block's offsets (1: as trained); the share
     # of the offsets as a kind is the decoder's own, so the count does not move with it.  On the held-out
-    # packages (the previous cell network) 6 and 10 did alike, 3 worse in both precision and recall.
+    # packages (the previous cell network) 6 and 10 did alike, 3 worse in both precision and recall.  Not with a
+    # face-count target: it ends blocks early (``Evidence.weighted_cells``).
     cell_weight: float = 6.0
     # Another vertex in the current block only while the vertices emitted stay under pace x the cells' expected
     # vertices up to this block + models.generate.PACE_SLACK (0: off; decoders that read the cells).  The cells'

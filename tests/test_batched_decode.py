@@ -246,9 +246,10 @@ def _crowded():
     return m, prefix, evidence
 
 
-def test_pace_scales_the_cells_own_estimate_and_leaves_a_target_as_asked():
+def test_pace_and_cell_weight_apply_to_the_cells_own_estimate_and_leave_a_target_as_asked():
     """``expected_through(block, pace)``: pace x the cells' expected vertices up to the block, but a face-count
-    target's share of them unscaled (the target is the count asked for, not an estimate to correct)."""
+    target's share of them unscaled (the target is the count asked for, not an estimate to correct);
+    ``weighted_cells(block, w)``: (w - 1) x the offsets' cell term, nothing with a target."""
     m = _model(3, cells=True, counts=True)
     g = torch.Generator().manual_seed(4)
     pts = torch.rand(2, 64, 3, generator=g) - 0.5
@@ -262,3 +263,6 @@ def test_pace_scales_the_cells_own_estimate_and_leaves_a_target_as_asked():
     assert float(full.min()) > 0 and torch.allclose(paced, 0.8 * full)
     assert torch.equal(asked.expected_through(block, 0.8), asked.expected_through(block))
     assert not torch.allclose(asked.expected_through(block), full)  # scaled to the target
+    term = own.offset_cells(block)
+    assert term.abs().sum() > 0 and torch.equal(own.weighted_cells(block, 6.0), term * 5.0)
+    assert not asked.weighted_cells(block, 6.0).any()

@@ -241,6 +241,15 @@ class Evidence:
         rows = torch.arange(len(block), device=block.device)
         return self._cell_rows(rows, block.clamp(min=0)) * (block >= 0)[:, None]
 
+    def weighted_cells(self, block: torch.Tensor, weight: float) -> torch.Tensor:
+        """(B,) current blocks -> (B, 4096) what a cell weight adds to the offsets' bias: (weight - 1) x their cell
+        term where the cells' own estimate sets the count, nothing where a face-count target does (the weight
+        favours a block's likeliest cells, jumping over those before them in sequence order, so blocks end early:
+        targets of 1,000 faces and more were undershot)."""
+        given = getattr(self, "given", None)  # only a decoder that reads its counts reads a target
+        extra = weight - 1.0 if given is None else torch.where(given > 0, 0.0, weight - 1.0)[:, None]
+        return self.offset_cells(block) * extra
+
     def expected_through(self, block: torch.Tensor, pace: float = 1.0) -> torch.Tensor:
         """(B,) current blocks -> (B,) the cells' expected vertices in the blocks up to and including them, x
         ``pace`` where they are the cells' own estimate: scaled to a face-count target they are the count asked

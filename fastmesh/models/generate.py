@@ -74,9 +74,9 @@ class StackedEvidence:
     def reads_cells(self) -> bool:
         return self.rows[0].reads_cells
 
-    def offset_cells(self, block: torch.Tensor) -> torch.Tensor:
-        """(B,) current blocks -> (B, N_OFFSETS) cell term of the offsets' bias, row i from ``rows[i]``."""
-        return torch.cat([e.offset_cells(block[i:i + 1]) for i, e in enumerate(self.rows)])
+    def weighted_cells(self, block: torch.Tensor, weight: float) -> torch.Tensor:
+        """(B,) current blocks -> (B, N_OFFSETS) ``Evidence.weighted_cells`` of each row."""
+        return torch.cat([e.weighted_cells(block[i:i + 1], weight) for i, e in enumerate(self.rows)])
 
     def expected_through(self, block: torch.Tensor, pace: float = 1.0) -> torch.Tensor:
         """(B,) current blocks -> (B,) ``Evidence.expected_through`` of each row."""
@@ -217,7 +217,7 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
             if ev_block is None or not torch.equal(block, ev_block):
                 ev_bias, ev_block = evidence.logit_bias(block[:, None])[:, 0], block.clone()
                 if cells:
-                    cell_bias = (cfg.cell_weight - 1.0) * evidence.offset_cells(block)
+                    cell_bias = evidence.weighted_cells(block, cfg.cell_weight)
                     through = evidence.expected_through(block, cfg.pace)
             logits = logits + ev_bias[live]
             if counts:  # ... and the count reading with every vertex
@@ -277,7 +277,7 @@ def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: 
         if cells and cfg.pace > 0:
             through = evidence.expected_through(block[:, -1], cfg.pace)
             mask[:, vt.OFFSET0:] &= ~pace_mask(through, tokens[:, -1], n_vert)[:, None]
-        cell_bias = (cfg.cell_weight - 1.0) * evidence.offset_cells(block[:, -1]) if cells else None
+        cell_bias = evidence.weighted_cells(block[:, -1], cfg.cell_weight) if cells else None
         nxt = choose_next(logits.masked_fill(~mask, float("-inf")), cfg, None, cell_bias)
         tokens = torch.cat([tokens, nxt[:, None]], dim=1)
         if bool(((tokens == vt.EOS).any(1)).all()):

@@ -9,7 +9,9 @@ Each token is chosen in two steps (``choose_next``): its kind (EOS, a new block,
 vertex in this block) from the decoder's own probabilities at ``structure_temperature``,
 then the token of that kind at ``temperature``, the offsets with the cell evidence weighted
 by ``cell_weight``.  With cell evidence, ``pace_mask`` also closes the current block once the
-sequence runs ahead of the cells' expected vertices.
+sequence runs ahead of ``pace`` x the cells' expected vertices.  Both settings trade count for
+precision, so neither applies where a face-count target sets the count (``Evidence.weighted_cells``,
+``Evidence.expected_through``).
 
 A batch of sequences is decoded in lockstep, one decode step for all of them (the step
 is bound by reading the weights, so B sequences cost little more than one).  Each row

@@ -150,6 +150,8 @@ class Evidence:
                            for s in NORMAL_SHIFTS]
             self.spread_parts = [flat_index(oxyz >> s, CELLS >> s) for s in NORMAL_SHIFTS]
         self.cells = None  # (B, 128^3) cell log-odds
+        # (B,) 1 where a face-count target scaled the expected amounts (only a decoder reading its counts reads one)
+        self.given = torch.zeros(b, dtype=torch.long, device=points.device)
         if module.cell_gain is not None:
             if cells is None:
                 raise ValueError("this decoder's evidence reads the cell log-odds of models.cells: pass them")
@@ -241,23 +243,23 @@ class Evidence:
         rows = torch.arange(len(block), device=block.device)
         return self._cell_rows(rows, block.clamp(min=0)) * (block >= 0)[:, None]
 
+    def _unless_target(self, own: float, asked: float) -> torch.Tensor:
+        """(B,) ``own`` where the cells' own estimate sets the count, ``asked`` where a face-count target does."""
+        return torch.where(self.given > 0, asked, own)
+
     def weighted_cells(self, block: torch.Tensor, weight: float) -> torch.Tensor:
         """(B,) current blocks -> (B, 4096) what a cell weight adds to the offsets' bias: (weight - 1) x their cell
         term where the cells' own estimate sets the count, nothing where a face-count target does (the weight
         favours a block's likeliest cells, jumping over those before them in sequence order, so blocks end early:
         targets of 1,000 faces and more were undershot)."""
-        given = getattr(self, "given", None)  # only a decoder that reads its counts reads a target
-        extra = weight - 1.0 if given is None else torch.where(given > 0, 0.0, weight - 1.0)[:, None]
-        return self.offset_cells(block) * extra
+        return self.offset_cells(block) * self._unless_target(weight - 1.0, 0.0)[:, None]
 
     def expected_through(self, block: torch.Tensor, pace: float = 1.0) -> torch.Tensor:
         """(B,) current blocks -> (B,) the cells' expected vertices in the blocks up to and including them, x
         ``pace`` where they are the cells' own estimate: scaled to a face-count target they are the count asked
         for, which ``pace`` leaves as it is."""
         rows = torch.arange(len(block), device=block.device)
-        given = getattr(self, "given", None)  # only a decoder that reads its counts reads a target
-        factor = pace if given is None else torch.where(given > 0, 1.0, pace)
-        return self.cell_incl[rows, block.clamp(min=0)] * (block >= 0) * factor
+        return self.cell_incl[rows, block.clamp(min=0)] * (block >= 0) * self._unless_target(pace, 1.0)
 
 
 def read_counts(tables: PointEvidence, expected: torch.Tensor, cum: torch.Tensor, given: torch.Tensor,

@@ -9,9 +9,10 @@ Each token is chosen in two steps (``choose_next``): its kind (EOS, a new block,
 vertex in this block) from the decoder's own probabilities at ``structure_temperature``,
 then the token of that kind at ``temperature``, the offsets with the cell evidence weighted
 by ``cell_weight``.  With cell evidence, ``pace_mask`` also closes the current block once the
-sequence runs ahead of ``pace`` x the cells' expected vertices.  Both settings trade count for
-precision, so neither applies where a face-count target sets the count (``Evidence.weighted_cells``,
-``Evidence.expected_through``).
+sequence runs ahead of ``pace`` x the cells' expected vertices, and ``cell_gate`` closes the cells
+scored below ``cell_floor`` (``models.gate``).  These settings trade count for precision, so none
+applies where a face-count target sets the count (``Evidence.weighted_cells``,
+``Evidence.expected_through``, ``CellGate``).
 
 A batch of sequences is decoded in lockstep, one decode step for all of them (the step
 is bound by reading the weights, so B sequences cost little more than one).  Each row
@@ -30,6 +31,7 @@ import torch
 from ..params import SamplingConfig
 from ..tokenizer import vertex as vt
 from .evidence import Evidence, read_counts
+from .gate import CellGate
 from .kv_cache import KVCache
 from .vertex import VertexDecoder, add_count_bias, grammar_mask, grammar_state
 
@@ -161,6 +163,16 @@ def pace_mask(through: torch.Tensor, prev: torch.Tensor, n_vert: torch.Tensor) -
     return (prev >= vt.OFFSET0) & (n_vert >= through + PACE_SLACK)
 
 
+def cell_gate(evidence: Evidence | StackedEvidence | None, cfg: SamplingConfig) -> CellGate | None:
+    """The :class:`CellGate` of ``cfg.cell_floor`` over the rows of ``evidence``, or None where it does not apply
+    (no floor, or a decoder that does not read the cells)."""
+    if evidence is None or not evidence.reads_cells or cfg.cell_floor is None:
+        return None
+    rows = evidence.rows if isinstance(evidence, StackedEvidence) else [evidence]
+    given = torch.cat([e.given for e in rows]) > 0
+    return CellGate(torch.cat([e.cells for e in rows]), given, cfg.cell_floor)
+
+
 @torch.inference_mode()
 def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: SamplingConfig,
              progress: Callable[[int, int], None] | None = None,
@@ -211,9 +223,10 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
     n_vert = torch.zeros(b, dtype=torch.long, device=device)
     n_in_block = torch.zeros(b, dtype=torch.long, device=device)
     live = torch.arange(b, device=device)
-    ev_block = ev_bias = cell_bias = through = None
+    ev_block = ev_bias = cell_bias = through = open_offsets = None
     counts = evidence is not None and model.cfg.evidence_counts
     cells = evidence is not None and evidence.reads_cells
+    gate = cell_gate(evidence, cfg)
     for step in range(1, max_tokens):
         if evidence is not None:  # the bias changes only when a sequence enters a new block
             if ev_block is None or not torch.equal(block, ev_block):
@@ -221,6 +234,8 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
                 if cells:
                     cell_bias = evidence.weighted_cells(block, cfg.cell_weight)
                     through = evidence.expected_through(block, cfg.pace)
+                if gate is not None:
+                    open_offsets = gate.offsets(block)
             logits = logits + ev_bias[live]
             if counts:  # ... and the count reading with every vertex
                 eos, stay = evidence.count_bias(block[:, None], offset[:, None], n_vert[:, None], n_in_block[:, None])
@@ -228,6 +243,8 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
         mask = grammar_mask(prev[live], block[live], offset[live], eos_only=n_vert[live] >= cfg.max_vertices)
         if cells and cfg.pace > 0:
             mask[:, vt.OFFSET0:] &= ~pace_mask(through, prev, n_vert)[live, None]
+        if gate is not None:
+            mask = gate.mask(mask, gate.open_blocks[live], open_offsets[live])
         picked = choose_next(logits.masked_fill(~mask, float("-inf")), cfg, [gens[int(k)] for k in live],
                              None if cell_bias is None else cell_bias[live])
         nxt = torch.full((b,), vt.PAD, dtype=torch.long, device=device)
@@ -269,6 +286,7 @@ def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: 
     if cfg.temperature != 0:
         raise ValueError("generate_uncached decodes greedily: cfg.temperature must be 0")
     cells = evidence is not None and evidence.reads_cells
+    gate = cell_gate(evidence, cfg)
     tokens = torch.full((prefix.shape[0], 1), vt.BOS, dtype=torch.long, device=prefix.device)
     for _ in range(2 * max_vertices + 1):
         logits = model(tokens, prefix=prefix, evidence=evidence)[:, -1]
@@ -279,6 +297,8 @@ def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: 
         if cells and cfg.pace > 0:
             through = evidence.expected_through(block[:, -1], cfg.pace)
             mask[:, vt.OFFSET0:] &= ~pace_mask(through, tokens[:, -1], n_vert)[:, None]
+        if gate is not None:
+            mask = gate.mask(mask, gate.open_blocks, gate.offsets(block[:, -1]))
         cell_bias = evidence.weighted_cells(block[:, -1], cfg.cell_weight) if cells else None
         nxt = choose_next(logits.masked_fill(~mask, float("-inf")), cfg, None, cell_bias)
         tokens = torch.cat([tokens, nxt[:, None]], dim=1)

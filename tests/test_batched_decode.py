@@ -203,14 +203,14 @@ def test_the_cell_floor_keeps_vertices_out_of_cells_scored_below_it():
     one; without it the same decoder goes on into the cells below (it takes a block's cells in order)."""
     m, prefix, evidence = _crowded()  # 8.0, 7.9, ... in sequence order: a floor of 5 opens about 30 of them
     below = {}
-    for floor in (0.0, 5.0):
+    for floor in (None, 5.0):
         cfg = SamplingConfig(temperature=0, max_vertices=100, pace=0.0, cell_floor=floor)
         seqs = generate(m, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
         scores = [ev.cells[0, flat_index(torch.from_numpy(vt.decode(row.numpy(), strict=True)))]
                   for row, ev in zip(seqs, evidence, strict=True)]
         below[floor] = sum(int((s < 5.0).sum()) for s in scores)
         assert all(len(s) > 0 for s in scores)
-    assert below[5.0] == 0 and below[0.0] > 0
+    assert below[5.0] == 0 and below[None] > 0
 
 
 def test_the_cell_floor_is_a_log_odds_or_none():

@@ -12,7 +12,7 @@ floor leaves no block at all.
 
 Off by default (``SamplingConfig``): the same thin spread lies along smooth curved surfaces, where
 artists do put vertices; a floor of -4 raised vertex precision on the held-out packages and lost
-those vertices (a wheel's cylinder, a fuselage), and with them CD and HD (docs/results.md).
+those vertices (a wheel's cylinder), and with them CD and HD (docs/results.md).
 """
 
 from __future__ import annotations

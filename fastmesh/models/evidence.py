@@ -105,6 +105,7 @@ STAY_LEVELS = 8  # vertices emitted in the current block: 0, 1, 2-3, ..., 64+
 RATIO_EDGES = (-2.0, -1.0, -0.5, -0.25, -0.1, 0.0, 0.1, 0.25, 0.5, 1.0, 2.0)
 RATIO_LEVELS = len(RATIO_EDGES) + 1
 _KEY_ORDER: dict = {}  # device -> (128^3,) flat cell index of each (block, offset) key in sequence order
+_OFFSET_CELLS: dict = {}  # device -> (4096,) flat cell index of each offset inside block 0
 
 
 def _key_order(device) -> torch.Tensor:
@@ -115,6 +116,13 @@ def _key_order(device) -> torch.Tensor:
         cells = block_coords(key // N_OFFSETS) * BLOCK_SIDE + offset_coords(key % N_OFFSETS)
         _KEY_ORDER[device] = flat_index(cells)
     return _KEY_ORDER[device]
+
+
+def block_cells(block: torch.Tensor) -> torch.Tensor:
+    """(U,) block ids (>= 0) -> (U, 4096) flat indices of their cells, in offset order."""
+    if block.device not in _OFFSET_CELLS:
+        _OFFSET_CELLS[block.device] = flat_index(offset_coords(torch.arange(N_OFFSETS, device=block.device)))
+    return flat_index(block_coords(block) * BLOCK_SIDE)[:, None] + _OFFSET_CELLS[block.device]
 
 
 def _level(count: torch.Tensor, levels: int) -> torch.Tensor:
@@ -156,7 +164,6 @@ class Evidence:
             if cells is None:
                 raise ValueError("this decoder's evidence reads the cell log-odds of models.cells: pass them")
             self.cells = cells.float().reshape(b, -1)
-            self.cell_part = flat_index(oxyz)
             # Expected vertices per block, in block id order (the block of cell (x, y, z) is its top 3 bits).
             per_block = (BLOCKS_PER_AXIS, BLOCK_SIDE) * 3  # (bx, ox, by, oy, bz, oz)
             # Cells at FLOOR are no candidates: they expect nothing (sigmoid(FLOOR) over the 2M cells of the grid
@@ -231,8 +238,7 @@ class Evidence:
 
     def _cell_rows(self, rows: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
         """(U,) shape index and block id (>= 0) -> (U, 4096) cell term of every offset token's bias."""
-        cell = flat_index(block_coords(block) * BLOCK_SIDE)[:, None] + self.cell_part  # flat cells of the offsets
-        return self.tables.cell_gain * self.cells[rows[:, None], cell]
+        return self.tables.cell_gain * self.cells[rows[:, None], block_cells(block)]
 
     @property
     def reads_cells(self) -> bool:

@@ -20,7 +20,8 @@ from __future__ import annotations
 import torch
 
 from ..tokenizer import vertex as vt
-from ..tokenizer.grid import BLOCK_SIDE, BLOCKS_PER_AXIS, N_BLOCKS, N_OFFSETS, block_coords, flat_index, offset_coords
+from ..tokenizer.grid import BLOCK_SIDE, BLOCKS_PER_AXIS, N_BLOCKS
+from .evidence import block_cells
 
 
 class CellGate:
@@ -40,13 +41,12 @@ class CellGate:
         self.open_blocks = cells.reshape(per_block).amax((2, 4, 6)).reshape(b, N_BLOCKS) >= floor
         self.free = free.bool() | ~self.open_blocks.any(1)
         self.open_blocks |= self.free[:, None]
-        self.part = flat_index(offset_coords(torch.arange(N_OFFSETS, device=cells.device)))
 
     def offsets(self, block: torch.Tensor) -> torch.Tensor:
         """(B,) current blocks -> (B, 4096) open offsets (all of them before the first block)."""
         rows = torch.arange(len(block), device=block.device)
-        cell = flat_index(block_coords(block.clamp(min=0)) * BLOCK_SIDE)[:, None] + self.part
-        return (self.cells[rows[:, None], cell] >= self.floor) | (self.free | (block < 0))[:, None]
+        scores = self.cells[rows[:, None], block_cells(block.clamp(min=0))]
+        return (scores >= self.floor) | (self.free | (block < 0))[:, None]
 
     def mask(self, mask: torch.Tensor, blocks: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
         """(L, VOCAB) grammar mask with the closed block and offset tokens masked out: (L, 512) open blocks and

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .support import support_distance
+from .support import SupportCache
 
 if TYPE_CHECKING:
     from .surface_triangles import _Selection
@@ -48,22 +48,18 @@ def _loops_through(book: _Selection, seeds) -> list[list[int]]:
     boundary edges to another, and on a subset of whole sets it meets their vertices in the same
     relative order.
     """
-    def boundary(e: tuple[int, int]) -> bool:
-        return len(book.third.get(e, ())) == 1
-
-    stack = [x for e in seeds if boundary(e) for x in e]
+    stack = [x for e in seeds if len(book.third.get(e, ())) == 1 for x in e]
     seen, found = set(), set()
     while stack:
         x = stack.pop()
         if x in seen:
             continue
         seen.add(x)
-        for key in book.sectors.get(x, ()):  # the faces at x
-            for y in key:
-                e = (x, y) if x < y else (y, x)
-                if y != x and e not in found and boundary(e):
-                    found.add(e)
-                    stack.append(y)
+        for y in book.open.get(x, ()):
+            e = (x, y) if x < y else (y, x)
+            if e not in found:
+                found.add(e)
+                stack.append(y)
     return _walk_loops(sorted(found))
 
 
@@ -110,8 +106,8 @@ def _simple_loops(loop: list[int]) -> list[list[int]]:
     return out
 
 
-def _clip_loop(v: np.ndarray, loop: list[int], book: _Selection, points: np.ndarray, limit: float,
-               tree: cKDTree) -> list[tuple[int, int, int]] | None:
+def _clip_loop(loop: list[int], book: _Selection, support: SupportCache,
+               limit: float) -> list[tuple[int, int, int]] | None:
     """Ear clipping of one boundary loop, best-supported ear first (see :func:`fill_holes`).
 
     Returns the ears (already in ``book``), or None when some part of the loop cannot be closed
@@ -120,7 +116,7 @@ def _clip_loop(v: np.ndarray, loop: list[int], book: _Selection, points: np.ndar
     while len(poly) >= 3:
         k = len(poly)
         ears = np.array([[poly[i - 1], poly[i], poly[(i + 1) % k]] for i in range(k)])
-        d = support_distance(v, ears, points, tree)
+        d = support(ears)
         placed = False
         for i in np.argsort(d, kind="stable"):
             if d[i] > limit:
@@ -141,8 +137,28 @@ def _clip_loop(v: np.ndarray, loop: list[int], book: _Selection, points: np.ndar
     return added
 
 
-def _best_triangulation(v: np.ndarray, loop: list[int], book: _Selection, points: np.ndarray, limit: float,
-                        tree: cKDTree) -> list[tuple[int, int, int]] | None:
+def _cheapest_chains(k: int, cost: dict[tuple[int, int, int], float]) -> dict[tuple[int, int], tuple[float, int]]:
+    """For each chord (i, j), i < j, of a k-loop that the triangles ``cost`` (index triple i < m < j ->
+    cost) can close: the least total cost of triangulating the chain i..j and the apex m of its
+    triangle on (i, j) (the least m among equal costs)."""
+    apex: dict[tuple[int, int], list[int]] = {}
+    for i, m, j in sorted(cost):
+        apex.setdefault((i, j), []).append(m)
+    best: dict[tuple[int, int], tuple[float, int]] = {}
+    for span in range(2, k):
+        for i in range(k - span):
+            j = i + span
+            options = [(cost[(i, m, j)] + (best[(i, m)][0] if m - i > 1 else 0.0)
+                        + (best[(m, j)][0] if j - m > 1 else 0.0), m)
+                       for m in apex.get((i, j), ())
+                       if (m - i == 1 or (i, m) in best) and (j - m == 1 or (m, j) in best)]
+            if options:
+                best[(i, j)] = min(options)
+    return best
+
+
+def _best_triangulation(loop: list[int], book: _Selection, support: SupportCache,
+                        limit: float) -> list[tuple[int, int, int]] | None:
     """The triangulation of ``loop`` (no inner vertices) with the least total support distance, among
     triangles that lie on the surface, add no edge the selection already has, and fit it.
 
@@ -156,7 +172,7 @@ def _best_triangulation(v: np.ndarray, loop: list[int], book: _Selection, points
         return None
     ijm = np.array(list(itertools.combinations(range(k), 3)), dtype=np.int64)  # i < m < j
     tris = np.asarray(loop, dtype=np.int64)[ijm]
-    d = support_distance(v, tris, points, tree)
+    d = support(tris)
     # Every edge of the loop lies in exactly one face of a triangulation: one that no supported
     # triangle covers rules the loop out before any triangle is checked against the selection.
     lo, mid, hi = ijm.T
@@ -172,28 +188,33 @@ def _best_triangulation(v: np.ndarray, loop: list[int], book: _Selection, points
         a, b = sorted((loop[p], loop[q]))
         return q - p != 1 and (p, q) != (0, k - 1) and bool(book.third.get((a, b)))
 
-    cost = {}
-    for (i, m, j), t, dt in zip(ijm[on].tolist(), tris[on].tolist(), d[on].tolist(), strict=True):
-        if not any(new_edge_taken(p, q) for p, q in ((i, m), (m, j), (i, j))) and book.fits(*t):
-            cost[(i, m, j)] = dt
-    # best[(i, j)]: least cost of triangulating the chain loop[i..j] closed by the chord (i, j).
-    best: dict[tuple[int, int], tuple[float, int]] = {}
-    for span in range(2, k):
-        for i in range(k - span):
-            j = i + span
-            options = [(c + (best[(i, m)][0] if m - i > 1 else 0.0) + (best[(m, j)][0] if j - m > 1 else 0.0), m)
-                       for m in range(i + 1, j) if (c := cost.get((i, m, j))) is not None
-                       and (m - i == 1 or (i, m) in best) and (j - m == 1 or (m, j) in best)]
-            if options:
-                best[(i, j)] = min(options)
-    if (0, k - 1) not in best:
-        return None
-    faces, todo = [], [(0, k - 1)]
-    while todo:
-        i, j = todo.pop()
-        m = best[(i, j)][1]
-        faces.append((loop[i], loop[m], loop[j]))
-        todo += [c for c in ((i, m), (m, j)) if c[1] - c[0] > 1]
+    cand = [(i, m, j, t, dt) for (i, m, j), t, dt in zip(ijm[on].tolist(), tris[on].tolist(), d[on].tolist(),
+                                                         strict=True)
+            if not any(new_edge_taken(p, q) for p, q in ((i, m), (m, j), (i, j)))]
+    # The check against the selection is the costly part, and most loops that reach here have no
+    # triangulation in the end: find the cheapest one among the triangles not yet known to fail it,
+    # check only its faces, and look again without those that fail (the cheapest found with every
+    # face passing is the cheapest among the triangles that pass: the others only ever lowered costs).
+    cost = {(i, m, j): dt for i, m, j, _, dt in cand}
+    face = {(i, m, j): t for i, m, j, t, _ in cand}
+    checked = set()
+    while True:
+        best = _cheapest_chains(k, cost)
+        if (0, k - 1) not in best:
+            return None
+        used, todo = [], [(0, k - 1)]
+        while todo:
+            i, j = todo.pop()
+            m = best[(i, j)][1]
+            used.append((i, m, j))
+            todo += [c for c in ((i, m), (m, j)) if c[1] - c[0] > 1]
+        failed = [x for x in used if x not in checked and not book.fits(*face[x])]
+        if not failed:
+            break
+        checked.update(used)
+        for x in failed:
+            del cost[x]
+    faces = [face[x] for x in used]
     added = []
     for t in faces:  # each fits the selection alone; together they may still overlap
         if not book.fits(*t):
@@ -205,13 +226,13 @@ def _best_triangulation(v: np.ndarray, loop: list[int], book: _Selection, points
     return added
 
 
-def _close_loop(v: np.ndarray, loop: list[int], book: _Selection, points: np.ndarray, limit: float,
-                tree: cKDTree) -> list[tuple[int, int, int]] | None:
+def _close_loop(loop: list[int], book: _Selection, support: SupportCache,
+                limit: float) -> list[tuple[int, int, int]] | None:
     """Ear clipping, then (loops of 4 to ``WHOLE_LOOP_MAX`` edges) the best whole triangulation; a
     triangle's only triangulation is itself, which ear clipping has tried."""
-    ears = _clip_loop(v, loop, book, points, limit, tree)
+    ears = _clip_loop(loop, book, support, limit)
     if ears is None and 4 <= len(loop) <= WHOLE_LOOP_MAX:
-        ears = _best_triangulation(v, loop, book, points, limit, tree)
+        ears = _best_triangulation(loop, book, support, limit)
     return ears
 
 
@@ -219,8 +240,8 @@ def _loop_edges(loop: list[int]) -> set[tuple[int, int]]:
     return {(a, b) if a < b else (b, a) for a, b in zip(loop, loop[1:] + loop[:1], strict=True)}
 
 
-def _bridge(v: np.ndarray, x: int, loops: list[list[int]], book: _Selection, points: np.ndarray, limit: float,
-            tree: cKDTree) -> tuple[int, int, int] | None:
+def _bridge(x: int, loops: list[list[int]], book: _Selection, support: SupportCache,
+            limit: float) -> tuple[int, int, int] | None:
     """Join vertex ``x`` (in no face) to a hole: the best-supported triangle (a, x, b) over an edge (a, b)
     of one of ``loops`` that lies on the surface and fits is added to ``book``, and x goes between a and
     b in that loop.  Returns the triangle, or None (nothing changed)."""
@@ -228,7 +249,7 @@ def _bridge(v: np.ndarray, x: int, loops: list[list[int]], book: _Selection, poi
             for i, (a, b) in enumerate(zip(lp, lp[1:] + lp[:1], strict=True))]
     if not tris:
         return None
-    d = support_distance(v, np.array([t[:3] for t in tris], dtype=np.int64), points, tree)
+    d = support(np.array([t[:3] for t in tris], dtype=np.int64))
     for j in np.argsort(d, kind="stable"):
         a, _, b, k, i = tris[j]
         if d[j] > limit:
@@ -240,8 +261,8 @@ def _bridge(v: np.ndarray, x: int, loops: list[list[int]], book: _Selection, poi
     return None
 
 
-def _reclip(v: np.ndarray, loop: list[int], kept: dict, book: _Selection, points: np.ndarray, limit: float,
-            tree: cKDTree, max_loop: int) -> bool:
+def _reclip(loop: list[int], kept: dict, book: _Selection, support: SupportCache, limit: float,
+            max_loop: int) -> bool:
     """Close a boundary ``loop`` no ear fits by clipping again without the faces along it.
 
     Up to ``REPAIR_RINGS`` rings of faces around the hole are taken out, one ring at a time, until
@@ -272,9 +293,9 @@ def _reclip(v: np.ndarray, loop: list[int], kept: dict, book: _Selection, points
         # restricted-Delaunay candidate) joins the hole's boundary first, or clipping would leave it out.
         isolated = sorted({x for t in removed for x in t if not book.sectors[x]})
         bridged = [list(x) for x in loops]  # the next ring grows from ``loops`` as they were
-        done = [t for x in isolated if (t := _bridge(v, x, bridged, book, points, limit, tree))]
+        done = [t for x in isolated if (t := _bridge(x, bridged, book, support, limit))]
         for x in bridged:
-            ears = _close_loop(v, x, book, points, limit, tree)
+            ears = _close_loop(x, book, support, limit)
             if ears is None:
                 break
             done.extend(ears)
@@ -309,18 +330,17 @@ def fill_holes(vertices: np.ndarray, faces: np.ndarray, book: _Selection, points
     -------
     (F', 3) int64 faces: the selection, with at most the faces bordering re-clipped loops exchanged.
     """
-    v = np.asarray(vertices, dtype=np.float64)
-    tree = tree if tree is not None else cKDTree(np.asarray(points, dtype=np.float64))
+    support = SupportCache(vertices, points, tree)  # the same faces are asked for many times
     kept = {tuple(sorted(t)): tuple(t) for t in np.asarray(faces, dtype=np.int64).reshape(-1, 3).tolist()}
     stuck = []
     for loop in boundary_loops(faces):
         if len(loop) > max_loop:
             continue
-        ears = _close_loop(v, loop, book, points, limit, tree)
+        ears = _close_loop(loop, book, support, limit)
         if ears is None:
             stuck.append(loop)
         else:
             kept.update((tuple(sorted(t)), t) for t in ears)
     for loop in stuck:
-        _reclip(v, loop, kept, book, points, limit, tree, max_loop)
+        _reclip(loop, kept, book, support, limit, max_loop)
     return np.asarray(list(kept.values()), dtype=np.int64).reshape(-1, 3)

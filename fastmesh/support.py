@@ -60,6 +60,36 @@ def support_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
     return np.median(dist.reshape(samples.shape[:2]), axis=1)
 
 
+class SupportCache:
+    """:func:`support_distance` of faces given as vertex triples, each triple computed once.
+
+    Hole filling asks for the same ears and triangles again and again as it clips, repairs and
+    retries (about a third of its requests repeat).  A triple is keyed in its own vertex order: the
+    grid of samples inside a face depends on it, so (a, b, c) and (b, a, c) may differ slightly.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float
+    points : (P, 3) float
+    tree : cKDTree of ``points``, optional
+    """
+
+    def __init__(self, vertices: np.ndarray, points: np.ndarray, tree: cKDTree | None = None):
+        self.vertices = np.asarray(vertices, dtype=np.float64)
+        self.points = np.asarray(points, dtype=np.float64)
+        self.tree = tree if tree is not None else cKDTree(self.points)
+        self._known: dict[tuple[int, int, int], float] = {}
+
+    def __call__(self, faces: np.ndarray) -> np.ndarray:
+        """(F,) float64: ``support_distance(vertices, faces, points)``, for (F, 3) int ``faces``."""
+        keys = [tuple(t) for t in np.asarray(faces, dtype=np.int64).reshape(-1, 3).tolist()]
+        new = list(dict.fromkeys(k for k in keys if k not in self._known))
+        if new:
+            d = support_distance(self.vertices, np.array(new, dtype=np.int64), self.points, self.tree)
+            self._known.update(zip(new, d.tolist(), strict=True))
+        return np.array([self._known[k] for k in keys], dtype=np.float64)
+
+
 def support_limit(points: np.ndarray, tol: float, tree: cKDTree | None = None) -> float:
     """The largest :func:`support_distance` of a face on the surface: ``tol`` times the points'
     longest side, and at least ``SPACING_FACTOR`` median point spacings.

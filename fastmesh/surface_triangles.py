@@ -227,7 +227,8 @@ class _Selection:
     covers around each of its corners in the tangent plane there (faces around a vertex must not
     overlap), and each face's normal.  A corner whose face lies farther than acos(``_CREASE``) from the
     vertex's tangent plane (across a crease or a corner the nearest points miss) has no sector there:
-    see :meth:`_overlaps`."""
+    see :meth:`_overlaps`.  ``open`` holds the boundary: each vertex's neighbours across an edge of
+    one face (hole filling walks it; reading it off ``third`` meant visiting every face at a vertex)."""
 
     def __init__(self, vertices: np.ndarray, frames: np.ndarray, fold_angle: float):
         self.v = np.asarray(vertices, dtype=np.float64).tolist()
@@ -238,6 +239,7 @@ class _Selection:
         self.third: dict[tuple[int, int], list[int]] = {}
         self.sectors: dict[int, dict[tuple[int, int, int], tuple[float, float]]] = {}
         self.face_normals: dict[tuple[int, int, int], list[float]] = {}
+        self.open: dict[int, set[int]] = {}
 
     def _sector(self, a: int, b: int, c: int, f: list[float]) -> tuple[float, float]:
         """(start, width) in radians of the corner of face (a, b, c) (unit normal ``f``) at ``a``, seen in
@@ -287,9 +289,20 @@ class _Selection:
         n = _normal(self.v, a, b, c)  # the same for every corner: they turn the same way
         return not any(self._overlaps(x, y, z, n) for x, y, z in ((a, b, c), (b, c, a), (c, a, b)))
 
+    def _edge_count_changed(self, x: int, y: int, n: int) -> None:
+        """Edge (x, y) is now in ``n`` faces: on the boundary exactly when n is 1."""
+        if n == 1:
+            self.open.setdefault(x, set()).add(y)
+            self.open.setdefault(y, set()).add(x)
+        else:
+            self.open.get(x, set()).discard(y)
+            self.open.get(y, set()).discard(x)
+
     def add(self, a: int, b: int, c: int) -> None:
         for x, y, z in ((a, b, c), (b, c, a), (a, c, b)):
-            self.third.setdefault((x, y) if x < y else (y, x), []).append(z)
+            others = self.third.setdefault((x, y) if x < y else (y, x), [])
+            others.append(z)
+            self._edge_count_changed(x, y, len(others))
         key = tuple(sorted((a, b, c)))  # any winding of the face names it
         n = self.face_normals[key] = _normal(self.v, a, b, c)
         for x, y, z in ((a, b, c), (b, c, a), (c, a, b)):
@@ -297,7 +310,9 @@ class _Selection:
 
     def remove(self, a: int, b: int, c: int) -> None:
         for x, y, z in ((a, b, c), (b, c, a), (a, c, b)):
-            self.third[(x, y) if x < y else (y, x)].remove(z)
+            others = self.third[(x, y) if x < y else (y, x)]
+            others.remove(z)
+            self._edge_count_changed(x, y, len(others))
         key = tuple(sorted((a, b, c)))
         del self.face_normals[key]
         for x in (a, b, c):

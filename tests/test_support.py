@@ -5,7 +5,7 @@ import trimesh
 
 from fastmesh.io import Shape, input_surface, sample_triangles
 from fastmesh.metrics import edges_from_faces
-from fastmesh.support import drop_unsupported, support_distance, surface_fit
+from fastmesh.support import SupportCache, drop_unsupported, support_distance, surface_fit
 from fastmesh.triangles import TriangleConfig, mesh_from_adjacency
 
 
@@ -32,6 +32,19 @@ def test_support_distance_is_zero_on_the_surface_and_large_across_a_gap():
     assert d.shape == (6,)
     assert (d[:4] < 0.02).all()
     assert (d[4:] > 0.2).all()
+
+
+def test_support_cache_equals_support_distance_with_repeats_and_windings():
+    """The cache against its slow twin: faces asked for again (alone, in other batches, within one
+    batch, in another winding, which samples the face differently) get exactly what a direct call gives."""
+    rng = np.random.default_rng(0)
+    v = rng.uniform(0, 3, size=(30, 3))
+    points = rng.uniform(0, 3, size=(500, 3))
+    cache = SupportCache(v, points)
+    faces = rng.integers(0, 30, size=(40, 3))
+    for batch in (faces[:10], faces, faces[[3, 3, 7, 3]], faces[:, [1, 2, 0]], faces[:0]):
+        assert np.array_equal(cache(batch), support_distance(v, batch, points))
+    assert not np.array_equal(support_distance(v, faces[:, [1, 2, 0]], points), support_distance(v, faces, points))
 
 
 def test_faces_across_empty_space_are_dropped_and_the_others_kept():

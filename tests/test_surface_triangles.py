@@ -16,7 +16,7 @@ from fastmesh import surface_triangles as sf
 from fastmesh.cli import main
 from fastmesh.io import Normalization
 from fastmesh.metrics import mesh_topology
-from fastmesh.support import support_distance, support_limit
+from fastmesh.support import SupportCache, support_distance, support_limit
 from fastmesh.tokenizer import dequantize, quantize_mesh
 from fastmesh.triangles import TriangleConfig, mesh_from_adjacency
 
@@ -296,12 +296,73 @@ def test_best_whole_triangulation_equals_the_cheapest_of_all_triangulations(take
 
     costs = [sum(support_distance(v, np.array(tr), pts, tree)) for tr in _all_triangulations(loop)
              if all(allowed(t) for t in tr)]
-    got = holes._best_triangulation(v, loop, book, pts, limit, tree)
+    got = holes._best_triangulation(loop, book, SupportCache(v, pts, tree), limit)
     assert got is not None and len(got) == len(loop) - 2
     assert sum(support_distance(v, np.array(got), pts, tree)) == pytest.approx(min(costs), abs=1e-9)
     assert all(tuple(sorted(t)) in {tuple(sorted(x)) for x in book.face_normals} for t in got)
     if taken_chord:
         assert not any({loop[0], loop[3]} <= set(t) for t in got)
+
+
+def test_best_whole_triangulation_skips_triangles_the_selection_refuses(monkeypatch):
+    """The programme checks the selection only on the faces of its cheapest triangulation and looks again
+    without those refused: against every triangulation enumerated, with the selection refusing a face of
+    the unrestricted optimum, and then a face of the next one too."""
+    m, f, book, pts, limit, loop = _sphere_with_hole(12)
+    v = np.asarray(m.vertices, dtype=np.float64)
+    support = SupportCache(v, pts)
+    fits = book.fits
+    chords = {tuple(sorted(e)) for e in holes._loop_edges(loop)}
+    everything = list(_all_triangulations(loop))
+    assert len(loop) >= 6 and len(everything) > 40
+
+    def allowed(t):
+        new = [tuple(sorted(e)) for e in ((t[0], t[1]), (t[1], t[2]), (t[0], t[2]))]
+        return (support(np.array([t]))[0] <= limit and book.fits(*t)
+                and not any(e not in chords and book.third.get(e) for e in new))
+
+    def cheapest():
+        costs = [(sum(support(np.array(tr))), tr) for tr in everything if all(allowed(t) for t in tr)]
+        return min(costs, key=lambda c: c[0])
+
+    refused, asked = set(), []
+
+    def picky(a, b, c):
+        asked.append((a, b, c))
+        return frozenset((a, b, c)) not in refused and fits(a, b, c)
+
+    monkeypatch.setattr(book, "fits", picky)
+    for _ in range(2):  # refuse a face of the optimum, then one of the optimum without it
+        refused.add(frozenset(cheapest()[1][0]))
+    want = cheapest()[0]
+    asked.clear()
+    got = holes._best_triangulation(loop, book, support, limit)
+    assert got is not None and len(got) == len(loop) - 2
+    assert sum(support(np.array(got))) == pytest.approx(want, abs=1e-12)
+    assert {frozenset(t) for t in asked} >= refused  # it did meet the refused faces on its way
+
+
+def test_selection_keeps_its_boundary_while_faces_come_and_go():
+    """``open`` (each vertex's neighbours across an edge of one face) against the edges ``third`` holds
+    in exactly one face, after a shuffled run of additions and removals."""
+    m, pts = _primitive("icosphere2")
+    book = sf._Selection(m.vertices, np.full((len(m.vertices), 2, 3), np.nan), 30.0)
+    rng = np.random.default_rng(1)
+    faces = np.asarray(m.faces).tolist()
+    present = []
+    for step in range(600):
+        if present and (rng.random() < 0.4 or len(present) == len(faces)):
+            book.remove(*present.pop(rng.integers(len(present))))
+        else:
+            t = faces[rng.integers(len(faces))]
+            if t not in present:
+                book.add(*t)
+                present.append(t)
+        if step % 50 == 0 or step == 599:
+            want = {e for e, z in book.third.items() if len(z) == 1}
+            have = {(x, y) for x, ys in book.open.items() for y in ys if x < y}
+            assert have == want and all(x in book.open[y] for x, ys in book.open.items() for y in ys)
+    assert len(want) > 20
 
 
 def test_a_hole_ear_clipping_leaves_is_closed_by_the_whole_triangulation(monkeypatch):

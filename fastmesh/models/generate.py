@@ -57,10 +57,21 @@ class StackedEvidence:
     def __init__(self, rows: list[Evidence]):
         self.rows = rows
         self._counts = None  # the rows' count inputs stacked, made on the first count reading
+        self._last: dict[tuple, list] = {}  # per reading: each row's last (block, result)
+
+    def _per_row(self, name: str, block: torch.Tensor, *args) -> torch.Tensor:
+        """``rows[i].<name>(block[i:i + 1], *args)`` stacked over the rows.  The decode loop reads again when
+        any row enters a new block; a row still in the block it last read gives that reading again."""
+        last = self._last.setdefault((name, *args), [None] * len(self.rows))
+        for i, e in enumerate(self.rows):
+            key = block[i].tolist()
+            if last[i] is None or last[i][0] != key:
+                last[i] = (key, getattr(e, name)(block[i:i + 1], *args))
+        return torch.cat([x[1] for x in last])
 
     def logit_bias(self, block: torch.Tensor) -> torch.Tensor:
         """(B, T) current block ids -> (B, T, VOCAB) bias, row i from ``rows[i]``."""
-        return torch.cat([e.logit_bias(block[i:i + 1]) for i, e in enumerate(self.rows)])
+        return self._per_row("logit_bias", block)
 
     def count_bias(self, block: torch.Tensor, offset: torch.Tensor, n_vert: torch.Tensor,
                    n_in_block: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -80,11 +91,11 @@ class StackedEvidence:
 
     def weighted_cells(self, block: torch.Tensor, weight: float) -> torch.Tensor:
         """(B,) current blocks -> (B, N_OFFSETS) ``Evidence.weighted_cells`` of each row."""
-        return torch.cat([e.weighted_cells(block[i:i + 1], weight) for i, e in enumerate(self.rows)])
+        return self._per_row("weighted_cells", block, weight)
 
     def expected_through(self, block: torch.Tensor, pace: float = 1.0) -> torch.Tensor:
         """(B,) current blocks -> (B,) ``Evidence.expected_through`` of each row."""
-        return torch.cat([e.expected_through(block[i:i + 1], pace) for i, e in enumerate(self.rows)])
+        return self._per_row("expected_through", block, pace)
 
 
 def filter_logits(logits: torch.Tensor, top_k: int, top_p: float) -> torch.Tensor:

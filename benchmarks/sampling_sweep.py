@@ -18,7 +18,6 @@ share of counts within 0.7-1.4x, the correlation of log count with log reference
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import time
@@ -32,27 +31,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from fastmesh.eval import artist_vertices, pair_inputs  # noqa: E402
 from fastmesh.io import Normalization, load_shape  # noqa: E402
 from fastmesh.metrics import vertex_metrics  # noqa: E402
-from fastmesh.params import GenerateParams  # noqa: E402
+from fastmesh.params import GenerateParams, TunedParams  # noqa: E402
 from fastmesh.pipeline import Pipeline  # noqa: E402
 from fastmesh.tokenizer import dequantize  # noqa: E402
-from fastmesh.tokenizer import vertex as vt  # noqa: E402
 
 BIG = 400  # a candidate with this many vertices or more: a run towards the cap
 
 
-class _Sampling(GenerateParams):
-    """Default request whose decoder settings carry the variant's overrides."""
-
-    def __init__(self, overrides: dict):
-        super().__init__()
-        self._overrides = overrides
-
-    def sampling(self, limit: int):
-        return dataclasses.replace(super().sampling(limit), **self._overrides)
-
-
 def candidates(pipe: Pipeline, shape, params: GenerateParams) -> list[np.ndarray]:
-    """(N_k, 3) vertices of each candidate in the shape's own frame: the pipeline's decoding, stopped there."""
+    """(N_k, 3) vertices of each candidate in the shape's own frame: the pipeline's decoding (and its moves of
+    the vertices by the cell evidence, ``snap_margin``), stopped there."""
     norm = Normalization.fit(shape.vertices)
     unit = norm.apply(shape.vertices)
     cells = pipe._cell_grid(shape, unit)
@@ -60,7 +48,7 @@ def candidates(pipe: Pipeline, shape, params: GenerateParams) -> list[np.ndarray
     decoded = pipe._decode(shape, unit, params, params.candidates, lambda *a: None, None, timings, cells)
     out = []
     for _, _, tokens in decoded:
-        q = vt.decode(tokens, strict=True)
+        q = pipe.vertex_cells(tokens, cells, params)
         out.append(norm.invert(dequantize(q)) if len(q) else np.zeros((0, 3)))
     return out
 
@@ -93,16 +81,15 @@ def main() -> int:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     variants = [json.loads(v) for v in args.variants]
-    known = {f.name for f in dataclasses.fields(GenerateParams().sampling(1))}
-    for v in variants:
-        if not isinstance(v, dict) or set(v) - known:
-            ap.error(f"a variant is a JSON object of SamplingConfig fields ({', '.join(sorted(known))}): {v}")
+    try:
+        tuned = [TunedParams(v) for v in variants]
+    except ValueError as e:
+        ap.error(str(e))
     pipe = Pipeline.from_pretrained(args.weights)
     pairs = pair_inputs(args.inputs, args.reference)
     pairs = pairs[: args.limit] if args.limit else pairs
     report = {"weights": str(pipe.source), "inputs": len(pairs), "variants": []}
-    for overrides in variants:
-        params = _Sampling(overrides)
+    for overrides, params in zip(variants, tuned, strict=True):
         rows, t = [], time.perf_counter()
         for inp, ref_path in pairs:
             shape, ref = load_shape(inp), load_shape(ref_path)

@@ -8,7 +8,7 @@ from it, so the OpenAPI schema states the same ranges.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 
 MAX_CANDIDATES = 16  # each candidate costs a full generation
 TARGET_FACES = (4, 8000)  # faces a user may ask for; the decoder's vertex limit still caps the result
@@ -73,6 +73,7 @@ BOUNDS = {
     "cell_weight": Bound(0.0, 20.0, integer=False),
     "pace": Bound(0.1, 100.0, integer=False, zero=True, zero_means="off"),
     "cell_floor": Bound(-12.0, 12.0, integer=False, none=True),  # log-odds (None: off); -12 is models.cells.FLOOR
+    "snap_margin": Bound(0.0, 24.0, integer=False, none=True),  # log-odds (None: off)
 }
 
 
@@ -145,8 +146,31 @@ class SamplingConfig:
     # network spreads its probability thin along smooth curved surfaces too, and those lost their vertices
     # (docs/results.md).
     cell_floor: float | None = None
+    # After decoding, each vertex moves to the best cell among its own and the 26 around it where that cell's
+    # log-odds exceed its own by more than this, and vertices that meet become one (None: off; decoders that
+    # read the cells; not with a face-count target: the merges lower the count; models.cells.snap_to_cells).
+    snap_margin: float | None = None
 
     def validate(self) -> None:
         """Raise ValueError naming the first field outside ``BOUNDS``."""
         for f in fields(self):
             BOUNDS[f.name].check(f.name, getattr(self, f.name))
+
+
+class TunedParams(GenerateParams):
+    """A request whose decoder settings carry ``overrides`` (``SamplingConfig`` fields a user does not set):
+    how the benchmarks and ``fastmesh eval --sampling`` measure a setting before it becomes a default."""
+
+    def __init__(self, overrides: dict, params: GenerateParams | None = None):
+        super().__init__(**asdict(params or GenerateParams()))
+        known = {f.name for f in fields(SamplingConfig)} - {f.name for f in fields(GenerateParams)} - {"max_vertices"}
+        if not isinstance(overrides, dict) or set(overrides) - known:
+            raise ValueError(f"sampling overrides are an object of SamplingConfig fields ({', '.join(sorted(known))}),"
+                             f" got {overrides!r}")
+        for name, value in overrides.items():
+            BOUNDS[name].check(name, value)
+        self.overrides = dict(overrides)
+
+    def sampling(self, limit: int) -> SamplingConfig:
+        return replace(super().sampling(limit), **self.overrides)
+

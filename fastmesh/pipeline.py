@@ -36,6 +36,7 @@ import torch
 
 from .filtering import FilterConfig, Predictor, predict_edges
 from .io import Normalization, Shape, export_mesh, input_surface, sample_surface
+from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model
 from .models.encoder import EncoderConfig
 from .models.generate import Cancelled, StackedEvidence, generate
@@ -313,7 +314,7 @@ class Pipeline:
 
             try:
                 cand = self._candidate(shape, unit, params, params.seed + k, pts, nrm, tokens, share,
-                                       should_cancel, timings)
+                                       should_cancel, timings, cells)
             except GenerationError as err:
                 errors.append(err)
                 fits.append(None)
@@ -402,12 +403,22 @@ class Pipeline:
                             should_cancel=should_cancel, evidence=ev)
         return [(pts, nrm, seq.cpu().numpy()) for (pts, nrm), seq in zip(samples, seqs, strict=True)]
 
+    def vertex_cells(self, tokens: np.ndarray, cells: torch.Tensor | None, params: GenerateParams) -> np.ndarray:
+        """(N, 3) int64 vertex cells of the decoder's ``tokens``, moved by the cell evidence ``cells`` (from
+        :meth:`_cell_grid`) where ``SamplingConfig.snap_margin`` says so (``models.cells.snap_to_cells``),
+        but not with a face-count target."""
+        q = vt.decode(tokens, strict=True)
+        margin = params.sampling(self.max_vertices).snap_margin
+        if cells is None or margin is None or params.target_faces is not None:
+            return q
+        return snap_to_cells(q, cells[0].cpu(), margin)
+
     def _candidate(self, shape: Shape, unit: np.ndarray, params: GenerateParams, seed: int, pts: np.ndarray,
                    nrm: np.ndarray, tokens: np.ndarray, report: Callable[[str, float], None], should_cancel,
-                   timings: dict) -> dict:
+                   timings: dict, cells: torch.Tensor | None = None) -> dict:
         """One mesh from the vertex ``tokens`` decoded for ``seed`` on the surface sample ``pts``/``nrm``,
         in the normalised frame (``unit``: the shape's vertices there); adds its stage times to ``timings``."""
-        q = vt.decode(tokens, strict=True)
+        q = self.vertex_cells(tokens, cells, params)
         if len(q) < 3:
             raise GenerationError("no_vertices", f"the vertex decoder produced {len(q)} vertices; try another seed")
         _check(should_cancel)

@@ -21,6 +21,7 @@ from fastmesh.models.cells import (
     flat_index,
     n_features,
     select_cells,
+    snap_to_cells,
 )
 from fastmesh.models.encoder import EncoderConfig
 from fastmesh.models.evidence import GAIN, PointEvidence
@@ -167,6 +168,43 @@ def test_selection_takes_the_best_cells_and_never_two_neighbours():
     assert select_cells(cells, logits, count=1).tolist() == [[5, 5, 6]]
     edge = torch.tensor([[0, 0, 0], [127, 127, 127], [1, 1, 1]])
     assert len(select_cells(edge, torch.tensor([1.0, 1.0, 0.5]))) == 2  # border cells index safely
+
+
+def _snap_loop(q, grid, margin):
+    """``snap_to_cells`` one vertex at a time: the slow twin."""
+    out = []
+    for x, y, z in np.asarray(q).tolist():
+        own = float(grid[(x * CELLS + y) * CELLS + z])
+        best, at = -np.inf, (x, y, z)
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for dz in (-1, 0, 1):
+                    c = (x + dx, y + dy, z + dz)
+                    if all(0 <= v < CELLS for v in c) and float(grid[(c[0] * CELLS + c[1]) * CELLS + c[2]]) > best:
+                        best, at = float(grid[(c[0] * CELLS + c[1]) * CELLS + c[2]]), c
+        c = at if best > own + margin else (x, y, z)
+        if list(c) not in out:
+            out.append(list(c))
+    return out
+
+
+@pytest.mark.parametrize("margin", [0.0, 1.5, 100.0])
+def test_snap_to_cells_equals_a_loop_over_each_vertex(margin):
+    """Vertices move to the best of the 27 cells around them when it beats their own by the margin, those that
+    meet become one (first vertex's place in the order), border cells included."""
+    rng = np.random.default_rng(0)
+    grid = np.full(CELLS ** 3, FLOOR, dtype=np.float32)
+    q = np.unique(np.concatenate([rng.integers(10, 14, (40, 3)), [[0, 0, 0], [127, 5, 127], [126, 127, 0]]]), axis=0)
+    q = q[rng.permutation(len(q))]  # sequence order is not sorted order
+    near = (q[:, None] + rng.integers(-1, 2, (len(q), 6, 3))).reshape(-1, 3).clip(0, CELLS - 1)
+    grid[flat_index(near)] = rng.normal(0, 3, len(near))
+    got = snap_to_cells(q, torch.from_numpy(grid), margin)
+    assert got.tolist() == _snap_loop(q, grid, margin)
+    if margin == 0.0:
+        assert len(got) < len(q)  # the cluster around (10..13)^3 merged
+    if margin == 100.0:
+        assert got.tolist() == q.tolist()
+    assert snap_to_cells(np.zeros((0, 3), dtype=np.int64), grid, margin).shape == (0, 3)
 
 
 def test_dense_grid_and_net_scores_line_up():

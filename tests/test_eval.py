@@ -61,3 +61,34 @@ def test_artist_vertices_merge_per_cell_in_the_reference_frame(box_set):
     assert len(a["reference"]) == 8
     assert np.allclose(np.abs(a["norm"].apply(ref.vertices)).max(0), [0.5, 0.25, 0.125])
     assert a["surface"][1] is not None  # a point-cloud input: the reference's triangles are the surface
+
+
+def test_tuned_params_carry_sampling_overrides_and_refuse_unknown_or_bad_ones():
+    """``TunedParams``: a request's fields as given, the decoder's settings overridden; what a request carries
+    itself, unknown names and out-of-range values are refused before any work."""
+    from fastmesh.params import SamplingConfig, TunedParams
+
+    tuned = TunedParams({"snap_margin": 1.5, "pace": 1.0}, GenerateParams(seed=7, candidates=3))
+    cfg = tuned.sampling(500)
+    assert (tuned.seed, tuned.candidates, cfg.seed, cfg.max_vertices) == (7, 3, 7, 500)
+    assert (cfg.snap_margin, cfg.pace, cfg.cell_weight) == (1.5, 1.0, SamplingConfig().cell_weight)
+    for bad, match in (({"snap": 1}, "SamplingConfig fields"), ({"seed": 3}, "SamplingConfig fields"),
+                       ({"snap_margin": -1}, "snap_margin"), ([1], "SamplingConfig fields")):
+        with pytest.raises(ValueError, match=match):
+            TunedParams(bad)
+
+
+def test_eval_cli_measures_a_sampling_setting(box_set, capsys, monkeypatch):
+    """``fastmesh eval --sampling``: the setting reaches the decoder (a bad one is a clear error, exit 2)."""
+    import fastmesh.pipeline as fp
+    from fastmesh.cli import main
+
+    seen, decode = [], fp.generate
+    monkeypatch.setattr(fp, "generate",
+                        lambda model, prefix, cfg, **kw: seen.append(cfg) or decode(model, prefix, cfg, **kw))
+    args = ["eval", "--inputs", str(box_set / "inputs"), "--reference", str(box_set / "reference"), "--limit", "1"]
+    assert main([*args, "--sampling", '{"snap_margin": 1.0, "cell_weight": 2.0}']) == 0
+    assert seen and (seen[0].snap_margin, seen[0].cell_weight) == (1.0, 2.0)
+    assert main([*args, "--sampling", '{"cell_weight": 99}']) == 2
+    assert "cell_weight" in capsys.readouterr().err
+    assert main([*args, "--sampling", "{nope"]) == 2

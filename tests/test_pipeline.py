@@ -3,6 +3,7 @@ smoke test of the shipped weights end to end."""
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import subprocess
@@ -154,6 +155,29 @@ def test_target_faces_conditions_the_decoder(pipe):
     blind.vertex.cfg.count_condition = False
     with pytest.raises(ValueError, match="target_faces"):
         blind.generate(shape, GenerateParams(target_faces=300))
+
+
+def test_vertex_cells_move_by_the_cells_only_when_asked_and_without_a_target(pipe):
+    """``Pipeline.vertex_cells``: the tokens' cells as they are, unless ``snap_margin`` is set and no face-count
+    target is: then ``models.cells.snap_to_cells`` of them."""
+    from fastmesh.models.cells import FLOOR, snap_to_cells
+    from fastmesh.params import SamplingConfig
+    from fastmesh.tokenizer import vertex as vt
+
+    class Snapping(GenerateParams):
+        def sampling(self, limit):
+            return dataclasses.replace(super().sampling(limit), snap_margin=0.5)
+
+    q = np.array([[3, 4, 5], [3, 4, 6], [40, 40, 40]])
+    tokens = vt.encode(q)
+    cells = torch.full((1, 128 ** 3), FLOOR)
+    cells[0, (3 * 128 + 5) * 128 + 6] = 2.0  # beside both of the first two: they meet there
+    assert SamplingConfig().snap_margin is None
+    assert pipe.vertex_cells(tokens, cells, GenerateParams()).tolist() == vt.decode(tokens).tolist()
+    assert pipe.vertex_cells(tokens, None, Snapping()).tolist() == vt.decode(tokens).tolist()
+    assert pipe.vertex_cells(tokens, cells, Snapping(target_faces=100)).tolist() == vt.decode(tokens).tolist()
+    moved = pipe.vertex_cells(tokens, cells, Snapping())
+    assert moved.tolist() == snap_to_cells(vt.decode(tokens), cells[0], 0.5).tolist() == [[3, 5, 6], [40, 40, 40]]
 
 
 def test_no_faces_is_a_generation_error(pipe):

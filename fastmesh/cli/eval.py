@@ -1,4 +1,4 @@
-"""``fastmesh eval --inputs DIR --reference DIR [--json] [--gt-vertices] [--baseline] [--save DIR]``.
+"""``fastmesh eval --inputs DIR --reference DIR [--json] [--gt-vertices] [--baseline] [--save DIR] [--sampling JSON]``.
 
 Scores the pipeline (and with ``--baseline`` a convex hull and screened Poisson +
 quadric decimation) on every input that has a reference mesh of the same name, as
@@ -15,6 +15,8 @@ from __future__ import annotations
 import json
 import sys
 
+from fastmesh.params import TunedParams
+
 from .generate import add_sampling_args, load_pipeline, params_from_args
 
 
@@ -30,6 +32,8 @@ def register(sub) -> None:
     p.add_argument("--save", metavar="DIR", help="write every result as DIR/<input name>.ply (reference frame)")
     p.add_argument("--limit", type=int, default=0, help="only the first N pairs")
     p.add_argument("--json", action="store_true", help="print the whole report as JSON")
+    p.add_argument("--sampling", metavar="JSON", default=None,
+                   help='decoder settings a request does not carry, to measure them, e.g. \'{"snap_margin": 1.0}\'')
     add_sampling_args(p)
     p.set_defaults(func=_run)
 
@@ -42,6 +46,12 @@ def _run(args) -> int:
         pairs = pairs[: args.limit]
     pipe = load_pipeline(args)
     params = params_from_args(args)
+    if args.sampling is not None:
+        try:
+            overrides = json.loads(args.sampling)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"--sampling is not JSON: {e}") from None
+        params = TunedParams(overrides, params)
     params.validate(limit=pipe.max_vertices)
     log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     if args.gt_vertices:

@@ -3,7 +3,6 @@ smoke test of the shipped weights end to end."""
 
 from __future__ import annotations
 
-import dataclasses
 import io
 import json
 import subprocess
@@ -161,22 +160,21 @@ def test_vertex_cells_move_by_the_cells_only_when_asked_and_without_a_target(pip
     """``Pipeline.vertex_cells``: the tokens' cells as they are, unless ``snap_margin`` is set and no face-count
     target is: then ``models.cells.snap_to_cells`` of them."""
     from fastmesh.models.cells import FLOOR, snap_to_cells
-    from fastmesh.params import SamplingConfig
+    from fastmesh.params import SamplingConfig, TunedParams
     from fastmesh.tokenizer import vertex as vt
 
-    class Snapping(GenerateParams):
-        def sampling(self, limit):
-            return dataclasses.replace(super().sampling(limit), snap_margin=0.5)
+    def snapping(**fields):
+        return TunedParams({"snap_margin": 0.5}, GenerateParams(**fields))
 
     q = np.array([[3, 4, 5], [3, 4, 6], [40, 40, 40]])
     tokens = vt.encode(q)
     cells = torch.full((1, 128 ** 3), FLOOR)
     cells[0, (3 * 128 + 5) * 128 + 6] = 2.0  # beside both of the first two: they meet there
-    assert SamplingConfig().snap_margin is None
-    assert pipe.vertex_cells(tokens, cells, GenerateParams()).tolist() == vt.decode(tokens).tolist()
-    assert pipe.vertex_cells(tokens, None, Snapping()).tolist() == vt.decode(tokens).tolist()
-    assert pipe.vertex_cells(tokens, cells, Snapping(target_faces=100)).tolist() == vt.decode(tokens).tolist()
-    moved = pipe.vertex_cells(tokens, cells, Snapping())
+    assert SamplingConfig().snap_margin == GenerateParams().sampling(100).snap_margin is not None  # on by default
+    assert pipe.vertex_cells(tokens, cells, TunedParams({"snap_margin": None})).tolist() == vt.decode(tokens).tolist()
+    assert pipe.vertex_cells(tokens, None, snapping()).tolist() == vt.decode(tokens).tolist()
+    assert pipe.vertex_cells(tokens, cells, snapping(target_faces=100)).tolist() == vt.decode(tokens).tolist()
+    moved = pipe.vertex_cells(tokens, cells, snapping())
     assert moved.tolist() == snap_to_cells(vt.decode(tokens), cells[0], 0.5).tolist() == [[3, 5, 6], [40, 40, 40]]
 
 

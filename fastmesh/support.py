@@ -65,7 +65,7 @@ class SupportCache:
 
     Hole filling asks for the same ears and triangles again and again as it clips, repairs and
     retries (about a third of its requests repeat).  A triple is keyed in its own vertex order: the
-    grid of samples inside a face depends on it, so (a, b, c) and (b, a, c) may differ slightly.
+    grid of samples inside a face depends on it, so (a, b, c) and (b, c, a) may differ slightly.
 
     Parameters
     ----------

@@ -188,15 +188,14 @@ def _best_triangulation(loop: list[int], book: _Selection, support: SupportCache
         a, b = sorted((loop[p], loop[q]))
         return q - p != 1 and (p, q) != (0, k - 1) and bool(book.third.get((a, b)))
 
-    cand = [(i, m, j, t, dt) for (i, m, j), t, dt in zip(ijm[on].tolist(), tris[on].tolist(), d[on].tolist(),
-                                                         strict=True)
-            if not any(new_edge_taken(p, q) for p, q in ((i, m), (m, j), (i, j)))]
+    cost, face = {}, {}  # index triple -> support distance, and -> the triangle's vertices
+    for (i, m, j), t, dt in zip(ijm[on].tolist(), tris[on].tolist(), d[on].tolist(), strict=True):
+        if not any(new_edge_taken(p, q) for p, q in ((i, m), (m, j), (i, j))):
+            cost[(i, m, j)], face[(i, m, j)] = dt, t
     # The check against the selection is the costly part, and most loops that reach here have no
     # triangulation in the end: find the cheapest one among the triangles not yet known to fail it,
     # check only its faces, and look again without those that fail (the cheapest found with every
     # face passing is the cheapest among the triangles that pass: the others only ever lowered costs).
-    cost = {(i, m, j): dt for i, m, j, _, dt in cand}
-    face = {(i, m, j): t for i, m, j, t, _ in cand}
     checked = set()
     while True:
         best = _cheapest_chains(k, cost)

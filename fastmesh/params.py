@@ -166,7 +166,7 @@ class TunedParams(GenerateParams):
 
     def __init__(self, overrides: dict, params: GenerateParams | None = None):
         super().__init__(**asdict(params or GenerateParams()))
-        known = {f.name for f in fields(SamplingConfig)} - {f.name for f in fields(GenerateParams)} - {"max_vertices"}
+        known = {f.name for f in fields(SamplingConfig)} - {f.name for f in fields(GenerateParams)}
         if not isinstance(overrides, dict) or set(overrides) - known:
             raise ValueError(f"sampling overrides are an object of SamplingConfig fields ({', '.join(sorted(known))}),"
                              f" got {overrides!r}")

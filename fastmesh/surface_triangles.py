@@ -228,7 +228,7 @@ class _Selection:
     overlap), and each face's normal.  A corner whose face lies farther than acos(``_CREASE``) from the
     vertex's tangent plane (across a crease or a corner the nearest points miss) has no sector there:
     see :meth:`_overlaps`.  ``open`` holds the boundary: each vertex's neighbours across an edge of
-    one face (hole filling walks it; reading it off ``third`` meant visiting every face at a vertex)."""
+    one face, kept with ``third`` so that hole filling walks it without visiting every face at a vertex."""
 
     def __init__(self, vertices: np.ndarray, frames: np.ndarray, fold_angle: float):
         self.v = np.asarray(vertices, dtype=np.float64).tolist()

@@ -5,12 +5,14 @@ The stages as :meth:`Pipeline.generate` runs them (``STAGES`` names their timing
     shape ──normalise──► surface samples                                      encode
           ──► vertex decoder: tokens → 7-bit cells, K candidates in one batch vertices
           then, per candidate:
-          ──► fidelity enhancer: continuous positions inside each cell        enhancer
+          ──► fidelity enhancer: continuous positions inside each cell,       enhancer
+              then fitted to the input's planes (``fitting``)
           ──► face model: edge logits of all pairs in one pass                faces
           ──► prediction filtering: masked re-predictions (optional)          filtering
           ──► triangles on the input surface: candidates that lie on it,      faces
-              chosen by the edge logits, kept a surface, holes closed
-              (``triangles.mesh_from_adjacency``, ``surface_triangles``)
+              chosen by the edge logits, kept a surface, holes closed, the
+              vertices of flat regions removed (``triangles.mesh_from_adjacency``,
+              ``surface_triangles``, ``simplify``)
           ──► the candidate nearest the input surface (``support.surface_fit``) filtering
           ──► back to the input's frame
 
@@ -28,13 +30,14 @@ import os
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from .filtering import FilterConfig, Predictor, predict_edges
+from .fitting import FitConfig, fit_radius, fit_samples, fit_to_planes
 from .io import Normalization, Shape, export_mesh, input_surface, sample_surface
 from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model
@@ -168,7 +171,7 @@ class Pipeline:
 
     def __init__(self, vertex, enhancer, face, device: torch.device | str = "cpu",
                  filter_config: FilterConfig | None = None, triangle_config: TriangleConfig | None = None,
-                 source: str = "", threads: int | None = None, cells=None):
+                 source: str = "", threads: int | None = None, cells=None, fit_config: FitConfig | None = None):
         self.device = torch.device(device)
         # Process-wide (torch has one thread pool), and before the decoder is built: its ONNX session
         # takes torch's count.  See choose_threads.
@@ -184,6 +187,7 @@ class Pipeline:
         self.filter_config = filter_config or FilterConfig()
         # Keep every vertex the decoder produced until the mesh is built, then drop the unused.
         self.triangle_config = triangle_config or TriangleConfig(remove_unreferenced=True)
+        self.fit_config = fit_config or FitConfig()
         self.source = source
         self.max_vertices = int(vertex.cfg.max_vertices)
         # Decode steps run in ONNX Runtime on CPU when it is installed (~3x faster per token than
@@ -213,7 +217,8 @@ class Pipeline:
         fcfg = FilterConfig(**extra.get("filtering", {}))
         triangle_cfg = TriangleConfig(**{"remove_unreferenced": True, **extra.get("faces", {})})
         return cls(nets["vertex"], nets["enhancer"], nets["face"], device=dev, filter_config=fcfg,
-                   triangle_config=triangle_cfg, source=str(root), threads=threads, cells=cells)
+                   triangle_config=triangle_cfg, source=str(root), threads=threads, cells=cells,
+                   fit_config=FitConfig(**extra.get("fit", {})))
 
     @classmethod
     def random(cls, size: str = "tiny", seed: int = 0, device: str | None = None,
@@ -249,7 +254,8 @@ class Pipeline:
             save_model(net, name, root / name)
         if self.cells is not None:
             save_model(self.cells, CELLS, root / CELLS)
-        settings = {"filtering": asdict(self.filter_config), "faces": asdict(self.triangle_config)}
+        settings = {"filtering": asdict(self.filter_config), "faces": asdict(self.triangle_config),
+                    "fit": asdict(self.fit_config)}
         (root / "pipeline.json").write_text(json.dumps(settings, indent=2))
 
     def info(self) -> dict:
@@ -413,6 +419,14 @@ class Pipeline:
             return q
         return snap_to_cells(q, cells[0].cpu(), margin)
 
+    def _fit(self, shape: Shape, unit: np.ndarray, positions: np.ndarray, seed: int) -> np.ndarray:
+        """``positions`` (N, 3) moved onto the planes of the input around them (``fitting.fit_to_planes``)."""
+        from scipy.spatial import cKDTree
+
+        pts, nrm = fit_samples(shape, unit, self.fit_config, seed)
+        tree = cKDTree(pts)
+        return fit_to_planes(positions, pts, nrm, fit_radius(self.fit_config, pts, tree), self.fit_config.rel, tree)
+
     def _candidate(self, shape: Shape, unit: np.ndarray, params: GenerateParams, seed: int, pts: np.ndarray,
                    nrm: np.ndarray, tokens: np.ndarray, report: Callable[[str, float], None], should_cancel,
                    timings: dict, cells: torch.Tensor | None = None) -> dict:
@@ -430,6 +444,8 @@ class Pipeline:
                 positions = self.enhancer.refine(q, pts[:n_ep], nrm[:n_ep])
             else:
                 positions = dequantize(q)
+            if self.fit_config.radius is not None:
+                positions = self._fit(shape, unit, positions, seed)
         _check(should_cancel)
 
         # Stage II: edges in one bidirectional pass, then (optionally) filtered re-predictions.
@@ -440,9 +456,12 @@ class Pipeline:
         predict = _timed(predict, timings, report, should_cancel, self.filter_config.n_passes)
         edges, logits = predict_edges(predict, len(q), self.filter_config, params.filtering)
 
-        # Triangles on the input surface, scored by the edge logits, kept a surface, holes closed.
+        # Triangles on the input surface, scored by the edge logits, kept a surface, holes closed, flat vertices
+        # removed (but not below a face-count target).
         with stage("faces", timings):
             tc = self.triangle_config
+            if params.target_faces is not None:  # the count asked for: flat regions keep their vertices
+                tc = replace(tc, flat_tol=None)
             surface = None
             if tc.support_tol is not None or tc.max_faces_per_edge is not None or tc.selection == "surface":
                 surface = input_surface(shape, unit, tc.support_points, seed)

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .metrics import normalize_edges
+from .simplify import collapse_flat
 from .support import support_distance, supported
 from .tokenizer.grid import CELL
 
@@ -77,6 +78,11 @@ class TriangleConfig:
         ``"surface"``: the 3-cycles of the predicted edges that pass the support test are
         candidates too (else only the restricted Delaunay triangles, scored by the model; on the
         out-of-package validation meshes the extra triangles raise CD and HD).
+    flat_tol : float or None
+        Last, remove the vertices of flat regions, straight creases and straight open borders
+        (:func:`fastmesh.simplify.collapse_flat`): a kept vertex stays within ``flat_tol * L``
+        of the faces it replaces (None: keep every vertex).  Default: half a 7-bit cell.  The pipeline
+        turns it off for a face-count target (the count asked for).
     """
 
     drop_zero_area: bool = True
@@ -95,6 +101,7 @@ class TriangleConfig:
     support_weight: float = 1.0
     model_weight: float = 1.0
     model_triangles: bool = False
+    flat_tol: float | None = 0.5 * CELL
 
     def __post_init__(self):
         if self.selection not in ("cliques", "surface"):
@@ -443,7 +450,7 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: TriangleConfig | None
 
         if points is None:
             raise ValueError("selection 'surface' needs samples of the input surface (points)")
-        f = surface_mesh(v, as_edges(adj, len(v))[0], points, cfg, logits)
+        f = _flat_removed(v, surface_mesh(v, as_edges(adj, len(v))[0], points, cfg, logits), cfg)
         return remove_unreferenced(v, f)[:2] if cfg.remove_unreferenced else (v, f)
     f = triangles_from_adjacency(adj, len(v))
     if cfg.drop_zero_area:
@@ -460,6 +467,14 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: TriangleConfig | None
         f = limit_faces_per_edge(f, score if score is not None else np.zeros(len(f)), cfg.max_faces_per_edge)
     if cfg.orient:
         f = orient_faces(v, f)
+    f = _flat_removed(v, f, cfg)
     if cfg.remove_unreferenced:
         v, f, _ = remove_unreferenced(v, f)
     return v, f
+
+
+def _flat_removed(v: np.ndarray, f: np.ndarray, cfg: TriangleConfig) -> np.ndarray:
+    """``f`` without the vertices :func:`fastmesh.simplify.collapse_flat` finds flat at ``cfg.flat_tol``."""
+    if cfg.flat_tol is None or len(f) == 0:
+        return f
+    return collapse_flat(v, f, cfg.flat_tol * float(np.ptp(v, axis=0).max()), cfg.area_tol)

@@ -15,6 +15,7 @@ import torch
 import trimesh
 
 from fastmesh.filtering import FilterConfig
+from fastmesh.fitting import FitConfig
 from fastmesh.io import Shape, load_shape, sample_surface
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weights_dir
@@ -63,10 +64,54 @@ def test_same_seed_same_mesh_and_save_load_roundtrip(pipe, weights):
 def test_filtering_and_cleanup_settings_survive_save_load(tmp_path):
     p = Pipeline.random(seed=0)
     p.filter_config = FilterConfig(first_threshold=0.6, final_threshold=0.4, candidate_passes=1)
-    p.triangle_config = TriangleConfig(remove_unreferenced=True, drop_coplanar_diagonals=True, support_tol=0.02)
+    p.triangle_config = TriangleConfig(remove_unreferenced=True, drop_coplanar_diagonals=True, support_tol=0.02,
+                                       flat_tol=None)
+    p.fit_config = FitConfig(radius=3.0, rel=0.1, points=1000)
     p.save(tmp_path)
     q = Pipeline.from_pretrained(tmp_path)
     assert q.filter_config == p.filter_config and q.triangle_config == p.triangle_config
+    assert q.fit_config == p.fit_config
+
+
+def test_vertices_are_fitted_to_the_input_planes_unless_off(pipe):
+    """The fit moves the enhancer's positions onto the box's planes; radius None leaves them."""
+    box = Shape(vertices=np.asarray(trimesh.creation.box().vertices), faces=np.asarray(trimesh.creation.box().faces))
+    params = GenerateParams(seed=0, max_vertices=24)
+    fitted = pipe.generate(box, params)
+    saved = pipe.fit_config
+    try:
+        pipe.fit_config = FitConfig(radius=None)
+        loose = pipe.generate(box, params)
+    finally:
+        pipe.fit_config = saved
+
+    def near_but_off(v):  # within a 7-bit cell of a face plane of the box but not on it
+        d = np.abs(0.5 - np.abs(v)).min(axis=1)
+        return ((d > 1e-9) & (d < CELL)).sum()
+
+    assert near_but_off(loose.vertices) > 0 and near_but_off(fitted.vertices) == 0
+
+
+def test_flat_vertices_go_except_with_a_face_count_target(pipe):
+    """``TriangleConfig.flat_tol`` removes vertices on the box's faces; a ``target_faces`` keeps them (the
+    count asked for)."""
+    from dataclasses import replace
+
+    box = Shape(vertices=np.asarray(trimesh.creation.box().vertices), faces=np.asarray(trimesh.creation.box().faces))
+    saved = pipe.triangle_config
+    surface = TriangleConfig(remove_unreferenced=True, selection="surface")  # a surface, as shipped
+    runs = {}
+    try:
+        for tol in (surface.flat_tol, None):
+            pipe.triangle_config = replace(surface, flat_tol=tol)
+            for target in (None, 40):
+                runs[tol is None, target] = pipe.generate(box, GenerateParams(seed=0, max_vertices=24,
+                                                                              target_faces=target))
+    finally:
+        pipe.triangle_config = saved
+    assert len(runs[False, None].vertices) < len(runs[True, None].vertices)
+    assert np.array_equal(runs[False, 40].faces, runs[True, 40].faces)
+    assert np.array_equal(runs[False, 40].vertices, runs[True, 40].vertices)
 
 
 def test_candidates_return_the_one_nearest_the_input(pipe):

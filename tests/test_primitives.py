@@ -57,3 +57,23 @@ def test_point_cloud_lies_on_the_primitive_with_its_normals():
     assert dist.max() < 1e-6
     assert np.allclose((m.face_normals[tri] * cloud.normals[:500]).sum(1), 1.0, atol=1e-5)  # outwards
     assert np.array_equal(point_cloud(mesh, seed=3).vertices, cloud.vertices)
+
+
+def test_shipped_weights_give_the_box_back_small_and_closed():
+    """The ladder's first rung (benchmarks/primitives.py measures them all): with the shipped weights and
+    default settings the box comes back closed, in at most 12 vertices, with a vertex within one 7-bit
+    cell of at least 7 of its 8 corners (the eighth is 2.5 cells off)."""
+    from scipy.spatial import cKDTree
+
+    from fastmesh.io import Normalization
+    from fastmesh.params import GenerateParams
+    from fastmesh.pipeline import Pipeline
+    from fastmesh.tokenizer.grid import CELL
+
+    mesh = primitive("box")
+    res = Pipeline.from_pretrained().generate(point_cloud(mesh), GenerateParams())
+    norm = Normalization.fit(mesh.vertices)
+    near, _ = cKDTree(norm.apply(res.vertices)).query(norm.apply(mesh.vertices))
+    assert len(res.vertices) <= 12
+    assert (near <= CELL).sum() >= 7
+    assert trimesh.Trimesh(res.vertices, res.faces, process=False).is_watertight

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from .filtering import FilterConfig, Predictor, predict_edges
-from .fitting import FitConfig, fit_radius, fit_samples, fit_to_planes
+from .fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
 from .io import Normalization, Shape, export_mesh, input_surface, sample_surface
 from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model
@@ -49,6 +49,7 @@ from .quality import mesh_quality
 from .support import surface_fit
 from .tokenizer import dequantize
 from .tokenizer import vertex as vt
+from .tokenizer.grid import CELL
 from .triangles import TriangleConfig, mesh_from_adjacency
 
 __all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "Pipeline", "default_weights_dir"]
@@ -425,7 +426,8 @@ class Pipeline:
 
         pts, nrm = fit_samples(shape, unit, self.fit_config, seed)
         tree = cKDTree(pts)
-        return fit_to_planes(positions, pts, nrm, fit_radius(self.fit_config, pts, tree), self.fit_config.rel, tree)
+        cfg = self.fit_config
+        return fit_to_planes(positions, pts, nrm, fit_radius(cfg, pts, tree), cfg.rel, tree, cfg.reach)
 
     def _candidate(self, shape: Shape, unit: np.ndarray, params: GenerateParams, seed: int, pts: np.ndarray,
                    nrm: np.ndarray, tokens: np.ndarray, report: Callable[[str, float], None], should_cancel,
@@ -435,6 +437,7 @@ class Pipeline:
         q = self.vertex_cells(tokens, cells, params)
         if len(q) < 3:
             raise GenerationError("no_vertices", f"the vertex decoder produced {len(q)} vertices; try another seed")
+        decoded = len(q)
         _check(should_cancel)
 
         # Fidelity enhancer: continuous positions inside each cell.
@@ -446,6 +449,9 @@ class Pipeline:
                 positions = dequantize(q)
             if self.fit_config.radius is not None:
                 positions = self._fit(shape, unit, positions, seed)
+                if self.fit_config.merge is not None:  # vertices fitted onto one point become one
+                    keep = distinct(positions, self.fit_config.merge * CELL)
+                    q, positions = q[keep], positions[keep]
         _check(should_cancel)
 
         # Stage II: edges in one bidirectional pass, then (optionally) filtered re-predictions.
@@ -469,5 +475,5 @@ class Pipeline:
         if len(faces) == 0:
             raise GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")
         report("filtering", 1.0)
-        return {"vertices": verts, "faces": faces, "tokens": int(len(tokens)), "generated_vertices": int(len(q)),
+        return {"vertices": verts, "faces": faces, "tokens": int(len(tokens)), "generated_vertices": decoded,
                 "edges": int(len(edges))}

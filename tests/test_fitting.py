@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fastmesh.fitting import FitConfig, fit_radius, fit_samples, fit_to_planes
+from fastmesh.fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
 from fastmesh.io import Shape
 
 
@@ -54,6 +54,39 @@ def test_batched_equals_one_at_a_time():
         assert np.allclose(fit_to_planes(x, p, n, radius, rel), twin, atol=1e-12)
 
 
+def test_reach_finds_the_corner_that_ends_a_crease():
+    p, n = _cube_samples(60000, seed=3)
+    gap = np.linalg.norm(p - [0.5, 0.5, 0.5], axis=1) < 0.06  # no sample within 0.06 of the corner
+    p, n = p[~gap], n[~gap]
+    x = np.array([[0.45, 0.49, 0.49],  # on the crease near the corner: onto the crease, then the corner
+                  [0.0, 0.49, 0.49],  # mid-crease: nothing ends it within reach
+                  [0.2, 0.1, 0.495]])  # on a face: fixes one direction, not a crease
+    near = fit_to_planes(x, p, n, radius=0.03)
+    assert near[0] == pytest.approx([0.45, 0.5, 0.5], abs=1e-9)  # the third plane is out of reach
+    out = fit_to_planes(x, p, n, radius=0.03, reach=3.0)
+    assert out[0] == pytest.approx([0.5, 0.5, 0.5], abs=1e-9)
+    assert np.array_equal(out[1:], near[1:])
+    assert out[1] == pytest.approx([0.0, 0.5, 0.5], abs=1e-9)
+
+
+def test_reach_keeps_a_vertex_on_its_crease():
+    """At the corner of a thin plate the farther look sees the plate's other side too: the fitted
+    point leaves the crease line (into the plate), and the vertex stays where the first fit put it."""
+    rng = np.random.default_rng(0)
+    lo, hi = np.array([-0.5, -0.5, 0.46]), np.array([0.5, 0.5, 0.5])  # a plate 0.04 thick
+    face = rng.choice(6, 80000, p=np.repeat([0.04, 0.04, 1.0], 2) / 2.16)
+    axis, top = face // 2, face % 2 == 1
+    p = rng.uniform(lo, hi, (80000, 3))
+    p[np.arange(80000), axis] = np.where(top, hi[axis], lo[axis])
+    n = np.zeros_like(p)
+    n[np.arange(80000), axis] = np.where(top, 1.0, -1.0)
+    keep = np.linalg.norm(p - hi, axis=1) > 0.03
+    x = np.array([[0.46, 0.5, 0.5]])
+    near = fit_to_planes(x, p[keep], n[keep], radius=0.02)
+    assert near[0] == pytest.approx([0.46, 0.5, 0.5], abs=1e-6)
+    assert np.array_equal(fit_to_planes(x, p[keep], n[keep], radius=0.02, reach=4.0), near)
+
+
 def test_too_few_samples_or_too_far_stays():
     p, n = _cube_samples(200)
     x = np.array([[0.0, 0.0, 0.0], [0.3, 0.3, 0.47]])  # the centre: no sample near
@@ -73,9 +106,25 @@ def test_samples_of_a_cloud_are_its_points_and_radius_in_cells():
     p, n = fit_samples(mesh, np.eye(3), FitConfig(points=64), seed=0)
     assert p.shape == (64, 3) and n.shape == (64, 3)
     dense, _ = _cube_samples(60000)
-    assert fit_radius(FitConfig(radius=2.0), dense) == pytest.approx(2 / 128)  # cells of the unit cube
+    assert fit_radius(FitConfig(radius=2.0, spacings=2.5), dense) == pytest.approx(2 / 128)  # cells of the unit cube
     sparse, _ = _cube_samples(500)
     spacing = np.median(np.sort(np.linalg.norm(sparse[:, None] - sparse[None], axis=2), axis=1)[:, 1])
     assert spacing * 2.5 > 2 / 128
     assert fit_radius(FitConfig(radius=2.0, spacings=2.5), sparse) == pytest.approx(2.5 * spacing)
     assert fit_radius(FitConfig(radius=None), dense) is None
+
+
+def test_distinct_keeps_the_first_of_each_cluster():
+    rng = np.random.default_rng(4)
+    x = rng.uniform(0, 1, (300, 3))
+    x[100:150] = x[rng.integers(0, 100, 50)] + rng.normal(0, 1e-4, (50, 3))  # copies of earlier vertices
+    x[[7, 8, 9]] = [[0.5, 0.5, 0.5], [0.5, 0.5, 0.5008], [0.5, 0.5, 0.5016]]  # a chain: 9 is 0.0016 from 7
+    tol = 1e-3
+    twin = []  # the slow twin: each vertex against every kept one
+    for i, xi in enumerate(x):
+        if all(np.linalg.norm(x[j] - xi) > tol for j in twin):
+            twin.append(i)
+    keep = distinct(x, tol)
+    assert keep.tolist() == twin
+    assert 8 not in keep and 9 in keep and not set(range(100, 150)) & set(keep)
+    assert distinct(x[:3], tol).tolist() == [0, 1, 2]

@@ -22,7 +22,7 @@ from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weig
 from fastmesh.quality import mesh_quality
 from fastmesh.support import surface_fit
 from fastmesh.tokenizer.grid import CELL
-from fastmesh.triangles import TriangleConfig
+from fastmesh.triangles import TriangleConfig, mesh_from_adjacency
 
 torch.set_num_threads(1)
 
@@ -66,7 +66,7 @@ def test_filtering_and_cleanup_settings_survive_save_load(tmp_path):
     p.filter_config = FilterConfig(first_threshold=0.6, final_threshold=0.4, candidate_passes=1)
     p.triangle_config = TriangleConfig(remove_unreferenced=True, drop_coplanar_diagonals=True, support_tol=0.02,
                                        flat_tol=None)
-    p.fit_config = FitConfig(radius=3.0, rel=0.1, points=1000)
+    p.fit_config = FitConfig(radius=3.0, rel=0.1, points=1000, spacings=2.0, reach=None, merge=0.5)
     p.save(tmp_path)
     q = Pipeline.from_pretrained(tmp_path)
     assert q.filter_config == p.filter_config and q.triangle_config == p.triangle_config
@@ -90,6 +90,34 @@ def test_vertices_are_fitted_to_the_input_planes_unless_off(pipe):
         return ((d > 1e-9) & (d < CELL)).sum()
 
     assert near_but_off(loose.vertices) > 0 and near_but_off(fitted.vertices) == 0
+
+
+def test_vertices_fitted_onto_one_point_become_one(monkeypatch):
+    """With the shipped weights the fit puts several decoded vertices of the L block on one corner; with
+    ``FitConfig.merge`` the face stage gets one of each such cluster, with None all of them."""
+    from dataclasses import replace
+
+    from scipy.spatial import cKDTree
+
+    import fastmesh.pipeline as pipeline_module
+    from fastmesh.primitives import point_cloud, primitive
+
+    seen = []
+
+    def spy(positions, *args, **kwargs):
+        seen.append(len(cKDTree(positions).query_pairs(0.1 * CELL)))  # the normalised frame: cells
+        return mesh_from_adjacency(positions, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline_module, "mesh_from_adjacency", spy)
+    pipe = Pipeline.from_pretrained()
+    cloud = point_cloud(primitive("l_block"))
+    params = GenerateParams(seed=0, candidates=1)
+    pipe.fit_config = replace(pipe.fit_config, merge=None)
+    kept = pipe.generate(cloud, params)
+    pipe.fit_config = replace(pipe.fit_config, merge=0.1)
+    merged = pipe.generate(cloud, params)
+    assert seen[0] > 0 and seen[1] == 0
+    assert merged.info["generated_vertices"] == kept.info["generated_vertices"]  # the decoder's count
 
 
 def test_flat_vertices_go_except_with_a_face_count_target(pipe):

@@ -59,10 +59,11 @@ def test_point_cloud_lies_on_the_primitive_with_its_normals():
     assert np.array_equal(point_cloud(mesh, seed=3).vertices, cloud.vertices)
 
 
-def test_shipped_weights_give_the_box_back_small_and_closed():
-    """The ladder's first rung (benchmarks/primitives.py measures them all): with the shipped weights and
-    default settings the box comes back closed, in at most 12 vertices, with a vertex within one 7-bit
-    cell of at least 7 of its 8 corners (the eighth is 2.5 cells off)."""
+@pytest.mark.parametrize("name", ["box", "l_block", "holed_box"])
+def test_shipped_weights_give_the_flat_rungs_back_small_and_closed(name):
+    """The ladder's flat rungs (benchmarks/primitives.py measures them all): with the shipped weights and
+    default settings each comes back closed, in at most 1.5x its vertices (12 for the box), with a vertex
+    within one 7-bit cell of each of its own."""
     from scipy.spatial import cKDTree
 
     from fastmesh.io import Normalization
@@ -70,10 +71,10 @@ def test_shipped_weights_give_the_box_back_small_and_closed():
     from fastmesh.pipeline import Pipeline
     from fastmesh.tokenizer.grid import CELL
 
-    mesh = primitive("box")
+    mesh = primitive(name)
     res = Pipeline.from_pretrained().generate(point_cloud(mesh), GenerateParams())
     norm = Normalization.fit(mesh.vertices)
     near, _ = cKDTree(norm.apply(res.vertices)).query(norm.apply(mesh.vertices))
-    assert len(res.vertices) <= 12
-    assert (near <= CELL).sum() >= 7
+    assert len(res.vertices) <= 1.5 * len(mesh.vertices)
+    assert (near <= CELL).all(), near / CELL
     assert trimesh.Trimesh(res.vertices, res.faces, process=False).is_watertight

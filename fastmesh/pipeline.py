@@ -452,6 +452,9 @@ class Pipeline:
                 if self.fit_config.merge is not None:  # vertices fitted onto one point become one
                     keep = distinct(positions, self.fit_config.merge * CELL)
                     q, positions = q[keep], positions[keep]
+                    if len(q) < 3:
+                        raise GenerationError("no_vertices", f"the vertex decoder's {decoded} vertices lie on "
+                                              f"{len(q)} points of the surface; try another seed")
         _check(should_cancel)
 
         # Stage II: edges in one bidirectional pass, then (optionally) filtered re-predictions.

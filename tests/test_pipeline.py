@@ -120,6 +120,18 @@ def test_vertices_fitted_onto_one_point_become_one(monkeypatch):
     assert merged.info["generated_vertices"] == kept.info["generated_vertices"]  # the decoder's count
 
 
+def test_vertices_merged_below_three_are_a_clear_error(monkeypatch):
+    """A candidate whose vertices the fit puts on fewer than three points makes no mesh: a GenerationError,
+    not a crash in the face stage."""
+    import fastmesh.pipeline as pipeline_module
+
+    monkeypatch.setattr(pipeline_module, "distinct", lambda positions, tol: np.arange(min(2, len(positions))))
+    pipe = Pipeline.random(seed=0)
+    with pytest.raises(GenerationError, match="lie on 2 points") as err:
+        pipe.generate(_sphere(), GenerateParams(seed=0, max_vertices=20, candidates=1))
+    assert err.value.code == "no_vertices"
+
+
 def test_flat_vertices_go_except_with_a_face_count_target(pipe):
     """``TriangleConfig.flat_tol`` removes vertices on the box's faces; a ``target_faces`` keeps them (the
     count asked for)."""

@@ -115,3 +115,15 @@ def test_surface_fit_is_small_on_the_surface_and_grows_with_what_is_missing_or_s
     half = surface_fit(sphere.vertices, sphere.faces[sphere.triangles_center[:, 2] > 0], points)
     stray = surface_fit(sphere.vertices * 1.3, sphere.faces, points)
     assert whole < 0.03 and half > 5 * whole and stray > 10 * whole  # whole: the sampling noise alone
+
+
+def test_surface_fit_prefers_a_whole_mesh_to_one_with_a_hole_of_the_same_mean():
+    """A sphere with its cap cut off and a sphere 2 % too large are about as far from the input on average
+    (the Chamfer part prefers the hole); the share of the worst distance prefers the whole one."""
+    sphere = trimesh.creation.icosphere(3)
+    points = sample_triangles(sphere.vertices, sphere.faces, 20000, np.random.default_rng(1))[0]
+    holed = sphere.faces[sphere.triangles_center[:, 2] < 0.9]
+    larger = sphere.vertices * 1.02
+    assert surface_fit(sphere.vertices, holed, points, hausdorff_weight=0) < surface_fit(larger, sphere.faces, points,
+                                                                                      hausdorff_weight=0)
+    assert surface_fit(sphere.vertices, holed, points) > surface_fit(larger, sphere.faces, points)

@@ -187,7 +187,7 @@ def surface_fit(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, see
     seed : int
         Of the area-weighted samples drawn on the mesh.
     hausdorff_weight : float
-        Weight of the largest of those distances.
+        Weight of the largest distance either way (mesh sample to input point or back).
 
     Returns
     -------

@@ -6,7 +6,8 @@ The stages as :meth:`Pipeline.generate` runs them (``STAGES`` names their timing
           ──► vertex decoder: tokens → 7-bit cells, K candidates in one batch vertices
           then, per candidate:
           ──► fidelity enhancer: continuous positions inside each cell,       enhancer
-              then fitted to the input's planes (``fitting``)
+              then fitted to the input's planes, those fitted onto one
+              point merged (``fitting``)
           ──► face model: edge logits of all pairs in one pass                faces
           ──► prediction filtering: masked re-predictions (optional)          filtering
           ──► triangles on the input surface: candidates that lie on it,      faces

@@ -8,8 +8,18 @@ import torch
 
 from fastmesh.models.encoder import EncoderConfig, farthest_point_sample
 from fastmesh.models.evidence import GAIN, SPREAD_EDGES
-from fastmesh.models.generate import SamplingConfig, filter_logits, generate, generate_uncached, token_probs
-from fastmesh.models.vertex import VertexConfig, VertexDecoder
+from fastmesh.models.generate import (
+    KIND_BLOCK,
+    KIND_EOS,
+    KIND_OFFSET,
+    SamplingConfig,
+    filter_logits,
+    generate,
+    generate_uncached,
+    token_kinds,
+    token_probs,
+)
+from fastmesh.models.vertex import VertexConfig, VertexDecoder, grammar_mask, grammar_mask_rows
 from fastmesh.tokenizer import vertex as vt
 from fastmesh.tokenizer.grid import quantize, split_cells
 
@@ -196,3 +206,28 @@ def test_face_count_condition_adds_one_prefix_token_per_target():
     l1 = m.loss(tokens, points=pts[:1], normals=nrm[:1], target_faces=torch.tensor([100]))
     l2 = m.loss(tokens, points=pts[:1], normals=nrm[:1], target_faces=torch.tensor([3000]))
     assert not torch.isclose(l1, l2)
+
+
+def test_grammar_mask_rows_equals_the_vectorised_mask():
+    """The decode loop's row-by-row mask is :func:`grammar_mask` for every kind of state: after BOS, a block, an
+    offset (first and last block and offset included), EOS and PAD, with and without the vertex budget spent."""
+    rng = np.random.default_rng(0)
+    states = [(vt.BOS, -1, -1), (vt.EOS, 5, 7), (vt.PAD, 5, 7)]
+    for b in [0, vt.N_BLOCKS - 1, *rng.integers(0, vt.N_BLOCKS, 20).tolist()]:
+        states.append((vt.BLOCK0 + b, b, -1))
+        for o in [0, vt.N_OFFSETS - 1, *rng.integers(0, vt.N_OFFSETS, 5).tolist()]:
+            states.append((vt.OFFSET0 + o, b, o))
+    prev, block, offset = (list(x) for x in zip(*states, strict=True))
+    for spent in (False, True):
+        eos_only = [spent or bool(k % 3 == 0) for k in range(len(prev))]
+        slow = grammar_mask(torch.tensor(prev), torch.tensor(block), torch.tensor(offset),
+                            eos_only=torch.tensor(eos_only))
+        fast = grammar_mask_rows(prev, block, offset, eos_only)
+        assert fast.dtype == torch.bool and torch.equal(fast, slow)
+
+
+def test_token_kinds():
+    kinds = token_kinds(torch.device("cpu"))
+    assert kinds.shape == (vt.VOCAB_SIZE,)
+    assert (kinds[:vt.BLOCK0] == KIND_EOS).all() and (kinds[vt.BLOCK0:vt.OFFSET0] == KIND_BLOCK).all()
+    assert (kinds[vt.OFFSET0:] == KIND_OFFSET).all()

@@ -33,7 +33,7 @@ from ..tokenizer import vertex as vt
 from .evidence import Evidence, read_counts
 from .gate import CellGate
 from .kv_cache import KVCache
-from .vertex import VertexDecoder, add_count_bias, grammar_mask, grammar_state
+from .vertex import VertexDecoder, add_count_bias, grammar_mask, grammar_mask_rows, grammar_state
 
 if TYPE_CHECKING:
     from .onnx_decode import OrtDecoder
@@ -160,9 +160,18 @@ def choose_next(logits: torch.Tensor, cfg: SamplingConfig, gen: list[torch.Gener
         kind = mass.argmax(-1)
     if offset_bias is not None:
         logits = torch.cat([logits[:, :vt.OFFSET0], logits[:, vt.OFFSET0:] + offset_bias], dim=-1)
-    ids = torch.arange(logits.shape[-1], device=logits.device)
-    of_kind = torch.where(ids < vt.BLOCK0, KIND_EOS, torch.where(ids < vt.OFFSET0, KIND_BLOCK, KIND_OFFSET))
-    return sample_next(logits.masked_fill(of_kind != kind[:, None], float("-inf")), cfg, gen)
+    return sample_next(logits.masked_fill(token_kinds(logits.device) != kind[:, None], float("-inf")), cfg, gen)
+
+
+_KINDS: dict[torch.device, torch.Tensor] = {}
+
+
+def token_kinds(device: torch.device) -> torch.Tensor:
+    """(VOCAB,) the kind of every token (``KIND_EOS`` for the special tokens), made once per device."""
+    if device not in _KINDS:
+        ids = torch.arange(vt.VOCAB_SIZE, device=device)
+        _KINDS[device] = torch.where(ids < vt.BLOCK0, KIND_EOS, torch.where(ids < vt.OFFSET0, KIND_BLOCK, KIND_OFFSET))
+    return _KINDS[device]
 
 
 def pace_mask(through: torch.Tensor, prev: torch.Tensor, n_vert: torch.Tensor) -> torch.Tensor:
@@ -251,7 +260,8 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
             if counts:  # ... and the count reading with every vertex
                 eos, stay = evidence.count_bias(block[:, None], offset[:, None], n_vert[:, None], n_in_block[:, None])
                 logits = add_count_bias(logits, eos[live, 0], stay[live, 0])
-        mask = grammar_mask(prev[live], block[live], offset[live], eos_only=n_vert[live] >= cfg.max_vertices)
+        mask = grammar_mask_rows(prev[live].tolist(), block[live].tolist(), offset[live].tolist(),
+                                 (n_vert[live] >= cfg.max_vertices).tolist(), device)
         if cells and cfg.pace > 0:
             mask[:, vt.OFFSET0:] &= ~pace_mask(through, prev, n_vert)[live, None]
         if gate is not None:

@@ -1,12 +1,14 @@
 """Vertex-stage ablation on an eval set: decoder with the cell evidence, a decoder without it, and the cell
 evidence alone, side by side on the same inputs.
 
-    python benchmarks/vertex_ablation.py --inputs DIR --reference DIR [--without WEIGHTS] [--limit N] [--json]
+    python benchmarks/vertex_ablation.py --inputs DIR --reference DIR [--without DIR] [--limit N] [--json]
 
 Systems (vertex metrics of ``fastmesh.metrics.vertex_metrics``, in the reference's frame):
 
 - ``decoder+cells``: the vertices of the pipeline's mesh with ``--weights`` (default: the shipped ones);
-- ``decoder``: the same with ``--without`` (weights of a decoder that does not read the cell evidence);
+- ``decoder``: the same with ``--without``: a decoder that does not read the cell evidence (its folder, run with
+  the other networks and settings of ``--weights``, or a whole weights folder; ``checkpoints/vertex-no-cells``
+  is such a decoder, trained on the same corpus);
 - ``cells@decoder``: the cell network alone, its best cells after one-cell suppression, as many as the
   decoder with cells generated;
 - ``cells@own``: the same, as many as the cells' expected count (the sum of their probabilities);
@@ -36,6 +38,7 @@ from fastmesh.eval import pair_inputs  # noqa: E402
 from fastmesh.io import Normalization, load_shape, sample_surface  # noqa: E402
 from fastmesh.metrics import vertex_metrics  # noqa: E402
 from fastmesh.models.cells import select_cells  # noqa: E402
+from fastmesh.models.checkpoint import load_model  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import CELL_SEED, Pipeline  # noqa: E402
 from fastmesh.tokenizer import dequantize  # noqa: E402
@@ -53,12 +56,26 @@ def _log_correlation(rows: list[dict], system: str) -> float:
     return round(float(np.corrcoef(gen, ref)[0, 1]), 3)
 
 
+def _without(path: str, pipe: Pipeline) -> Pipeline:
+    """``--without``: a whole weights folder, or a vertex decoder's folder put in place of ``pipe``'s decoder."""
+    if (Path(path) / "vertex").is_dir():
+        return Pipeline.from_pretrained(path)
+    vertex, _ = load_model(path)
+    if vertex.cfg.evidence_cells:
+        raise SystemExit(f"{path}: this decoder reads the cell evidence; --without wants one that does not")
+    return Pipeline(vertex, pipe.enhancer, pipe.face, device=pipe.device, filter_config=pipe.filter_config,
+                    triangle_config=pipe.triangle_config, source=path, threads=pipe.threads, cells=pipe.cells,
+                    fit_config=pipe.fit_config)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--inputs", required=True)
     ap.add_argument("--reference", required=True)
     ap.add_argument("--weights", default=None, help="pipeline whose decoder reads the cell evidence")
-    ap.add_argument("--without", default=None, help="pipeline whose decoder does not (skipped if not given)")
+    ap.add_argument("--without", default=None,
+                    help="pipeline whose decoder does not, or such a decoder alone (e.g. checkpoints/vertex-no-cells), "
+                         "run with the other networks and settings of --weights (skipped if not given)")
     ap.add_argument("--candidates", type=int, default=GenerateParams().candidates)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--limit", type=int, default=0)
@@ -69,7 +86,7 @@ def main() -> int:
     pipe = Pipeline.from_pretrained(args.weights)
     if pipe.cells is None:
         raise SystemExit(f"{pipe.source} has no cell evidence network")
-    other = Pipeline.from_pretrained(args.without) if args.without else None
+    other = _without(args.without, pipe) if args.without else None
     params = GenerateParams(seed=args.seed, candidates=args.candidates)
     rng = np.random.default_rng(args.seed)
     rows = []

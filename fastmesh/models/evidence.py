@@ -12,7 +12,7 @@ from counts of input points around the cell it would place a vertex in,
     block token b:              block_table[level(n_4)]
 
 where n_s counts the points in the cube of side 2^s cells holding that cell, and
-level(n) = min(floor(log2(1 + n)), L - 1).  The tables are learned (zeros at start:
+level(n) = min(floor(log2(1 + n)), L - 1) (0 for n < 0 or NaN: ``_level``).  The tables are learned (zeros at start:
 no effect until training finds the evidence useful), so the output is a product of
 experts: what the transformer expects of an artist mesh, times what the surface
 allows.  Counting points is O(P); the bias of a token costs three gathers.
@@ -126,7 +126,30 @@ def block_cells(block: torch.Tensor) -> torch.Tensor:
 
 
 def _level(count: torch.Tensor, levels: int) -> torch.Tensor:
-    return torch.log2(1.0 + count).floor().clamp(max=levels - 1).long()
+    """Count level ``min(floor(log2(1 + count)), levels - 1)``: a row index in ``[0, levels)`` whatever ``count`` holds.
+
+    Parameters
+    ----------
+    count : (...) int or float tensor
+        Amounts that are never negative in exact arithmetic.  A float amount made as a difference of running
+        sums can come out a rounding below 0 (CUDA sums in another order than the CPU), and a broken input
+        can make it NaN or infinite; indexing a table with the level of such a count is a device-side assert
+        on CUDA.  So below 0 counts as 0, NaN as 0 and +inf as the top level.
+    levels : int
+        Rows of the table the level indexes.
+
+    Returns
+    -------
+    (...) int64 in ``[0, levels - 1]``; for counts >= 0 exactly the formula above.
+    """
+    level = torch.log2(1.0 + count.clamp(min=0)).floor()
+    return level.nan_to_num(nan=0.0).clamp(0, levels - 1).long()
+
+
+def _block(block: torch.Tensor) -> torch.Tensor:
+    """Current block ids (-1: none yet) held to ``[-1, N_BLOCKS)``, so every lookup made from them stays in its
+    table (decoded sequences are always in range; this makes it so by construction)."""
+    return block.clamp(-1, vt.N_BLOCKS - 1)
 
 
 class Evidence:
@@ -140,11 +163,12 @@ class Evidence:
         self.levels = []  # per shift: (B, res^3) count level of every coarse cube
         for s, n_levels in [(s, LEVELS) for s in SHIFTS] + [(OFFSET_BITS, BLOCK_LEVELS)]:
             flat = flat_index(point_cells >> s, CELLS >> s)
-            grid = torch.zeros(b, (CELLS >> s) ** 3, device=points.device)
-            grid.scatter_add_(1, flat, torch.ones_like(flat, dtype=grid.dtype))
+            # Counted as integers: exact on every device, so the levels cannot depend on summation order.
+            grid = torch.zeros(b, (CELLS >> s) ** 3, dtype=torch.long, device=points.device)
+            grid.scatter_add_(1, flat, torch.ones_like(flat))
             self.levels.append(_level(grid, n_levels))
-        # Occupied blocks up to and including each block id (the order blocks are emitted in).
-        occupied = (self.levels[-1] > 0).float()  # (B, 512)
+        # Occupied blocks up to and including each block id (the order blocks are emitted in), as integers.
+        occupied = (self.levels[-1] > 0).long()  # (B, 512)
         self.occ_incl = occupied.cumsum(1)
         self.occ_excl = self.occ_incl - occupied
         # The coarse index of cell (block * BLOCK_SIDE + offset) is linear: base(block) + part(offset).
@@ -187,6 +211,7 @@ class Evidence:
     def logit_bias(self, block: torch.Tensor) -> torch.Tensor:
         """(B, T) current block ids (-1: none yet) -> (B, T, VOCAB) bias (0 on PAD and BOS)."""
         b, t = block.shape
+        block = _block(block)
         # A sequence visits a few dozen blocks over hundreds of positions, so the rows of the
         # bias are computed once per distinct (shape, block) and then indexed.
         rows = torch.arange(b, device=block.device)[:, None].expand(b, t)
@@ -199,7 +224,7 @@ class Evidence:
                    n_in_block: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The reading of the sequence's counts, per position: :func:`read_counts` of this batch's cells."""
         return read_counts(self.tables, self.cell_expected, self.cell_cum, self.given, self.ratio_edges,
-                           block, offset, n_vert, n_in_block)
+                           _block(block), offset, n_vert, n_in_block)
 
     def _sequence_rows(self, rows: torch.Tensor, block: torch.Tensor) -> list[torch.Tensor]:
         """(U,) shape index and current block (-1: none) -> [(U, 3) special, (U, 512) block] bias."""
@@ -247,6 +272,7 @@ class Evidence:
     def offset_cells(self, block: torch.Tensor) -> torch.Tensor:
         """(B,) current blocks -> (B, 4096) the cell term of the offsets' bias (0 before the first block)."""
         rows = torch.arange(len(block), device=block.device)
+        block = _block(block)
         return self._cell_rows(rows, block.clamp(min=0)) * (block >= 0)[:, None]
 
     def _unless_target(self, own: float, asked: float) -> torch.Tensor:
@@ -265,6 +291,7 @@ class Evidence:
         ``pace`` where they are the cells' own estimate: scaled to a face-count target they are the count asked
         for, which ``pace`` leaves as it is."""
         rows = torch.arange(len(block), device=block.device)
+        block = _block(block)
         return self.cell_incl[rows, block.clamp(min=0)] * (block >= 0) * self._unless_target(pace, 1.0)
 
 
@@ -280,13 +307,14 @@ def read_counts(tables: PointEvidence, expected: torch.Tensor, cum: torch.Tensor
     table lookups only, so a row reads the same alone or stacked with others.
     """
     rows = torch.arange(block.shape[0], device=block.device)[:, None].expand_as(block)
+    block = _block(block)
     blk = block.clamp(min=0)
     in_block = expected[rows, blk]
     # Expected in the block after offset o: the running sum at the block's last cell less that at o.
     end = cum[rows, blk * N_OFFSETS + N_OFFSETS - 1]
-    key = blk * N_OFFSETS + offset
+    key = blk * N_OFFSETS + offset.clamp(-1, N_OFFSETS - 1)
     rest = (end - torch.where(key >= 0, cum[rows, key.clamp(min=0)], 0.0)).clamp(min=0)
-    stay = (tables.stay_table(_level(n_in_block.float(), STAY_LEVELS) * CELL_LEVELS + _level(in_block, CELL_LEVELS))
+    stay = (tables.stay_table(_level(n_in_block, STAY_LEVELS) * CELL_LEVELS + _level(in_block, CELL_LEVELS))
             + tables.rest_table(_level(rest, CELL_LEVELS))).squeeze(-1)
     total = cum[:, -1].clamp(min=1.0)[:, None]
     ratio = torch.bucketize(torch.log2(n_vert.float().clamp(min=0.5) / total), ratio_edges)
@@ -301,10 +329,11 @@ def _ahead(incl: torch.Tensor, excl: torch.Tensor, rows: torch.Tensor, block: to
 
     ``incl`` / ``excl`` (B, N_BLOCKS): running sums with / without each block; ``rows`` (U,) shape index,
     ``block`` (U,) current block (-1: none yet).  Returns (U,) the amount after the current block and
-    (U, N_BLOCKS) the amount a jump to each block would pass over (strictly between).
+    (U, N_BLOCKS) the amount a jump to each block would pass over (strictly between), both >= 0 (float running
+    sums read at two places can differ by a rounding the wrong way).
     """
     done = incl[rows, block.clamp(min=0)] * (block >= 0)  # emitted so far
-    return incl[rows, -1] - done, (excl[rows] - done[:, None]).clamp(min=0)
+    return (incl[rows, -1] - done).clamp(min=0), (excl[rows] - done[:, None]).clamp(min=0)
 
 
 def _spread_states(coarse: torch.Tensor, normals: torch.Tensor, res: int) -> torch.Tensor:

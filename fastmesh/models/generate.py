@@ -152,15 +152,26 @@ def choose_next(logits: torch.Tensor, cfg: SamplingConfig, gen: list[torch.Gener
     count alone.  Temperature 0 is greedy in both steps.  Row i draws from ``gen[i]`` alone.
     """
     t_kind = cfg.structure_temperature if cfg.temperature > 0 else 0.0
+    logits = _nan_masked(logits)
     p = (logits / (t_kind or 1.0)).softmax(-1)
     mass = torch.stack([p[:, :vt.BLOCK0].sum(-1), p[:, vt.BLOCK0:vt.OFFSET0].sum(-1), p[:, vt.OFFSET0:].sum(-1)], -1)
+    if not bool(torch.isfinite(mass).all()):
+        # A row with no finite logit left has nothing to draw from: fail here, on the host, rather than in
+        # torch.multinomial (a device-side assert on CUDA, which poisons the process's CUDA context).
+        raise FloatingPointError("the vertex decoder's logits allow no token (none is finite)")
     if t_kind > 0:
         kind = torch.cat([torch.multinomial(mass[i:i + 1], 1, generator=g) for i, g in enumerate(gen)])[:, 0]
     else:
         kind = mass.argmax(-1)
     if offset_bias is not None:
-        logits = torch.cat([logits[:, :vt.OFFSET0], logits[:, vt.OFFSET0:] + offset_bias], dim=-1)
+        logits = _nan_masked(torch.cat([logits[:, :vt.OFFSET0], logits[:, vt.OFFSET0:] + offset_bias], dim=-1))
     return sample_next(logits.masked_fill(token_kinds(logits.device) != kind[:, None], float("-inf")), cfg, gen)
+
+
+def _nan_masked(logits: torch.Tensor) -> torch.Tensor:
+    """(B, V) logits with NaN entries set to -inf: a token whose score is NaN is not drawn (sampling from NaN
+    probabilities is an error, a device-side assert on CUDA); finite and infinite entries are kept as they are."""
+    return torch.where(logits.isnan(), float("-inf"), logits)
 
 
 _KINDS: dict[torch.device, torch.Tensor] = {}

@@ -108,9 +108,13 @@ class CoordEmbedding(nn.Module):
 
     def __init__(self, dim: int, levels: int = LEVELS):
         super().__init__()
+        self.levels = levels
         self.tables = nn.ModuleList([nn.Embedding(levels, dim) for _ in range(3)])
 
     def forward(self, q: torch.Tensor) -> torch.Tensor:
+        """(…, 3) int cells -> (…, dim); coordinates are held to ``[0, levels)`` (an index outside a table is a
+        device-side assert on CUDA), which leaves cells on the grid unchanged."""
+        q = q.clamp(0, self.levels - 1)
         return sum(t(q[..., i]) for i, t in enumerate(self.tables))
 
 

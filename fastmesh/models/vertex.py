@@ -195,8 +195,9 @@ class VertexDecoder(nn.Module):
         x = self.tok_emb(tokens)
         is_block = ((tokens >= vt.BLOCK0) & (tokens < vt.OFFSET0))[..., None]
         is_off = (tokens >= vt.OFFSET0)[..., None]
-        bxyz = block_coords(block.clamp(min=0))
-        cell = bxyz * BLOCK_SIDE + offset_coords((tokens - vt.OFFSET0).clamp(min=0))
+        # Both held to their id ranges, so the tables are read in range whatever state a caller passes.
+        bxyz = block_coords(block.clamp(0, vt.N_BLOCKS - 1))
+        cell = bxyz * BLOCK_SIDE + offset_coords((tokens - vt.OFFSET0).clamp(0, vt.N_OFFSETS - 1))
         return x + is_block * self.block_emb(bxyz) + is_off * self.cell_emb(cell)
 
     def _run(self, x: torch.Tensor, start: int, kv_cache=None, is_causal: bool = True) -> torch.Tensor:

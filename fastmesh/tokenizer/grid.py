@@ -67,8 +67,13 @@ def grid_coords(v):
 
 
 def quantize(v):
-    """(…, 3) float positions in the unit cube -> (…, 3) int64 cells in [0, 127] (see ``grid_coords``)."""
-    return _int64((grid_coords(v) // 1).clip(0, LEVELS - 1))
+    """(…, 3) float positions in the unit cube -> (…, 3) int64 cells in [0, 127] (see ``grid_coords``).
+
+    Always on the grid, so a cell indexes any table of the grid: positions beyond the cube go to its border
+    cell (infinities included) and NaN to cell 0 (cast to an integer, NaN would be an arbitrary index).
+    """
+    g = grid_coords(v).clip(0, LEVELS - 1) // 1  # clipping first keeps +-inf out of the floor division
+    return _int64(g.nan_to_num(0.0) if _is_tensor(g) else np.nan_to_num(g, nan=0.0))
 
 
 def dequantize(q):

@@ -106,6 +106,11 @@ def local_redis(db: int) -> tuple[str, RedisServer | None]:
         return server.url.rsplit("/", 1)[0] + f"/{db}", server
 
 
+# ``fastmesh-worker``'s exit status after a job met a GPU error (``worker.jobs.is_device_error``): the job was
+# failed or requeued, and the process left because its CUDA context is unusable.  A supervisor restarts it.
+WORKER_EXIT_DEVICE_ERROR = 3
+
+
 def worker_command() -> list[str]:
     """The installed ``fastmesh-worker`` script next to this interpreter (a real console-script process)."""
     exe = Path(sys.executable).with_name("fastmesh-worker")

@@ -21,11 +21,12 @@ from pathlib import Path
 import numpy as np
 import redis
 
-from .processes import ApiProcess, RedisServer, WorkerProcess, wait_for
+from .processes import WORKER_EXIT_DEVICE_ERROR, ApiProcess, RedisServer, WorkerProcess, wait_for
 from .settings import Settings
 
-# A worker that dies (OOM, kill -9) is started again, after 1, 2, 4, ... s; one that keeps dying is a
-# fault to show, so after MAX_RESTARTS restarts within RESTART_WINDOW seconds `make run` stops.
+# A worker that dies (OOM, kill -9) or leaves after a GPU error (exit status WORKER_EXIT_DEVICE_ERROR: its CUDA
+# context is unusable, the job it ran is failed or requeued) is started again, after 1, 2, 4, ... s; one that
+# keeps dying is a fault to show, so after MAX_RESTARTS restarts within RESTART_WINDOW seconds `make run` stops.
 MAX_RESTARTS = 5
 RESTART_WINDOW = 600.0
 RESTART_MAX_DELAY = 30.0
@@ -85,7 +86,8 @@ def _restart(worker: WorkerProcess, restarts: list[float]) -> WorkerProcess | No
              "stopping")
         return None
     delay = min(RESTART_MAX_DELAY, 2.0 ** len(restarts))
-    _say(f"the worker exited with code {code}; starting it again in {delay:g} s "
+    why = " after a GPU error (a fresh process gets a fresh CUDA context)" if code == WORKER_EXIT_DEVICE_ERROR else ""
+    _say(f"the worker exited with code {code}{why}; starting it again in {delay:g} s "
          f"(restart {len(restarts) + 1} of at most {MAX_RESTARTS} within {RESTART_WINDOW:g} s)")
     time.sleep(delay)
     restarts.append(time.monotonic())

@@ -255,3 +255,143 @@ def test_jobs_queued_under_the_former_function_name_still_run():
     import worker.tasks
 
     assert worker.tasks.run_job is worker.jobs.run_job
+
+
+# A worker's GPU failing mid-job.  The hook below makes a worker's pipeline raise what torch raises after a
+# device-side assert, for the jobs of one seed; having raised, it fails every later job of that process, as a
+# CUDA context poisoned by the assert does.  With ONCE set (a file), only the first such job anywhere raises:
+# a fault of one process that another worker does not meet.
+DEVICE_HOOK = '''
+import os
+
+import fastmesh.pipeline as pipeline
+
+_generate, _poisoned = pipeline.Pipeline.generate, []
+
+
+def generate(self, shape, params=None, **kwargs):
+    once = os.environ.get("FMTEST_DEVICE_ERROR_ONCE")
+    hit = params is not None and params.seed == int(os.environ["FMTEST_DEVICE_ERROR_SEED"])
+    if _poisoned or (hit and not (once and os.path.exists(once))):
+        if once:
+            open(once, "w").close()
+        _poisoned.append(True)
+        raise RuntimeError("CUDA error: device-side assert triggered\\nCUDA kernel errors might be asynchronously "
+                           "reported at some other API call, so the stacktrace below might be incorrect.")
+    return _generate(self, shape, params, **kwargs)
+
+
+pipeline.Pipeline.generate = generate
+'''
+BAD_SEED = 4242
+
+
+def device_hook(tmp_path, once: bool = False) -> dict[str, str]:
+    """Worker environment that loads :data:`DEVICE_HOOK` at start-up (as ``sitecustomize``)."""
+    (tmp_path / "hook").mkdir(exist_ok=True)
+    (tmp_path / "hook" / "sitecustomize.py").write_text(DEVICE_HOOK)
+    env = {"PYTHONPATH": os.pathsep.join(filter(None, [str(tmp_path / "hook"), os.environ.get("PYTHONPATH")])),
+           "FMTEST_DEVICE_ERROR_SEED": str(BAD_SEED)}
+    if once:
+        env["FMTEST_DEVICE_ERROR_ONCE"] = str(tmp_path / "raised-once")
+    return env
+
+
+def test_device_errors_are_told_apart():
+    import torch
+
+    from fastmesh.pipeline import GenerationError
+    from worker.jobs import is_device_error
+
+    assert is_device_error(RuntimeError("CUDA error: device-side assert triggered"))
+    assert is_device_error(torch.AcceleratorError("CUDA error: an illegal memory access was encountered"))
+    assert is_device_error(RuntimeError("CUBLAS_STATUS_EXECUTION_FAILED when calling `cublasSgemm( handle, ...)`"))
+    try:
+        try:
+            raise RuntimeError("CUDA error: unspecified launch failure")
+        except RuntimeError as inner:
+            raise ValueError("while exporting") from inner
+    except ValueError as outer:
+        assert is_device_error(outer)
+    assert not is_device_error(torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB"))
+    assert not is_device_error(GenerationError("no_faces", "the face model connected no triangles"))
+    assert not is_device_error(RuntimeError("shape mismatch"))
+    assert not is_device_error(ValueError("max_vertices above the model's limit"))
+
+
+def test_device_error_fails_the_job_after_two_workers_and_each_exits_for_a_restart(env, tmp_path):
+    """The job that triggers the assert goes to another worker once, then fails ``device_error``; each worker
+    that met the error leaves (status 3) without taking another job, and the job queued behind the failing
+    one is done by a fresh worker, not failed by the poisoned one."""
+    app, hook = env.app, device_hook(tmp_path)
+    bad = submit(app.url, max_vertices=10, seed=BAD_SEED).json()["id"]
+    good = submit(app.url, max_vertices=10, seed=1).json()["id"]  # queued behind it, ahead of its attempt 2
+    first = env.spawn("gpu1", **hook)  # it may be gone before it is seen ready
+    assert first.proc.wait(60) == 3, first.log()[-3000:]
+    assert "device error" in first.log() and "exiting with status 3" in first.log()
+    assert job(app, good)["status"] == "queued"  # the poisoned worker left it for another
+    assert job(app, bad)["status"] == "queued" and env.attempt(bad) == 2
+    second = env.spawn("gpu2", **hook)  # it may finish both jobs and leave before it is seen ready
+    assert wait_final(app.url, good)["status"] == "succeeded"
+    final = wait_final(app.url, bad)
+    assert final["status"] == "failed" and final["error"]["code"] == "device_error", final
+    assert "CUDA error: device-side assert triggered" in final["error"]["message"]
+    assert "failed this way on another worker before" in final["error"]["message"]
+    assert final["finished_at"] is not None
+    assert second.proc.wait(60) == 3, second.log()[-3000:]
+    store_job = redis.Redis.from_url(env.s.redis_url).hget(f"{env.s.redis_prefix}:job:{good}", "worker")
+    assert store_job.decode() == second.name
+    assert_error(httpx.get(f"{app.url}/v1/jobs/{bad}/result"), 409, "job_failed")
+    client = redis.Redis.from_url(env.s.redis_url)
+    assert client.scard(f"{env.s.redis_prefix}:running") == 0  # nothing left "running"
+
+
+def test_device_error_of_one_process_is_retried_on_a_fresh_worker(env, tmp_path):
+    """A fault that passes with the process: attempt 2, on a fresh worker, succeeds."""
+    app, hook = env.app, device_hook(tmp_path, once=True)
+    job_id = submit(app.url, max_vertices=10, seed=BAD_SEED).json()["id"]
+    first = env.spawn("gpu1", **hook)
+    assert first.proc.wait(60) == 3, first.log()[-3000:]
+    env.spawn("gpu2", **hook)
+    final = wait_final(app.url, job_id)
+    assert final["status"] == "succeeded" and final["error"] is None, final
+    assert env.attempt(job_id) == 2
+
+
+def test_make_run_starts_a_fresh_worker_after_a_device_error(weights, tmp_path):
+    """`make run` as the supervisor: its worker leaves after the GPU error (status 3), `make run` says why and
+    starts another, which runs the job's second attempt."""
+    import subprocess
+    import sys
+
+    from test_service_run import run_env
+
+    from service.processes import free_port
+
+    port = free_port()
+    env = run_env(FASTMESH_PORT=str(port), FASTMESH_WEIGHTS=weights, **device_hook(tmp_path, once=True))
+    proc = subprocess.Popen([sys.executable, "-m", "service.run"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, env=env)
+    lines: list[str] = []
+
+    def printed(text: str):
+        def seen():
+            line = proc.stdout.readline()
+            if not line and proc.poll() is not None:
+                raise RuntimeError("service.run exited:\n" + "".join(lines))
+            lines.append(line)
+            return text in line
+        return seen
+
+    try:
+        wait_for(printed("Ctrl-C stops everything"), 120, 0, what="the service to be ready")
+        url = f"http://127.0.0.1:{port}"
+        job_id = submit(url, max_vertices=10, seed=BAD_SEED).json()["id"]
+        wait_for(printed("exited with code 3 after a GPU error"), 60, 0, what="the restart message")
+        final = wait_final(url, job_id, timeout=120)
+        assert final["status"] == "succeeded", final
+    finally:
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, "".join(lines) + rest
+    assert "starting it again" in "".join(lines)

@@ -10,6 +10,7 @@ import dataclasses
 import logging
 import os
 import socket
+import sys
 import threading
 import time
 import uuid
@@ -37,6 +38,8 @@ class _State:
         self.jobs = 0
         self.current: tuple[str, int] | None = None   # (job id, attempt), read by the heartbeat thread
         self.shutting_down = False
+        # Set once a job met an error of the accelerator: the process takes no further job (worker.main).
+        self.device_failed = False
         self.lock = threading.Lock()
 
     def configure(self, settings: Settings, store: Store | None = None) -> None:
@@ -59,6 +62,43 @@ class _State:
 
 
 STATE = _State()
+
+# What torch's messages say when the accelerator itself failed.  After a device-side assert or an illegal
+# memory access the process's CUDA context is unusable: every later kernel launch fails the same way, so
+# the only cure is a fresh process.  (Out of memory is not one of them: the context survives it.)
+DEVICE_ERROR_MARKERS = ("CUDA error", "CUDA driver error", "device-side assert", "CUBLAS_STATUS", "CUDNN_STATUS",
+                        "cuDNN error", "illegal memory access", "unspecified launch failure", "HIP error")
+
+
+def is_device_error(error: BaseException) -> bool:
+    """Whether ``error`` (or an exception it was raised from) is a failure of the accelerator (CUDA/ROCm).
+
+    Parameters
+    ----------
+    error : BaseException
+        What a job raised.
+
+    Returns
+    -------
+    bool
+        True for ``torch.AcceleratorError`` and for RuntimeErrors whose message carries one of
+        :data:`DEVICE_ERROR_MARKERS`; False for out-of-memory errors and for the pipeline's own errors.
+    """
+    torch = sys.modules.get("torch")  # imported by the pipeline whenever a device error is possible
+    accelerator = getattr(torch, "AcceleratorError", None)
+    out_of_memory = getattr(torch, "OutOfMemoryError", None)
+    seen = set()
+    while error is not None and id(error) not in seen:
+        seen.add(id(error))
+        if out_of_memory is not None and isinstance(error, out_of_memory):
+            return False
+        if accelerator is not None and isinstance(error, accelerator):
+            return True
+        if isinstance(error, RuntimeError) and not hasattr(error, "code"):
+            if any(m in str(error) for m in DEVICE_ERROR_MARKERS):
+                return True
+        error = error.__cause__ or error.__context__
+    return False
 
 
 def load_pipeline(settings: Settings):
@@ -139,6 +179,9 @@ def run_job(job_id: str, attempt: int) -> None:
             raise e from None  # the worker exits; the API's reaper requeues the job once its heartbeat lapses
         _release(store, job_id, attempt, "Redis was unreachable")
     except Exception as e:  # a bug or Redis trouble: fail this job clearly rather than retry it forever
+        if is_device_error(e):
+            _device_failure(store, job_id, attempt, e, {})
+            return
         log.exception("job %s crashed", job_id)
         store.finish(job_id, attempt, "failed",
                      error={"code": "internal", "message": f"worker error: {type(e).__name__}: {e}"[:500]})
@@ -190,6 +233,9 @@ def _run(store: Store, job_id: str, attempt: int) -> None:
                                                                         "message": str(e)[:500]})
         return
     except (MemoryError, RuntimeError) as e:  # incl. GenerationError ("no_vertices", "no_faces")
+        if is_device_error(e):
+            _device_failure(store, job_id, attempt, e, timings)
+            return
         if not hasattr(e, "code"):
             log.exception("job %s failed", job_id)
         store.finish(job_id, attempt, "failed", timings=timings, error={
@@ -216,10 +262,38 @@ def _redis_answers(store: Store) -> bool:
         return False
 
 
-def _release(store: Store, job_id: str, attempt: int, reason: str) -> None:
-    """Give a job back to the queue for a reason that is not the job's fault."""
+def _release(store: Store, job_id: str, attempt: int, reason: str, **fields) -> bool:
+    """Give a job back to the queue for a reason that is not the job's fault (``fields``: more to record in the
+    job's hash).  False when the job was no longer this attempt's (cancelled, taken over)."""
     ok = store.transition(job_id, "running", {"status": "queued", "attempt": attempt + 1, "stage": "queued",
-                                              "fraction": 0.0, "worker": ""}, attempt=attempt, final=True)
+                                              "fraction": 0.0, "worker": "", **fields}, attempt=attempt, final=True)
     if ok:
         store.enqueue(job_id, attempt + 1)
         log.warning("job %s handed back to the queue (%s)", job_id, reason)
+    return ok
+
+
+def _device_failure(store: Store, job_id: str, attempt: int, error: BaseException, timings: dict) -> None:
+    """The accelerator failed during a job: this process is done (``STATE.device_failed``: it exits after this
+    job and its supervisor starts a fresh one), and the job goes to another worker once, or fails.
+
+    A fault of the device or of this process's CUDA context passes with the process; one the job itself
+    triggers (its input driving a kernel out of bounds) comes back on the next worker, so a job gets one
+    more attempt after its first device error and fails ``device_error`` after its second, or when its
+    attempts (``max_attempts``) are spent.
+    """
+    STATE.device_failed = True
+    what = f"{type(error).__name__}: {(str(error).strip().splitlines() or [''])[0]}"[:300]
+    log.error("job %s attempt %d: device error (%s); this worker exits for a fresh CUDA context", job_id, attempt,
+              what, exc_info=error)
+    earlier = int((store.get(job_id) or {}).get("device_errors") or 0)
+    if earlier == 0 and attempt < store.settings.max_attempts:
+        if _release(store, job_id, attempt, "device error, for another worker", device_errors=1):
+            store.redis.hincrby(f"{store.prefix}:stats:jobs", "retried", 1)
+        return
+    again = ("; it had failed this way on another worker before, so it is likely to keep failing (report it with "
+             "its input)" if earlier else "")
+    store.finish(job_id, attempt, "failed", timings=timings, error={
+        "code": "device_error",
+        "message": f"the GPU failed while running this job ({what}); the worker that ran it restarts with a fresh "
+                   f"GPU context{again}"[:500]})

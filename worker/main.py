@@ -5,6 +5,11 @@ interpreter per job, which would reload the model every time).  A heartbeat thre
 worker and its current job visibly alive in Redis and runs the reaper, which requeues or fails
 the jobs of workers that died (SIGKILL, OOM, lost machine).
 
+After a job meets a GPU error (a device-side assert, an illegal memory access: ``worker.jobs``), the
+process's CUDA context fails every later job, so the worker records that job's outcome and exits with
+status ``WORKER_EXIT_DEVICE_ERROR`` (3) instead of taking another.  Run it under a supervisor that
+restarts it (``make run``, the compose file's ``restart`` policy, systemd's ``Restart=always``: README).
+
 Configuration: the ``FASTMESH_*`` environment (see ``service.settings.Settings``).
 """
 
@@ -18,7 +23,9 @@ import time
 
 import redis
 from rq import SimpleWorker
+from rq.exceptions import StopRequested
 
+from service.processes import WORKER_EXIT_DEVICE_ERROR
 from service.reaper import reap_logged
 from service.settings import Settings
 from service.store import Store
@@ -35,6 +42,14 @@ class FastMeshWorker(SimpleWorker):
     def handle_warm_shutdown_request(self):
         STATE.shutting_down = True
         super().handle_warm_shutdown_request()
+
+    def execute_job(self, job, queue):
+        """Run one job; after a GPU error in it, take no other (the work loop ends on StopRequested)."""
+        super().execute_job(job, queue)
+        if STATE.device_failed:
+            self.log.error("Worker %s: a GPU error left this process's CUDA context unusable; exiting with "
+                           "status %d for a clean restart", self.name, WORKER_EXIT_DEVICE_ERROR)
+            raise StopRequested()
 
 
 def _heartbeat(store: Store, stop: threading.Event) -> None:
@@ -129,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
             store.worker_gone(STATE.name)
         except redis.RedisError:
             pass
-    return 0
+    return WORKER_EXIT_DEVICE_ERROR if STATE.device_failed else 0
 
 
 if __name__ == "__main__":

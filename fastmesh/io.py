@@ -172,10 +172,12 @@ def too_many(n: int, limit: int, what: str = "points/vertices") -> ShapeError:
 
 def _precheck_mesh(data: bytes, ext: str, max_points: int, max_faces: int) -> None:
     """Refuse what the parser would choke on, before parsing (see :mod:`fastmesh.precheck`)."""
-    from .precheck import check_gltf, check_obj, check_ply
+    from .precheck import check_gltf, check_obj, check_off, check_ply
 
     if ext == "obj":
         check_obj(data, max_points, max_faces)
+    elif ext == "off":
+        check_off(data, max_points, max_faces)
     elif ext in ("gltf", "glb"):
         check_gltf(data, ext, max_points, max_faces)
     elif ext == "ply":

@@ -23,6 +23,15 @@ PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 
 PLURALS = {"vertex": "vertices", "face": "faces", "edge": "edges"}
 MAX_PLY_HEADER = 64 * 1024  # bytes; a real header is a few hundred
 MAX_SCENE_NODES = 100_000  # glTF nodes walked when counting instances
+# JSON objects and arrays in a glTF document: parsed, each takes ~25x its bytes (100,000 nodes take ~200,000).
+MAX_JSON_CONTAINERS = 500_000
+# Bytes of accessor data a glTF may make the parser materialise, per vertex and per face of the limits:
+# position, normal, two texture coordinates, colour, tangent, joints and weights take ~100 per vertex.
+ACCESSOR_BYTES_PER_VERTEX = 128
+ACCESSOR_BYTES_PER_FACE = 12  # three 32-bit indices
+GLTF_COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+GLTF_COMPONENT_BYTES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
+MIN_BYTE_STRIDE = 4  # the glTF 2.0 specification's minimum
 GLB_MAGIC = b"glTF"
 
 
@@ -30,11 +39,38 @@ GLB_MAGIC = b"glTF"
 
 
 def check_obj(data: bytes, max_points: int, max_faces: int) -> None:
-    """Count vertex and face lines (parsing 64 MB of them takes ~1 GB)."""
+    """Count vertex and face lines (parsing 64 MB of them takes ~1 GB).  The parser takes every line that
+    starts with ``f`` as a face (``f1 2 3``, ``f\t1 2 3``), and each face is at least one triangle."""
     n_v = data.count(b"\nv ") + data.startswith(b"v ")
     if n_v > max_points:
         raise too_many(n_v, max_points)
-    n_f = data.count(b"\nf ") + data.startswith(b"f ")
+    n_f = data.count(b"\nf") + data.startswith(b"f")
+    if n_f > max_faces:
+        raise too_many(n_f, max_faces, "faces")
+
+
+# --------------------------------------------------------------------------- OFF
+
+
+def check_off(data: bytes, max_points: int, max_faces: int) -> None:
+    """Refuse declared vertex and face counts over the limits (the parser splits every line of the file
+    into Python strings first: ~25x the file)."""
+    words: list[bytes] = []
+    for line in data[:MAX_PLY_HEADER].splitlines():
+        line = line.split(b"#", 1)[0].strip()
+        if line:
+            words += line.split()
+        if len(words) >= 4:
+            break
+    if not words or not words[0].upper().endswith(b"OFF"):
+        raise ShapeError("unreadable", "the OFF file's first line must be 'OFF' and the next the vertex, face "
+                                       "and edge counts")
+    counts = words[1:3]
+    if len(counts) < 2 or not all(c.isdigit() for c in counts):
+        raise ShapeError("unreadable", "the OFF file's counts line must hold the vertex, face and edge counts")
+    n_v, n_f = int(counts[0]), int(counts[1])
+    if n_v > max_points:
+        raise too_many(n_v, max_points)
     if n_f > max_faces:
         raise too_many(n_f, max_faces, "faces")
 
@@ -94,6 +130,45 @@ def check_ply(data: bytes, max_points: int, max_faces: int) -> None:
         raise ShapeError("unreadable", f"the PLY file is truncated: its header declares {_declared(elements)}, "
                                        f"at least {need} bytes of binary data, but only {have} bytes follow "
                                        "the header")
+    triangles = _ply_triangles(data, fmt, elements, start, max_faces)
+    if triangles > max_faces:
+        raise ShapeError("too_large", f"the PLY file's {counts.get('face', 0)} faces are {triangles} triangles, "
+                                      f"over the limit of {max_faces} faces")
+
+
+def _ply_triangles(data: bytes, fmt: str, elements, start: int, max_faces: int) -> int:
+    """Triangles of a binary PLY's faces once each polygon of k corners is fanned into k - 2.
+
+    The bytes after the fixed-size elements bound the corners from above; only when that bound is over
+    ``max_faces`` are the faces' corner counts read one by one (and the exact count returned).
+    """
+    offset, faces = start, None
+    for name, n, props in elements:
+        if name == "face":
+            faces = (n, props)
+            break
+        if any(p[0] == "list" for p in props):
+            return 0  # a list before the faces: their offset is unknown without parsing; the parser counts
+        offset += n * sum(PLY_SIZES[p[0]] for p in props)
+    if faces is None or not faces[1] or faces[1][0][0] != "list" or len(faces[1]) != 1:
+        return 0  # faces with other properties too: the parser's triangles are counted after it
+    n, ((_, count_type, item_type),) = faces
+    csize, isize = PLY_SIZES[count_type], PLY_SIZES[item_type]
+    bound = (len(data) - offset - n * csize) // isize - 2 * n  # every byte left being a corner
+    return bound if bound <= max_faces else _walk_fans(data, offset, n, csize, isize, fmt == "binary_big_endian")
+
+
+def _walk_fans(data: bytes, offset: int, n: int, csize: int, isize: int, big: bool) -> int:
+    """Sum of (corners - 2) over ``n`` face records ``<count><count items>`` from ``offset``."""
+    end = "big" if big else "little"
+    triangles = 0
+    for _ in range(n):
+        if offset + csize > len(data):
+            break
+        k = int.from_bytes(data[offset:offset + csize], end, signed=False)
+        triangles += max(k - 2, 0)
+        offset += csize + k * isize
+    return triangles
 
 
 def _ply_bytes(elements) -> tuple[int, int]:
@@ -141,6 +216,10 @@ def gltf_json(data: bytes, ext: str) -> dict:
         raw = data[20:20 + length]
     else:
         raw = data
+    containers = raw.count(b"{") + raw.count(b"[")  # an upper bound: brackets inside strings count too
+    if containers > MAX_JSON_CONTAINERS:
+        raise ShapeError("too_large", f"the glTF document has {containers} JSON objects and arrays, over the limit "
+                                      f"of {MAX_JSON_CONTAINERS}")
     try:
         doc = json.loads(raw)
     except (ValueError, RecursionError):
@@ -171,6 +250,7 @@ def check_gltf(data: bytes, ext: str, max_points: int, max_faces: int) -> None:
         if isinstance(uri, str) and not uri.startswith("data:"):
             raise ShapeError("unreadable", f"glTF buffer '{uri[:80]}' is an external file; upload a .glb, "
                                            "or a .gltf with embedded (data:) buffers")
+    _check_accessors(doc, max_points, max_faces)
     verts, faces = _scene_counts(doc)
     if verts > max_points:
         raise ShapeError("too_large", f"the glTF scene holds {verts} vertices once its nodes' mesh instances are "
@@ -178,6 +258,31 @@ def check_gltf(data: bytes, ext: str, max_points: int, max_faces: int) -> None:
     if faces > max_faces:
         raise ShapeError("too_large", f"the glTF scene holds {faces} faces once its nodes' mesh instances are "
                                       f"counted, over the limit of {max_faces}")
+
+
+def _check_accessors(doc: dict, max_points: int, max_faces: int) -> None:
+    """Refuse strides under the specification's minimum and more accessor data than the limits need.
+
+    The parser copies out every accessor, used by a mesh or not: a MAT4 accessor over a 1 MB buffer view
+    with a 1-byte stride is a 64 MB array, so 16 of them in a 1 MB file would take a gigabyte.
+    """
+    views = _list(doc, "bufferViews")
+    for i, view in enumerate(views):
+        stride = view.get("byteStride") if isinstance(view, dict) else None
+        if stride is not None and (not isinstance(stride, int) or stride < MIN_BYTE_STRIDE):
+            raise ShapeError("unreadable", f"glTF bufferView {i} has byteStride {str(stride)[:20]}; the glTF 2.0 "
+                                           f"specification requires at least {MIN_BYTE_STRIDE}")
+    total = 0
+    for a in _list(doc, "accessors"):
+        if not isinstance(a, dict):
+            continue
+        count = a.get("count")
+        width = GLTF_COMPONENTS.get(a.get("type"), 16) * GLTF_COMPONENT_BYTES.get(a.get("componentType"), 4)
+        total += count * width if isinstance(count, int) and count > 0 else 0
+    budget = max_points * ACCESSOR_BYTES_PER_VERTEX + max_faces * ACCESSOR_BYTES_PER_FACE
+    if total > budget:
+        raise ShapeError("too_large", f"the glTF file's accessors hold {total} bytes of data (used by a mesh or "
+                                      f"not), over the {budget} bytes its vertex and face limits allow")
 
 
 def _list(doc: dict, key: str) -> list:

@@ -13,6 +13,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from . import errors
+from .children import CappedPool
 from .deps import ApiKeys
 from .forms import generation_defaults
 from .middleware import ApiKeyGate, BodyLimit, JsonCORS, RequestMetrics
@@ -41,7 +42,9 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     store = store or Store(settings)
     keys = ApiKeys(settings.api_keys)
     metrics = Metrics(store)
-    renders = RenderPool(DEFAULT_PREVIEW.max_concurrent_renders)
+    cap = settings.child_memory_mb * 1024 * 1024
+    renders = RenderPool(DEFAULT_PREVIEW.max_concurrent_renders, cap)
+    parses = CappedPool(settings.max_concurrent_parses, cap, name="fastmesh-parse")
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -51,6 +54,7 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
         yield
         stop.set()
         renders.close()
+        parses.close()
 
     app = FastAPI(title="FastMesh", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
                   openapi_tags=[{"name": "jobs", "description": "Submit, watch, download, cancel."},
@@ -59,18 +63,22 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     app.state.settings, app.state.store, app.state.metrics, app.state.keys = settings, store, metrics, keys
     errors.install(app)
 
-    app.include_router(jobs_router(settings))
+    app.state.parses = parses  # tests and benchmarks read its children
+    app.include_router(jobs_router(settings, parses))
     app.include_router(ops.router)
     app.state.previews = preview_router(store, renders)  # on state: tests read its ``renders`` count
     app.include_router(app.state.previews)  # /v1/jobs/{id}/preview.png, .../input.ply
     app.include_router(web_router(settings, generation_defaults()))  # the page at / (service/web)
 
     # Each add_middleware wraps the previous ones: CORS ends outermost, so 413s and 429s carry its headers too.
-    app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes, idle_seconds=settings.body_timeout_seconds)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes, idle_seconds=settings.body_timeout_seconds,
+                       deadline_seconds=settings.upload_deadline_seconds)
     if keys:
-        app.add_middleware(ApiKeyGate, known=lambda token: keys.owner_of(token) is not None,
-                           fail_hit=lambda a: store.rate_hit("authfail", a, settings.auth_fail_limit_per_minute),
-                           fail_wait=lambda a: store.rate_wait("authfail", a, settings.auth_fail_limit_per_minute))
+        limit = settings.auth_fail_limit_per_minute
+        app.add_middleware(ApiKeyGate, owner_of=keys.owner_of,
+                           fail_hit=lambda a: store.rate_hit("authfail", a, limit),
+                           fail_wait=lambda a: store.rate_wait("authfail", a, limit),
+                           admit=lambda a, owner: store.auth_admit(a, owner, limit))
     app.add_middleware(RequestMetrics, metrics=metrics)
     if settings.cors_origins:
         app.add_middleware(JsonCORS, allow_origins=settings.cors_origins,

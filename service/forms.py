@@ -5,9 +5,14 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import sys
+import typing
 import unicodedata
+from collections.abc import Mapping
 
-from fastmesh.io import EXPORT_FORMATS, Shape
+from fastapi import Request
+
+from fastmesh.io import EXPORT_FORMATS
 
 from .errors import ApiError
 
@@ -17,6 +22,54 @@ def generation_defaults() -> dict:
     from fastmesh.params import GenerateParams
 
     return dataclasses.asdict(GenerateParams())
+
+
+# The spellings a form field of each type accepts: what a person writes, and nothing a lax parser also takes
+# ("1_000", "+4", " 5 ", "4.0" for an integer, "yes" / "on" / "" for a flag, subnormal floats).
+INT_RE = re.compile(r"-?[0-9]+")
+FLOAT_RE = re.compile(r"-?([0-9]+(\.[0-9]*)?|\.[0-9]+)([eE][-+]?[0-9]+)?")
+BOOL_WORDS = ("true", "false", "1", "0")
+
+
+def _plain_type(hint) -> type | None:
+    """``int`` for ``int | None`` and the like; None for anything but int, float and bool."""
+    args = [a for a in typing.get_args(hint) if a is not type(None)] if typing.get_origin(hint) else [hint]
+    return args[0] if len(args) == 1 and args[0] in (int, float, bool) else None
+
+
+def check_spelling(raw: Mapping[str, object]) -> None:
+    """Refuse generation fields sent empty or spelt laxly, per the type :class:`fastmesh.params.GenerateParams`
+    declares (a field of another type, a string choice, is left to its own validation).
+
+    Raises
+    ------
+    ApiError
+        422 ``invalid_parameter`` naming the field.
+    """
+    from fastmesh.params import GenerateParams
+
+    for name, hint in typing.get_type_hints(GenerateParams).items():
+        value, kind = raw.get(name), _plain_type(hint)
+        if value == "":  # a field sent empty is no value: leaving it out is how a client asks for the default
+            raise ApiError(422, "invalid_parameter", f"{name}: empty; leave the field out for its default")
+        if not isinstance(value, str) or kind is None:
+            continue
+        if kind is bool:
+            ok, what = value.lower() in BOOL_WORDS, "true or false"
+        elif kind is int:
+            ok, what = INT_RE.fullmatch(value) is not None, "a whole number written with digits only"
+        else:
+            ok = FLOAT_RE.fullmatch(value) is not None and (float(value) == 0 or
+                                                              abs(float(value)) >= sys.float_info.min)
+            what = "a plain decimal number (no subnormal values)"
+        if not ok:
+            raise ApiError(422, "invalid_parameter", f"{name}: '{value[:30]}' is not {what}")
+
+
+async def strict_form(request: Request) -> None:
+    """Dependency of the submission route: :func:`check_spelling` on its form as sent (the form is parsed
+    once; this reads Starlette's parsed copy)."""
+    check_spelling(await request.form())
 
 
 def build_params(values: dict, formats: str | None, default_formats: list[str], limit: int | None = None) -> dict:
@@ -68,11 +121,3 @@ def safe_filename(name: str | None) -> str:
         stem, dot, ext = name.rpartition(".")
         name = (stem[: 190] + dot + ext[:9]) if dot else name[:200]
     return name or "upload"
-
-
-def input_info(filename: str, shape: Shape) -> dict:
-    if shape.faces is None:
-        return {"filename": filename, "kind": "points", "points": int(len(shape.vertices)),
-                "vertices": None, "faces": None}
-    return {"filename": filename, "kind": "mesh", "points": None, "vertices": int(len(shape.vertices)),
-            "faces": int(len(shape.faces))}

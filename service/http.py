@@ -4,7 +4,9 @@ uvicorn answers a malformed request with a plain-text 400 and waits for a reques
 client takes.  ``Protocol`` answers both in the service's JSON error shape, and closes a connection whose request
 line and headers are not complete ``header_timeout_seconds`` after their first byte (or after the connection
 opened) with 408: a client dripping headers byte by byte holds a connection for that long, not for ever.
-(Bodies have their own timeout, ``middleware.UploadGuard``.)  Serve with
+(Bodies have their own timeouts, ``middleware.BodyLimit``.)  uvicorn also believes ``X-Forwarded-For`` from
+loopback by default, so any local client could name its own address and escape the per-address limits;
+``Protocol`` believes it only from the app's ``trusted_proxies`` (none by default).  Serve with
 ``uvicorn service.app:create_app --factory --http service.http:Protocol``.
 """
 
@@ -14,6 +16,7 @@ import asyncio
 import functools
 
 import h11
+from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from .errors import error_body
@@ -34,8 +37,28 @@ def error_bytes(status: int, reason: str, code: str, message: str) -> bytes:
     return head.encode() + body
 
 
+def trusting_only(app, config) -> object:
+    """``app`` (uvicorn's loaded app) with ``X-Forwarded-For`` believed only from the FastAPI app's
+    ``settings.trusted_proxies``: uvicorn's proxy-header layer is replaced by one trusting those alone, or
+    removed when there are none.  Made once per server config."""
+    cached = getattr(config, "_fastmesh_app", None)
+    if cached is not None:
+        return cached
+    inner = app.app if isinstance(app, ProxyHeadersMiddleware) else None
+    settings = getattr(getattr(inner, "state", None), "settings", None)
+    if settings is not None:
+        proxies = list(settings.trusted_proxies)
+        app = ProxyHeadersMiddleware(inner, trusted_hosts=proxies) if proxies else inner
+    config._fastmesh_app = app
+    return app
+
+
 class Protocol(H11Protocol):
     _header_timer: asyncio.TimerHandle | None = None
+
+    def __init__(self, config, *args, **kwargs) -> None:
+        super().__init__(config, *args, **kwargs)
+        self.app = trusting_only(self.app, config)
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)

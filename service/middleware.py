@@ -17,6 +17,7 @@ from starlette.responses import Response
 from .errors import error_body, error_response
 from .telemetry import Metrics
 
+GATED = ("/v1/", "/metrics")  # paths that need a key when keys are configured
 # Room for the multipart framing and the small form fields around the file.
 MULTIPART_OVERHEAD = 64 * 1024
 
@@ -37,32 +38,40 @@ async def _answer(send, status: int, code: str, message: str, headers: dict[str,
 
 
 class ApiKeyGate:
-    """Check the API key of every ``/v1/`` request from its headers, before any of its body is read.
+    """Check the API key of every ``/v1/`` and ``/metrics`` request from its headers, before any of its body
+    is read.
 
-    ``known(token)`` says whether a bearer token is a key.  Failed attempts are counted per client
-    address (``fail_hit(address)`` -> seconds to wait, 0 = allowed, ``fail_wait(address)`` the same
-    without counting); past the limit every request from that address gets 429 until the window
-    ends, right keys included, so keys cannot be guessed at line rate.  Two ``Authorization``
-    headers are refused: which one counts would depend on the framework.
+    ``owner_of(token)`` names the owner of a bearer token (None for no key).  Failed attempts are counted
+    per client address (``fail_hit(address)`` -> seconds to wait, 0 = allowed, ``fail_wait(address)`` the
+    same without counting); past the limit, requests from that address get 429 until the window ends,
+    so keys cannot be guessed at line rate.  ``admit(address, owner)`` remembers a key that authenticated
+    from an address while it was under the limit and says whether it did: such a key is never locked out
+    by someone else's failures from the same address (a proxy, a NAT, docker's gateway), while a key first
+    seen during the lockout waits like a guess, so the answer never tells a guesser that a key is right.
+    Two ``Authorization`` headers are refused: which one counts would depend on the framework.
     """
 
-    def __init__(self, app, known: Callable[[str], bool], fail_hit: Callable[[str], int],
-                 fail_wait: Callable[[str], int]):
-        self.app, self.known, self.fail_hit, self.fail_wait = app, known, fail_hit, fail_wait
+    def __init__(self, app, owner_of: Callable[[str], str | None], fail_hit: Callable[[str], int],
+                 fail_wait: Callable[[str], int], admit: Callable[[str, str], bool]):
+        self.app, self.owner_of, self.fail_hit, self.fail_wait = app, owner_of, fail_hit, fail_wait
+        self.admit = admit
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] != "http" or not scope["path"].startswith("/v1/") or scope["method"] == "OPTIONS":
+        if scope["type"] != "http" or not scope["path"].startswith(GATED) or scope["method"] == "OPTIONS":
             return await self.app(scope, receive, send)
         auth = [v for k, v in scope.get("headers", []) if k == b"authorization"]
         if len(auth) > 1:
             return await _answer(send, 400, "bad_request", "send one Authorization header, not several")
         address = (scope.get("client") or ("unknown",))[0]
+        scheme, _, token = (auth[0].decode("latin-1") if auth else "").partition(" ")
+        owner = self.owner_of(token.strip()) if scheme.lower() == "bearer" else None
         try:
+            if owner is not None and await anyio.to_thread.run_sync(self.admit, address, owner):
+                return await self.app(scope, receive, send)
             wait = await anyio.to_thread.run_sync(self.fail_wait, address)
+            if not wait and owner is not None:  # the lockout's window ended in between
+                return await self.app(scope, receive, send)
             if not wait:
-                scheme, _, token = (auth[0].decode("latin-1") if auth else "").partition(" ")
-                if scheme.lower() == "bearer" and self.known(token.strip()):
-                    return await self.app(scope, receive, send)
                 wait = await anyio.to_thread.run_sync(self.fail_hit, address)
         except redis.RedisError:
             return await _answer(send, 503, "unavailable", "the job store (Redis) is unreachable; retry later",
@@ -76,15 +85,16 @@ class ApiKeyGate:
 
 class BodyLimit:
     """Answer 413 as soon as a request body exceeds ``max_bytes`` (+ multipart overhead), 408 when
-    ``idle_seconds`` pass without any of it arriving (a slow client holds a connection and a worker
-    thread otherwise).
+    ``idle_seconds`` pass without any of it arriving or when it is not complete ``deadline_seconds`` after
+    the request began (a slow client holds a connection and a worker thread otherwise).
 
     A declared Content-Length is checked before reading anything; a chunked body is counted as it
     arrives, and once over the limit the app sees a disconnect while the client gets the 413.
     """
 
-    def __init__(self, app, max_bytes: int, idle_seconds: float = 30.0):
+    def __init__(self, app, max_bytes: int, idle_seconds: float = 30.0, deadline_seconds: float = 300.0):
         self.app, self.limit, self.idle = app, max_bytes + MULTIPART_OVERHEAD, idle_seconds
+        self.deadline_seconds = deadline_seconds
         self.mib = max_bytes / (1024 * 1024)
 
     async def __call__(self, scope, receive, send):
@@ -101,17 +111,21 @@ class BodyLimit:
                     return await _answer(send, 413, "too_large", msg)
         seen = 0
         answered = False
+        deadline = time.monotonic() + self.deadline_seconds
 
         async def limited_receive():
             nonlocal seen, answered
             if answered:
                 return {"type": "http.disconnect"}
-            with anyio.move_on_after(self.idle) as waited:
+            left = deadline - time.monotonic()
+            with anyio.move_on_after(min(self.idle, max(0.0, left))) as waited:
                 message = await receive()
             if waited.cancelled_caught:
                 answered = True
-                await _answer(send, 408, "timeout", f"no part of the request body arrived for {self.idle:g} s "
-                                                    "(body_timeout_seconds)")
+                why = f"no part of the request body arrived for {self.idle:g} s (body_timeout_seconds)" \
+                    if left > self.idle else \
+                    f"the request body was not complete within {self.deadline_seconds:g} s (upload_deadline_seconds)"
+                await _answer(send, 408, "timeout", why)
                 return {"type": "http.disconnect"}
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))

@@ -2,8 +2,10 @@
 
 A preview shows the result mesh once the job has succeeded, and the input (point cloud or dense
 mesh) before that, or when the job failed or was cancelled, so a client always has something to
-show.  Rendering is :mod:`fastmesh.render` (numpy z-buffer, CPU only) in a small pool of child
-processes (:mod:`service.render_pool`), so the API's memory does not grow with the inputs.
+show.  Rendering is :mod:`fastmesh.render` (numpy z-buffer, CPU only), and ``input.ply`` a sample of the
+stored input, both in a small pool of memory-capped child processes (:mod:`service.render_pool`), so the API's
+memory does not grow with the inputs; both take one of ``max_concurrent_renders`` slots, and a request
+waiting for one holds no input in memory.
 
 Each (job, what, size, wireframe) is rendered once: concurrent requests for it wait for the one
 render (single flight), whose PNG is cached in Redis for ``cache_seconds`` (at most the job's
@@ -18,22 +20,27 @@ Installed by ``create_app`` with ``app.include_router(preview_router(store, pool
 
 from __future__ import annotations
 
-from concurrent.futures import TimeoutError as FutureTimeout
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
 import anyio
-import numpy as np
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
-from fastmesh.io import ShapeError, sample_triangles
-
+from .children import ChildFailed, ChildShapeError
 from .deps import JobId, Owner, owned_job
 from .errors import ApiError
 from .render_pool import RenderPool
 from .schemas import error_responses
-from .store import Store, shape_from_bytes
+from .store import Store
+
+# KEYS: the job's hash, its preview hash.  ARGV: field, PNG, ttl.  A render that finishes after the job was
+# deleted must not leave its PNG behind: the preview is cached only while the job exists.
+_CACHE_IF_JOB = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
+redis.call('HSET', KEYS[2], ARGV[1], ARGV[2])
+redis.call('EXPIRE', KEYS[2], ARGV[3])
+return 1
+"""
 
 
 @dataclass(frozen=True)
@@ -98,25 +105,6 @@ class _Flight:
         self.of = ""
 
 
-def overlay_points(shape, n: int) -> np.ndarray:
-    """Up to ``n`` points of an input shape, (n, 3) float32, input frame: evenly picked points of a cloud,
-    area-weighted surface samples of a mesh (its vertices cluster where detail is, not where the surface is)."""
-    if shape.faces is None:
-        v = shape.vertices
-        idx = np.arange(len(v)) if len(v) <= n else np.linspace(0, len(v) - 1, n).astype(np.int64)
-        return v[idx].astype(np.float32)
-    points, _ = sample_triangles(np.asarray(shape.vertices, np.float64), shape.faces, n, np.random.default_rng(0))
-    return points
-
-
-def points_ply(points: np.ndarray) -> bytes:
-    """Binary little-endian PLY of (N, 3) points (float32 x, y, z), the format three.js's PLYLoader reads."""
-    p = np.ascontiguousarray(points, dtype="<f4")
-    header = (f"ply\nformat binary_little_endian 1.0\ncomment fastmesh input points\nelement vertex {len(p)}\n"
-              "property float x\nproperty float y\nproperty float z\nend_header\n")
-    return header.encode("ascii") + p.tobytes()
-
-
 def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAULT_PREVIEW) -> APIRouter:
     """Routes for previews of the jobs in ``store``; ``pool`` holds the render processes
     (``config.max_concurrent_renders`` of them)."""
@@ -136,29 +124,49 @@ def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAU
         router.renders += 1
         try:
             png = pool.render(of, blob, size, wireframe, config.render_wait_seconds)
-        except ShapeError as e:
-            raise ApiError(422, e.code, f"cannot render a preview: {e.message}") from None
-        except (FutureTimeout, BrokenProcessPool):
-            raise busy("the preview could not be rendered in time") from None
+        except (ChildShapeError, ChildFailed) as e:
+            raise child_error(e, "cannot render a preview") from None
         del blob
-        key = cache_key(store, job["id"])
-        with store.redis.pipeline() as tx:
-            tx.hset(key, cache_field(of, size, wireframe), png)
-            tx.expire(key, max(1, min(config.cache_seconds, store.ttl_of(job["id"]))))
-            tx.execute()
+        ttl = max(1, min(config.cache_seconds, store.ttl_of(job["id"])))
+        store.redis.eval(_CACHE_IF_JOB, 2, store.k_job(job["id"]), cache_key(store, job["id"]),
+                         cache_field(of, size, wireframe), png, ttl)
         return of, png
 
-    async def lead(job: dict, size: int, wireframe: bool, flight: _Flight) -> None:
+    def child_error(e: Exception, what: str) -> ApiError:
+        """The answer to a render or sample that failed in its child process."""
+        if isinstance(e, ChildShapeError):
+            return ApiError(422, e.code, f"{what}: {e.message}")
+        if e.reason == "memory":
+            return ApiError(413, "too_large", f"{what}: the input needs more memory than a render may use")
+        return busy(f"{what} in time" if e.reason == "deadline" else f"{what} now")
+
+    async def slot() -> anyio.Semaphore:
+        """A render slot, acquired: 503 busy when none frees up within ``render_wait_seconds``."""
         if not slots:
             slots.append(anyio.Semaphore(config.max_concurrent_renders))
         with anyio.move_on_after(config.render_wait_seconds) as waited:
             await slots[0].acquire()
         if waited.cancelled_caught:
             raise busy("too many previews are being rendered")
+        return slots[0]
+
+    async def lead(job: dict, size: int, wireframe: bool, flight: _Flight) -> None:
+        held = await slot()
         try:
             flight.of, flight.png = await anyio.to_thread.run_sync(render_and_cache, job, size, wireframe)
         finally:
-            slots[0].release()
+            held.release()
+
+    def overlay(job_id: str, points: int) -> bytes:
+        """``input.ply`` made by the pool.  Runs in a thread holding a render slot: the stored input is read
+        only then, so requests waiting for a slot hold nothing."""
+        blob = store.get_input(job_id)
+        if blob is None:
+            raise ApiError(404, "not_found", "the job's input is no longer stored")
+        try:
+            return pool.overlay(blob, points, config.render_wait_seconds)
+        except (ChildShapeError, ChildFailed) as e:
+            raise child_error(e, "cannot sample the input") from None
 
     @router.get("/v1/jobs/{job_id}/preview.png", response_class=Response,
                 summary="PNG preview: the result mesh, or the input before the result exists",
@@ -215,19 +223,17 @@ def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAU
                            200: {"description": "Binary PLY point cloud in the input's original frame",
                                  "content": {"application/ply": {"schema": {"type": "string",
                                                                             "format": "binary"}}}}})
-    def input_points(job_id: JobId, who: Owner,
-                     points: int = Query(config.overlay_points, ge=1, le=config.max_overlay_points,
-                                         description="At most this many points (evenly picked or sampled).")
-                     ) -> Response:
-        owned_job(store, job_id, who)
-        blob = store.get_input(job_id)
-        if blob is None:
-            raise ApiError(404, "not_found", "the job's input is no longer stored")
+    async def input_points(job_id: JobId, who: Owner,
+                           points: int = Query(config.overlay_points, ge=1, le=config.max_overlay_points,
+                                               description="At most this many points (evenly picked or sampled).")
+                           ) -> Response:
+        await anyio.to_thread.run_sync(owned_job, store, job_id, who)
+        held = await slot()
         try:
-            pts = overlay_points(shape_from_bytes(blob), points)
-        except ShapeError as e:
-            raise ApiError(422, e.code, e.message) from None
-        return Response(points_ply(pts), media_type="application/ply",
+            ply = await anyio.to_thread.run_sync(overlay, job_id, points)
+        finally:
+            held.release()
+        return Response(ply, media_type="application/ply",
                         headers={"Cache-Control": "private, max-age=86400",
                                  "Content-Disposition": f'inline; filename="{job_id}-input.ply"'})
 

@@ -1,41 +1,24 @@
-"""Preview rendering in child processes, so the API's memory stays flat whatever the input's size.
+"""Previews and input overlays made in capped child processes (:class:`service.children.CappedPool`).
 
-A preview of a dense input decodes tens of MB and rasterises it; done in the API process, the
-allocator keeps what a burst of them took.  Here each render runs in one of a few ``spawn``-ed
-processes (recycled after :data:`TASKS_PER_CHILD` renders), and the API holds only the stored
-bytes going in and the PNG coming out.  This module imports no web framework: it is what a child
-imports.
+A preview of a dense input decodes tens of MB and rasterises it, and an ``input.ply`` samples the
+stored input's surface; done in the API process, a burst of them would grow it by gigabytes and the
+allocator would keep much of that.  Here each runs in one of a few low-priority children with a
+memory cap, and the API holds only the stored bytes going in and the PNG or PLY coming out.  This
+module imports no web framework: it is what a child imports.
 """
 
 from __future__ import annotations
 
-import multiprocessing
-import os
-import threading
-import time
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
+import numpy as np
+
+from .children import CappedPool
 
 TASKS_PER_CHILD = 50  # a child is replaced after this many renders: what its allocator kept goes with it
-ORPHAN_CHECK_SECONDS = 1.0  # how often a render process checks that the API process still exists
 RENDER_NICENESS = 10  # renders yield the CPU to the API process, so status polls stay fast during a burst
+DEFAULT_MEMORY_BYTES = 1536 * 1024 * 1024
 
 
-def _background() -> None:
-    """Initializer of a render process: low priority, and gone with the API process.  An API killed
-    without its shutdown (SIGKILL, a crash) cannot stop its children, so each watches its parent."""
-    os.nice(RENDER_NICENESS)
-    parent = os.getppid()
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(ORPHAN_CHECK_SECONDS)
-        os._exit(0)
-
-    threading.Thread(target=watch, name="fastmesh-render-orphan-watch", daemon=True).start()
-
-
-def render_blob(of: str, blob: bytes, size: int, wireframe: bool) -> bytes:
+def render_blob(blob: bytes, of: str, size: int, wireframe: bool) -> bytes:
     """PNG bytes of a stored result (``of == "result"``: npz of vertices and faces) or input (a Shape's npz).
 
     A result without faces (a degenerate generation) is drawn as its vertices, so the preview still
@@ -55,32 +38,46 @@ def render_blob(of: str, blob: bytes, size: int, wireframe: bool) -> bytes:
     return to_png(img)
 
 
-class RenderPool:
-    """``workers`` render processes, started on first use; :meth:`close` stops them."""
+def overlay_points(shape, n: int) -> np.ndarray:
+    """Up to ``n`` points of an input shape, (n, 3) float32, input frame: evenly picked points of a cloud,
+    area-weighted surface samples of a mesh (its vertices cluster where detail is, not where the surface is)."""
+    from fastmesh.io import sample_triangles
 
-    def __init__(self, workers: int):
-        self.workers = workers
-        self._pool: ProcessPoolExecutor | None = None
-        self._lock = threading.Lock()
+    if shape.faces is None:
+        v = shape.vertices
+        idx = np.arange(len(v)) if len(v) <= n else np.linspace(0, len(v) - 1, n).astype(np.int64)
+        return v[idx].astype(np.float32)
+    points, _ = sample_triangles(np.asarray(shape.vertices, np.float64), shape.faces, n, np.random.default_rng(0))
+    return points
+
+
+def points_ply(points: np.ndarray) -> bytes:
+    """Binary little-endian PLY of (N, 3) points (float32 x, y, z), the format three.js's PLYLoader reads."""
+    p = np.ascontiguousarray(points, dtype="<f4")
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment fastmesh input points\nelement vertex {len(p)}\n"
+              "property float x\nproperty float y\nproperty float z\nend_header\n")
+    return header.encode("ascii") + p.tobytes()
+
+
+def overlay_blob(blob: bytes, n: int) -> bytes:
+    """``input.ply``: up to ``n`` points of a stored input (a Shape's npz) as a binary PLY."""
+    from .store import shape_from_bytes
+
+    return points_ply(overlay_points(shape_from_bytes(blob), n))
+
+
+class RenderPool:
+    """``workers`` render processes of at most ``memory_bytes`` each, started on first use; :meth:`close`
+    stops them.  A render that fails raises what :meth:`service.children.CappedPool.call` raises."""
+
+    def __init__(self, workers: int, memory_bytes: int = DEFAULT_MEMORY_BYTES):
+        self.pool = CappedPool(workers, memory_bytes, TASKS_PER_CHILD, RENDER_NICENESS, name="fastmesh-render")
 
     def render(self, of: str, blob: bytes, size: int, wireframe: bool, timeout: float) -> bytes:
-        with self._lock:
-            if self._pool is None:
-                self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                                 max_tasks_per_child=TASKS_PER_CHILD, initializer=_background)
-            pool = self._pool
-        try:
-            return pool.submit(render_blob, of, blob, size, wireframe).result(timeout)
-        except BrokenProcessPool:  # a child died (killed, out of memory): the next render starts new ones
-            with self._lock:
-                if self._pool is pool:
-                    self._pool = None
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
+        return self.pool.call(render_blob, blob, of, size, wireframe, timeout=timeout)
+
+    def overlay(self, blob: bytes, n: int, timeout: float) -> bytes:
+        return self.pool.call(overlay_blob, blob, n, timeout=timeout)
 
     def close(self) -> None:
-        """Stop the render processes (a render under way finishes first)."""
-        with self._lock:
-            pool, self._pool = self._pool, None
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+        self.pool.close()

@@ -27,8 +27,8 @@ class Settings(BaseSettings):
     redis_maxmemory: str = Field("1gb", description="Memory cap of the redis-server `make run` starts (policy "
                                  "noeviction: when full, submissions get 503 and no queued job is evicted).")
     queue_name: str = Field("fastmesh", description="RQ queue the API fills and the workers drain.")
-    host: str = "127.0.0.1"
-    port: int = 8000
+    host: str = Field("127.0.0.1", description="Address the API listens on.")
+    port: int = Field(8000, description="Port the API listens on.")
 
     # --- access
     api_keys: CommaList = Field(default_factory=list,
@@ -37,7 +37,11 @@ class Settings(BaseSettings):
                                     description="Comma-separated origins allowed by CORS ('*' for any); empty = off.")
     rate_limit_per_minute: int = Field(1200, ge=0, description="/v1 requests per key (or IP) per minute; 0 = off.")
     auth_fail_limit_per_minute: int = Field(30, ge=0, description="Failed authentications per client address per "
-                                            "minute; past it every request from there gets 429; 0 = off.")
+                                            "minute; past it requests from there get 429, except those with a key "
+                                            "that authenticated from there before the limit was reached; 0 = off.")
+    trusted_proxies: CommaList = Field(default_factory=list,
+                                       description="Comma-separated addresses of reverse proxies whose "
+                                       "`X-Forwarded-For` names the client; empty = the header is ignored.")
     submit_rate_limit_per_minute: int = Field(120, ge=0, description="Job submissions per key per minute; 0 = off.")
 
     # --- input limits
@@ -55,6 +59,13 @@ class Settings(BaseSettings):
     max_concurrent_parses: int = Field(2, ge=1, description="Uploads read and parsed at once by one API process; "
                                        "further ones wait up to parse_wait_seconds, then get 429 (busy).")
     parse_wait_seconds: float = Field(1.0, ge=0, description="Longest wait of an upload for a parsing slot.")
+    upload_deadline_seconds: float = Field(300.0, gt=0, description="A request body not complete this long after "
+                                           "the request began is answered 408, however steadily it trickles.")
+    child_memory_mb: int = Field(1536, ge=256, description="Address-space cap in MiB of each child process that "
+                                 "parses an upload, samples an input or renders a preview; what needs more is "
+                                 "refused (413) and the API process never grows with a file.")
+    parse_timeout_seconds: float = Field(60.0, gt=0, description="An upload not parsed in this time is refused "
+                                         "(413) and its child process killed.")
     max_wait_seconds: float = Field(300.0, ge=0, description="Longest long-poll of GET .../result?wait=S.")
 
     # --- jobs and workers
@@ -74,7 +85,7 @@ class Settings(BaseSettings):
     torch_threads: int | None = Field(None, ge=1, description="torch threads in a worker; unset = the pipeline's "
                                      "choice (1 on CPU, the fastest measured for one job at a time).")
 
-    @field_validator("api_keys", "cors_origins", "default_formats", mode="before")
+    @field_validator("api_keys", "cors_origins", "default_formats", "trusted_proxies", mode="before")
     @classmethod
     def _split_commas(cls, v):
         if isinstance(v, str):
@@ -89,3 +100,22 @@ class Settings(BaseSettings):
         if bad or not v:
             raise ValueError(f"default_formats must be a non-empty subset of {', '.join(EXPORT_FORMATS)}")
         return v
+
+
+def settings_table() -> str:
+    """README's settings table: one row per field of :class:`Settings`, its variable, default and description
+    (a test keeps README equal to it)."""
+
+    def default(field) -> str:
+        value = field.get_default(call_default_factory=True)
+        if value is None or value == []:
+            return "unset"
+        if isinstance(value, list):
+            value = ",".join(value)
+        return f"`{value}`"
+
+    rows = ["| variable | default | what |", "|---|---|---|"]
+    for name, field in Settings.model_fields.items():
+        what = (field.description or "").replace("|", "\\|")
+        rows.append(f"| `FASTMESH_{name.upper()}` | {default(field)} | {what} |")
+    return "\n".join(rows)

@@ -12,6 +12,7 @@ Layout (``P`` is ``Settings.redis_prefix``)::
     P:suspects              hash job id -> when its queue entry was first seen missing
     P:idem:<owner>:<sha>    "<job id> <request fingerprint>" for Idempotency-Key (+ " pending" until created)
     P:rate:<kind>:<owner>:<minute>   fixed-window request counters
+    P:authok:<address>:<owner>  a key that authenticated from an address before a lockout (``auth_admit``)
     P:workers               zset worker name -> last heartbeat (unix seconds)
     P:vertex_limit          max_vertices of the model the last heartbeating worker loaded
     P:worker:<name>         hash: pid host loads jobs weights started_at
@@ -51,6 +52,18 @@ DISTANCE_BUCKETS = (0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 7.5, 10.0, 15.0, 20.0, 30.0, 5
 TASK = "worker.jobs.run_job"  # by name: the API never imports the worker (or torch)
 RQ_GRACE = 30  # RQ's hard timeout backs up our cooperative one by this many seconds
 PENDING_TTL = 10  # seconds an Idempotency-Key stays claimed by a request that has not created its job yet
+
+# KEYS: failed authentications of an address this minute, the (address, owner) pair's mark.  ARGV: limit, ttl.
+_AUTH_ADMIT = """
+local limit = tonumber(ARGV[1])
+if limit <= 0 then return 1 end
+if tonumber(redis.call('GET', KEYS[1]) or '0') < limit then
+  redis.call('SET', KEYS[2], '1', 'EX', ARGV[2])
+  return 1
+end
+return redis.call('EXISTS', KEYS[2])
+"""
+AUTH_REMEMBER_SECONDS = 3600  # a key that authenticated from an address is not locked out there for this long
 
 # KEYS: job, hb, running set, queued zset, keys to EXPIRE...
 # ARGV: allowed statuses (comma list), attempt ('' = any), ttl ('' = keep), job id,
@@ -457,6 +470,14 @@ class Store:
             pipe.expire(k, 61)
             count = pipe.execute()[0]
         return 0 if count <= limit else max(1, int(math.ceil((window + 1) * 60 - now)))
+
+    def auth_admit(self, address: str, owner: str, limit: int, remember: int = AUTH_REMEMBER_SECONDS) -> bool:
+        """Whether ``owner``'s key may pass from ``address``: while the address's failed authentications are
+        under ``limit`` it may (and the pair is remembered for ``remember`` seconds); past it only a
+        remembered pair may."""
+        window = int(time.time() // 60)
+        return bool(self.redis.eval(_AUTH_ADMIT, 2, f"{self.prefix}:rate:authfail:{address}:{window}",
+                                    f"{self.prefix}:authok:{address}:{owner}", limit, remember))
 
     def rate_wait(self, kind: str, owner: str, limit: int) -> int:
         """Seconds to wait when this minute's window already holds ``limit`` hits (0 = allowed); counts nothing."""

@@ -369,7 +369,8 @@ def test_api_keys_isolate_jobs(keyed):
     assert_error(httpx.delete(url, headers=two), 404, "not_found")
     assert httpx.get(url, headers=one).json()["status"] == "queued"  # key two's DELETE did nothing
     assert httpx.get(f"{keyed.url}/healthz").status_code == 200
-    assert httpx.get(f"{keyed.url}/metrics").status_code == 200
+    assert_error(httpx.get(f"{keyed.url}/metrics"), 401)  # metrics read Redis: behind the key like /v1
+    assert httpx.get(f"{keyed.url}/metrics", headers=one).status_code == 200
 
 
 def test_idempotency_key_scoped_per_api_key(keyed):

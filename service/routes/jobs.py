@@ -9,28 +9,32 @@ from __future__ import annotations
 import threading
 import time
 from pathlib import PurePath
+from urllib.parse import quote
 
 import anyio
-from fastapi import APIRouter, File, Form, Header, Query, Request, Response, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Header, Query, Request, Response, UploadFile
 from fastapi.responses import JSONResponse
 
-from fastmesh.io import EXPORT_FORMATS, ShapeError, export_mesh, load_shape
+from fastmesh.io import EXPORT_FORMATS, export_mesh
 from fastmesh.params import BOUNDS
 
+from ..children import CappedPool, ChildFailed, ChildShapeError
 from ..deps import JobId, Owner, StoreDep, owned_job
 from ..errors import SHAPE_STATUS, ApiError
-from ..forms import build_params, generation_defaults, input_info, safe_filename
+from ..forms import build_params, generation_defaults, safe_filename, strict_form
 from ..idempotency import Idempotency
+from ..parsing import parse_upload
 from ..schemas import Job, error_responses
 from ..settings import Settings
-from ..store import FINAL, QueueFull, Store, mesh_from_bytes, shape_to_bytes
+from ..store import FINAL, QueueFull, Store, mesh_from_bytes
 
 MEDIA = {"glb": "model/gltf-binary", "obj": "model/obj", "ply": "application/ply"}
 
 
-def jobs_router(settings: Settings) -> APIRouter:
+def jobs_router(settings: Settings, parses: CappedPool) -> APIRouter:
     """The routes of one app.  They are built per ``settings`` because the OpenAPI schema shows them (the
-    long-poll limit, the default formats) and the upload-parsing slots are counted per app."""
+    long-poll limit, the default formats) and the upload-parsing slots are counted per app; uploads are
+    parsed in ``parses`` (``settings.max_concurrent_parses`` capped child processes)."""
     router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
     defaults = generation_defaults()
     parse_slots = threading.BoundedSemaphore(settings.max_concurrent_parses)
@@ -39,6 +43,7 @@ def jobs_router(settings: Settings) -> APIRouter:
         return f"default {defaults.get(name)!r}"
 
     @router.post("", status_code=202, response_model=Job, summary="Submit a shape; returns the queued job",
+                 dependencies=[Depends(strict_form)],
                  responses={**error_responses(401, 409, 413, 415, 422, 429, 503),
                             202: {"description": "Accepted; `Location` names the job",
                                   "headers": {"Location": {"schema": {"type": "string"}}}},
@@ -95,7 +100,7 @@ def jobs_router(settings: Settings) -> APIRouter:
             if len(data) > settings.max_upload_bytes:
                 raise ApiError(413, "too_large", f"upload larger than the {settings.max_upload_bytes} byte limit")
             filename = safe_filename(file.filename)
-            idem = Idempotency(store, who, idempotency_key, data, params)
+            idem = Idempotency(store, who, idempotency_key, data, {**params, "filename": filename})
             existing = idem.existing()
             if existing is not None:
                 return job_response(store, existing, 200)
@@ -103,17 +108,9 @@ def jobs_router(settings: Settings) -> APIRouter:
             if depth >= settings.max_queue_depth:
                 raise queue_full(store, settings, depth)
             t0 = time.perf_counter()
-            try:
-                # A point cloud's normals are estimated by the worker, outside the request path.
-                shape = load_shape(data, filename=filename, max_points=settings.max_points,
-                                   max_faces=settings.max_faces, normals=False)
-            except ShapeError as e:
-                raise ApiError(SHAPE_STATUS.get(e.code, 422), e.code, e.message) from None
+            info, blob = parse(parses, settings, data, filename)
             del data
             load_seconds = time.perf_counter() - t0
-            info = input_info(filename, shape)
-            blob = shape_to_bytes(shape)
-            del shape
         finally:
             parse_slots.release()
         job_id = store.new_id()
@@ -164,8 +161,7 @@ def jobs_router(settings: Settings) -> APIRouter:
                            f"job {job['status']}, no result: {err.get('message', 'no detail')}")
         data = await anyio.to_thread.run_sync(result_bytes, store, job_id, format)
         stem = PurePath(job["input"]["filename"]).stem or "result"
-        return Response(data, media_type=MEDIA[format],
-                        headers={"Content-Disposition": f'attachment; filename="{ascii_name(stem)}.{format}"'})
+        return Response(data, media_type=MEDIA[format], headers={"Content-Disposition": disposition(stem, format)})
 
     @router.delete("/{job_id}", summary="Cancel a queued/running job, or delete a finished one",
                    responses={**error_responses(401, 404, 422, 429, 503),
@@ -179,6 +175,36 @@ def jobs_router(settings: Settings) -> APIRouter:
         return Response(status_code=204)
 
     return router
+
+
+def parse(parses: CappedPool, settings: Settings, data: bytes, filename: str) -> tuple[dict, bytes]:
+    """``(input facts, stored input)`` of an upload, parsed in a capped child process.
+
+    Raises
+    ------
+    ApiError
+        What the file is refused for: the ShapeError's code (413 ``too_large``, 415, 422); 413 ``too_large``
+        when parsing needed more than ``child_memory_mb`` or ``parse_timeout_seconds``; 422 ``unreadable``
+        when the parser's process died on it.
+    """
+    try:
+        return parses.call(parse_upload, data, filename, settings.max_points, settings.max_faces,
+                           timeout=settings.parse_timeout_seconds)
+    except ChildShapeError as e:
+        raise ApiError(SHAPE_STATUS.get(e.code, 422), e.code, e.message) from None
+    except ChildFailed as e:
+        if e.reason == "memory":
+            raise ApiError(413, "too_large", f"reading this file needs more than the {settings.child_memory_mb} "
+                                             "MiB a parse may use (child_memory_mb); it declares or expands to "
+                                             "too much data") from None
+        if e.reason == "deadline":
+            raise ApiError(413, "too_large", f"this file could not be read within {settings.parse_timeout_seconds:g}"
+                                             " s (parse_timeout_seconds); it is too large or too complex") from None
+        if e.reason == "busy":
+            raise ApiError(429, "busy", "every parsing process is busy; retry shortly", {"Retry-After": "2"}) \
+                from None
+        raise ApiError(422, "unreadable", "the file could not be parsed: the parser stopped on it (it is damaged, "
+                                          "or expands to more than can be read)") from None
 
 
 def job_response(store: Store, job: dict, status: int = 200) -> JSONResponse:
@@ -212,6 +238,13 @@ def result_bytes(store: Store, job_id: str, fmt: str) -> bytes:
     data = export_mesh(*mesh_from_bytes(mesh), fmt)
     store.put_result(job_id, fmt, data, ttl=store.ttl_of(job_id))
     return data
+
+
+def disposition(stem: str, ext: str) -> str:
+    """``Content-Disposition`` of a download named after the upload: an ASCII ``filename`` for old clients and
+    the name itself, UTF-8, as ``filename*`` (RFC 6266), which browsers prefer."""
+    full = quote(f"{stem[:100]}.{ext}", safe="")
+    return f'attachment; filename="{ascii_name(stem)}.{ext}"; filename*=UTF-8\'\'{full}'
 
 
 def ascii_name(name: str) -> str:

@@ -1,10 +1,11 @@
-"""Operations: ``/healthz`` (the process is up), ``/readyz`` (Redis reachable and a worker alive), ``/metrics``."""
+"""Operations: ``/healthz`` (the process is up), ``/readyz`` (Redis reachable and a worker alive), ``/metrics``
+(behind the API key and rate limit of the ``/v1`` routes)."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter, Response
 
-from ..deps import MetricsDep, StoreDep
+from ..deps import MetricsDep, Owner, StoreDep
 from ..errors import ApiError
 from ..schemas import Health, Ready, error_responses
 
@@ -29,7 +30,10 @@ def readyz(store: StoreDep) -> dict:
     return {"status": "ready", "redis": True, "workers": workers, "queue_depth": depth}
 
 
-@router.get("/metrics", summary="Prometheus metrics", response_class=Response,
-            responses={200: {"content": {"text/plain": {"example": "fastmesh_queue_depth 0.0\n"}}}})
-def prometheus(metrics: MetricsDep) -> Response:
+@router.get("/metrics", summary="Prometheus metrics (an API key when the server has keys; rate-limited)",
+            response_class=Response,
+            responses={**error_responses(401, 429, 503),
+                       200: {"content": {"text/plain": {"example": "fastmesh_queue_depth 0.0\n"}}}})
+def prometheus(metrics: MetricsDep, who: Owner) -> Response:
+    # Each scrape reads Redis: it needs the key of the /v1 routes and counts against their rate limit.
     return Response(metrics.render(), media_type="text/plain; version=0.0.4; charset=utf-8")

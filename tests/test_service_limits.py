@@ -1,0 +1,192 @@
+"""Limits that cannot be turned against other users, strict form values, and what a request may hold open."""
+
+from __future__ import annotations
+
+import re
+import socket
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from stack import assert_error, make_settings, sphere_points, xyz_bytes
+
+import service.render_pool
+from service.processes import ServedApp
+from service.settings import Settings, settings_table
+from service.store import Store, mesh_to_bytes
+
+KEY, KEY2 = "limits-test-key", "limits-test-key-2"
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def post(url: str, name: str, data: bytes, headers=None, **fields) -> httpx.Response:
+    return httpx.post(f"{url}/v1/jobs", files={"file": (name, data)}, data={k: str(v) for k, v in fields.items()},
+                      headers=headers, timeout=60)
+
+
+@pytest.fixture(scope="module")
+def open_api(redis_url):
+    app = ServedApp(make_settings(redis_url, "lim", max_queue_depth=10_000))
+    yield app
+    app.stop()
+
+
+def within_one_minute_window() -> None:
+    """The failed-key counter's window is the clock minute: run inside one."""
+    if time.time() % 60 > 40:
+        time.sleep(61 - time.time() % 60)
+
+
+def bearer(key: str, **extra: str) -> dict:
+    return {"Authorization": f"Bearer {key}", **extra}
+
+
+# ---------------------------------------------------------------------------------------- failed keys, proxies
+
+
+def test_failed_keys_do_not_lock_out_a_key_already_in_use_from_the_address(redis_url):
+    """Someone guessing from a shared address (a NAT, a proxy, docker's gateway) must not lock out the users
+    already working from there; a key first seen during the lockout waits like any guess."""
+    app = ServedApp(make_settings(redis_url, "limlock", api_keys=[KEY, KEY2], auth_fail_limit_per_minute=10))
+    within_one_minute_window()
+    try:
+        url = f"{app.url}/v1/jobs/{'0' * 32}"
+        assert_error(httpx.get(url, headers=bearer(KEY)), 404)
+        codes = [httpx.get(url, headers=bearer(f"guess{i}")).status_code for i in range(20)]
+        assert codes[:10] == [401] * 10 and set(codes[10:]) == {429}, codes
+        assert_error(httpx.get(url, headers=bearer(KEY)), 404)  # still served
+        assert_error(httpx.get(url, headers=bearer(KEY2)), 429, "rate_limited")  # never seen here before
+    finally:
+        app.stop()
+
+
+def test_x_forwarded_for_is_ignored_unless_from_a_trusted_proxy(redis_url):
+    within_one_minute_window()
+    for trusted, expect_429 in (([], True), (["127.0.0.1"], False)):
+        app = ServedApp(make_settings(redis_url, f"limxff{len(trusted)}", api_keys=[KEY], auth_fail_limit_per_minute=5,
+                                      trusted_proxies=trusted))
+        try:
+            codes = [httpx.get(f"{app.url}/v1/jobs/{'0' * 32}",
+                               headers=bearer(f"guess{i}", **{"X-Forwarded-For": f"198.51.100.{i}"})).status_code
+                     for i in range(12)]
+            assert (429 in codes) == expect_429, (trusted, codes)
+        finally:
+            app.stop()
+
+
+def test_metrics_need_a_key_and_count_against_the_rate_limit(redis_url):
+    app = ServedApp(make_settings(redis_url, "limmetrics", api_keys=[KEY], rate_limit_per_minute=5))
+    within_one_minute_window()
+    try:
+        assert_error(httpx.get(f"{app.url}/metrics"), 401, "unauthorized")
+        codes = [httpx.get(f"{app.url}/metrics", headers=bearer(KEY)).status_code for _ in range(8)]
+        assert codes[:5] == [200] * 5 and set(codes[5:]) == {429}, codes
+    finally:
+        app.stop()
+
+
+# ---------------------------------------------------------------------------------------- form values
+
+
+@pytest.mark.parametrize("field,value", [("target_faces", "1_000"), ("target_faces", "+4"), ("target_faces", " 5 "),
+                                         ("target_faces", "4.0"), ("candidates", "2.0"), ("seed", "1.0"),
+                                         ("enhancer", "yes"), ("enhancer", "on"), ("enhancer", ""),
+                                         ("top_p", "1e-320")])
+def test_lax_spellings_are_422(open_api, field, value):
+    err = assert_error(post(open_api.url, "p.xyz", xyz_bytes(sphere_points(50)), **{field: value}), 422,
+                       "invalid_parameter")
+    assert err["message"].startswith(field)
+
+
+def test_plain_spellings_are_accepted(open_api):
+    r = post(open_api.url, "p.xyz", xyz_bytes(sphere_points(50)), target_faces=400, candidates=1, seed=3,
+             enhancer="false", filtering="True", top_p="0.5", temperature="1e-3")
+    assert r.status_code == 202, r.text
+
+
+def test_the_idempotency_fingerprint_includes_the_filename(open_api):
+    data, key = xyz_bytes(sphere_points(60)), {"Idempotency-Key": f"lim-{time.time()}"}
+    assert post(open_api.url, "a.xyz", data, headers=key).status_code == 202
+    assert_error(post(open_api.url, "b.xyz", data, headers=key), 409, "idempotency_conflict")
+
+
+def test_a_utf8_filename_is_kept_and_named_in_the_download(open_api):
+    """Browsers send the name as raw UTF-8 bytes in the multipart header; the download names the result after
+    it in ``filename*`` (the ASCII ``filename`` has to replace what is not ASCII)."""
+    name = "résumé 😀.xyz"
+    body = (b"--b\r\nContent-Disposition: form-data; name=\"file\"; filename=\"" + name.encode() + b"\"\r\n"
+            b"Content-Type: application/octet-stream\r\n\r\n" + xyz_bytes(sphere_points(50)) + b"\r\n--b--\r\n")
+    r = httpx.post(f"{open_api.url}/v1/jobs", content=body, headers={"Content-Type": "multipart/form-data; boundary=b"})
+    assert r.status_code == 202, r.text
+    assert r.json()["input"]["filename"] == name
+    job_id, store = r.json()["id"], Store(open_api.settings)
+    assert store.start(job_id, 1, "test-double-of-a-worker")
+    store.put_result(job_id, "npz", mesh_to_bytes(np.eye(3), np.array([[0, 1, 2]])))
+    assert store.finish(job_id, 1, "succeeded", result={"vertices": 3, "faces": 1, "tokens": 3, "formats": []})
+    got = httpx.get(f"{open_api.url}/v1/jobs/{job_id}/result?format=obj", timeout=30)
+    assert got.status_code == 200
+    assert "filename*=UTF-8''r%C3%A9sum%C3%A9%20%F0%9F%98%80.obj" in got.headers["content-disposition"]
+
+
+# ---------------------------------------------------------------------------------------- held open, left behind
+
+
+def test_a_trickling_upload_meets_its_deadline(redis_url):
+    app = ServedApp(make_settings(redis_url, "limtrickle", body_timeout_seconds=5, upload_deadline_seconds=1.5))
+    try:
+        with socket.create_connection(("127.0.0.1", app.port)) as s:
+            s.sendall(b"POST /v1/jobs HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
+                      b"Content-Length: 5000\r\n\r\n--b\r\nContent-Disposition: form-data; name=\"file\"; "
+                      b"filename=\"a.xyz\"\r\n\r\n")
+            t0, reply = time.monotonic(), b""
+            s.settimeout(0.3)
+            while time.monotonic() - t0 < 10 and not reply:
+                try:
+                    s.sendall(b"0123456789")
+                    reply = s.recv(65536)
+                except TimeoutError:
+                    continue
+                except OSError:
+                    break
+        assert reply.startswith(b"HTTP/1.1 408"), reply[:200]
+        assert b"upload_deadline_seconds" in reply and time.monotonic() - t0 < 5
+    finally:
+        app.stop()
+
+
+def test_a_preview_finished_after_its_job_was_deleted_is_not_cached(open_api, monkeypatch):
+    r = post(open_api.url, "p.xyz", xyz_bytes(sphere_points(400)))
+    job_id = r.json()["id"]
+    assert httpx.delete(f"{open_api.url}/v1/jobs/{job_id}").status_code == 200  # cancelled: now deletable
+    store = Store(open_api.settings)
+    render = service.render_pool.RenderPool.render
+
+    def render_then_delete(self, *args, **kw):
+        png = render(self, *args, **kw)
+        assert httpx.delete(f"{open_api.url}/v1/jobs/{job_id}").status_code == 204
+        return png
+
+    monkeypatch.setattr(service.render_pool.RenderPool, "render", render_then_delete)
+    httpx.get(f"{open_api.url}/v1/jobs/{job_id}/preview.png?size=64", timeout=60)
+    assert not store.redis.exists(store.k_preview(job_id))
+
+
+# ---------------------------------------------------------------------------------------- README
+
+
+def test_readme_lists_every_setting():
+    """README's settings table is ``settings_table()``: regenerate it with
+    ``python -c 'from service.settings import settings_table; print(settings_table())'``."""
+    readme = README.read_text()
+    table = settings_table()
+    assert table in readme, "README's settings table differs from service.settings.settings_table()"
+    for name in Settings.model_fields:
+        assert re.search(rf"`FASTMESH_{name.upper()}`", readme), name
+
+
+def test_the_table_has_a_row_per_setting():
+    rows = settings_table().splitlines()[2:]
+    assert len(rows) == len(Settings.model_fields)
+    assert all(r.count("|") == 4 for r in rows), rows

@@ -1,0 +1,184 @@
+"""Bounded memory for every request: uploads, ``input.ply`` and previews are worked on in capped child
+processes, the prechecks count what parsers would expand, and the limits cannot be turned against others."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import httpx
+import pytest
+from hostile import (
+    allocate,
+    die,
+    gltf_empty_nodes,
+    heavy_obj,
+    obj_unspaced_faces,
+    off_one_vertex_faces,
+    ply_fans,
+    sleep_for,
+    strided_accessor_glb,
+)
+from stack import assert_error, make_settings, sphere_points, xyz_bytes
+
+import fastmesh.io
+import fastmesh.precheck
+from fastmesh.io import ShapeError, load_shape
+from service.children import CappedPool, ChildFailed
+from service.processes import ServedApp
+
+MIB = 1024 * 1024
+
+
+def rss() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+class PeakRss:
+    """The most this process's resident memory rose above its start while the block ran (sampled)."""
+
+    def __enter__(self):
+        self.start, self.peak, self._stop = rss(), 0, threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+        self._thread.start()
+        return self
+
+    def _sample(self):
+        while not self._stop.is_set():
+            self.peak = max(self.peak, rss() - self.start)
+            time.sleep(0.01)
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+
+
+def post(url: str, name: str, data: bytes, headers=None, **fields) -> httpx.Response:
+    return httpx.post(f"{url}/v1/jobs", files={"file": (name, data)}, data={k: str(v) for k, v in fields.items()},
+                      headers=headers, timeout=120)
+
+
+@pytest.fixture(scope="module")
+def open_api(redis_url):
+    app = ServedApp(make_settings(redis_url, "mem", max_queue_depth=10_000))
+    yield app
+    app.stop()
+
+
+# ---------------------------------------------------------------------------------------- the capped children
+
+
+def test_a_child_past_its_cap_its_deadline_or_dead_fails_alone():
+    pool = CappedPool(1, 768 * MIB, name="fastmesh-test-cap")
+    try:
+        assert pool.call(allocate, None, 50, timeout=60) == 50 * MIB
+        for fn, args, reason in ((allocate, (2000,), "memory"), (sleep_for, (30,), "deadline"), (die, (), "crashed")):
+            t0 = time.monotonic()
+            with pytest.raises(ChildFailed) as e:
+                pool.call(fn, None, *args, timeout=3)
+            assert e.value.reason == reason and time.monotonic() - t0 < 10
+            assert pool.call(allocate, None, 10, timeout=60) == 10 * MIB  # a fresh child serves the next task
+    finally:
+        pool.close()
+
+
+def test_an_upload_needing_more_than_the_cap_is_413_and_the_api_does_not_grow(redis_url):
+    """The parse of a 9 MB OBJ takes ~200 MB: over a 400 MiB child (~330 MiB of it its imports) it is refused
+    (the parser's MemoryError, or the child's death), and the API process (this one, serving in a thread) holds
+    only the upload meanwhile."""
+    app = ServedApp(make_settings(redis_url, "memcap", child_memory_mb=400, max_queue_depth=10_000))
+    try:
+        post(app.url, "warm.xyz", xyz_bytes(sphere_points(50)))  # the child is started and imported
+        data = heavy_obj()
+        with PeakRss() as peak:
+            r = post(app.url, "heavy.obj", data)
+        assert_error(r, 413, "too_large")
+        assert peak.peak < 100 * MIB, peak.peak / MIB
+        assert post(app.url, "after.xyz", xyz_bytes(sphere_points(50))).status_code == 202
+    finally:
+        app.stop()
+
+
+def test_input_ply_is_sampled_outside_the_api_process(open_api):
+    """20 concurrent overlays of 200,000 points of a 200,000-face input: the API grows by their answers only."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(7)  # 327,680 faces
+    r = post(open_api.url, "dense.ply", mesh.export(file_type="ply"))
+    assert r.status_code == 202, r.text
+    url = f"{open_api.url}/v1/jobs/{r.json()['id']}/input.ply?points=200000"
+    httpx.get(url, timeout=60)
+    got: list[httpx.Response] = []
+    with PeakRss() as peak:
+        threads = [threading.Thread(target=lambda: got.append(httpx.get(url, timeout=120))) for _ in range(20)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    assert {g.status_code for g in got} <= {200, 503} and any(g.status_code == 200 for g in got)
+    assert peak.peak < 150 * MIB, peak.peak / MIB
+
+
+# ---------------------------------------------------------------------------------------- prechecks
+
+
+@pytest.fixture
+def no_parser(monkeypatch):
+    """The parser must not be reached: the precheck refuses first."""
+    def refuse(*_):
+        raise AssertionError("the parser ran")
+
+    monkeypatch.setattr(fastmesh.io, "_load_trimesh", refuse)
+
+
+def test_glb_accessors_with_a_one_byte_stride_are_refused(no_parser):
+    with pytest.raises(ShapeError) as e:
+        load_shape(strided_accessor_glb(64 * 1024, 4), filename="a.glb")
+    assert "byteStride" in e.value.message
+
+
+def test_glb_unused_accessor_bytes_count_against_the_limits(no_parser):
+    with pytest.raises(ShapeError) as e:
+        load_shape(strided_accessor_glb(1 << 20, 16, stride=64), filename="a.glb", max_points=10_000, max_faces=10_000)
+    assert e.value.code == "too_large" and "accessors" in e.value.message
+
+
+def test_the_16_accessor_glb_is_refused_over_http(open_api):
+    assert_error(post(open_api.url, "amp.glb", strided_accessor_glb()), (413, 422))
+
+
+def test_obj_faces_without_a_space_are_counted(no_parser):
+    with pytest.raises(ShapeError) as e:
+        load_shape(obj_unspaced_faces(2000), filename="a.obj", max_faces=1000)
+    assert e.value.code == "too_large"
+
+
+def test_a_gltf_of_many_empty_objects_is_refused_before_it_is_parsed(monkeypatch):
+    def refuse(*_):
+        raise AssertionError("the JSON was parsed")
+
+    monkeypatch.setattr(fastmesh.precheck.json, "loads", refuse)
+    with pytest.raises(ShapeError) as e:
+        load_shape(gltf_empty_nodes(600_000), filename="j.gltf")
+    assert e.value.code == "too_large" and "JSON" in e.value.message
+
+
+def test_ply_faces_are_counted_as_triangles(no_parser):
+    with pytest.raises(ShapeError) as e:
+        load_shape(ply_fans(100), filename="fan.ply", max_faces=10_000)  # 100 faces, 25,300 triangles
+    assert e.value.code == "too_large" and "25300 triangles" in e.value.message
+
+
+def test_off_counts_are_checked_before_parsing(no_parser):
+    with pytest.raises(ShapeError) as e:
+        load_shape(off_one_vertex_faces(2000), filename="a.off", max_faces=1000)
+    assert e.value.code == "too_large"
+
+
+def test_files_within_the_limits_still_load():
+    assert len(load_shape(ply_fans(2, 5), filename="fan.ply", max_faces=6).faces) == 6  # two pentagons
+    with pytest.raises(ShapeError, match="6 triangles"):
+        load_shape(ply_fans(2, 5), filename="fan.ply", max_faces=5)
+    assert len(load_shape(obj_unspaced_faces(3), filename="a.obj", normals=False).faces) >= 1

@@ -136,10 +136,23 @@ def test_sampling_never_draws_a_nan_logit():
     for _ in range(20):
         picked = choose_next(logits, SamplingConfig(temperature=1.0), gens)
         assert (picked >= vt.OFFSET0 + 4000).all()
-    bias = torch.zeros(2, N_OFFSETS)
-    bias[:, 4000:4090] = float("nan")
-    picked = choose_next(logits, SamplingConfig(temperature=1.0), gens, bias)
-    assert (picked >= vt.OFFSET0 + 4090).all()
+
+
+def test_nan_cell_scores_are_no_candidates():
+    """NaN log-odds read as FLOOR (no candidate), so the offsets' cell bias, added to the logits at every step,
+    is finite."""
+    from fastmesh.models.cells import FLOOR
+
+    torch.manual_seed(0)
+    module = PointEvidence(cells=True, counts=True)
+    cells = torch.randn(1, CELLS ** 3)
+    cells[:, ::2] = float("nan")
+    ev = module(torch.rand(1, 300, 3) - 0.5, None, cells)
+    assert torch.equal(ev.cells[:, ::2], torch.full_like(ev.cells[:, ::2], FLOOR))
+    assert torch.equal(ev.cells[:, 1::2], cells[:, 1::2])
+    for block in range(0, N_BLOCKS, 37):
+        assert torch.isfinite(ev.weighted_cells(torch.tensor([block]), 6.0)).all()
+    assert torch.isfinite(ev.cell_cum).all() and torch.isfinite(ev.cell_expected).all()
 
 
 def test_sampling_with_no_finite_logit_is_a_clear_error():

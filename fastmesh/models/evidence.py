@@ -187,7 +187,10 @@ class Evidence:
         if module.cell_gain is not None:
             if cells is None:
                 raise ValueError("this decoder's evidence reads the cell log-odds of models.cells: pass them")
+            # A NaN log-odds is no candidate (FLOOR): it would otherwise reach the offsets' logits, and sampling
+            # from NaN is an error (on CUDA a device-side assert).
             self.cells = cells.float().reshape(b, -1)
+            self.cells = torch.where(self.cells.isnan(), FLOOR, self.cells)
             # Expected vertices per block, in block id order (the block of cell (x, y, z) is its top 3 bits).
             per_block = (BLOCKS_PER_AXIS, BLOCK_SIDE) * 3  # (bx, ox, by, oy, bz, oz)
             # Cells at FLOOR are no candidates: they expect nothing (sigmoid(FLOOR) over the 2M cells of the grid

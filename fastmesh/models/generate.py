@@ -152,20 +152,29 @@ def choose_next(logits: torch.Tensor, cfg: SamplingConfig, gen: list[torch.Gener
     count alone.  Temperature 0 is greedy in both steps.  Row i draws from ``gen[i]`` alone.
     """
     t_kind = cfg.structure_temperature if cfg.temperature > 0 else 0.0
-    logits = _nan_masked(logits)
-    p = (logits / (t_kind or 1.0)).softmax(-1)
-    mass = torch.stack([p[:, :vt.BLOCK0].sum(-1), p[:, vt.BLOCK0:vt.OFFSET0].sum(-1), p[:, vt.OFFSET0:].sum(-1)], -1)
+    mass = _kind_mass(logits, t_kind)
+    # One NaN logit makes its whole row of probabilities NaN, so a finite mass says the logits hold none (a check
+    # of 3 values per row, not of the vocabulary).  NaN tokens are dropped, never drawn: sampling from NaN is an
+    # error, and on CUDA a device-side assert that poisons the process.
     if not bool(torch.isfinite(mass).all()):
-        # A row with no finite logit left has nothing to draw from: fail here, on the host, rather than in
-        # torch.multinomial (a device-side assert on CUDA, which poisons the process's CUDA context).
-        raise FloatingPointError("the vertex decoder's logits allow no token (none is finite)")
+        logits = _nan_masked(logits)
+        mass = _kind_mass(logits, t_kind)
+        if not bool(torch.isfinite(mass).all()):  # fail here, on the host, rather than in torch.multinomial
+            raise FloatingPointError("the vertex decoder's logits allow no token (none is finite)")
     if t_kind > 0:
         kind = torch.cat([torch.multinomial(mass[i:i + 1], 1, generator=g) for i, g in enumerate(gen)])[:, 0]
     else:
         kind = mass.argmax(-1)
-    if offset_bias is not None:
-        logits = _nan_masked(torch.cat([logits[:, :vt.OFFSET0], logits[:, vt.OFFSET0:] + offset_bias], dim=-1))
+    if offset_bias is not None:  # finite: the evidence reads NaN cell log-odds as no candidate (Evidence)
+        logits = torch.cat([logits[:, :vt.OFFSET0], logits[:, vt.OFFSET0:] + offset_bias], dim=-1)
     return sample_next(logits.masked_fill(token_kinds(logits.device) != kind[:, None], float("-inf")), cfg, gen)
+
+
+def _kind_mass(logits: torch.Tensor, t_kind: float) -> torch.Tensor:
+    """(B, V) logits -> (B, 3) probability of each token kind (EOS and the special tokens, block, offset) at
+    temperature ``t_kind`` (0: 1, for the greedy choice)."""
+    p = (logits / (t_kind or 1.0)).softmax(-1)
+    return torch.stack([p[:, :vt.BLOCK0].sum(-1), p[:, vt.BLOCK0:vt.OFFSET0].sum(-1), p[:, vt.OFFSET0:].sum(-1)], -1)
 
 
 def _nan_masked(logits: torch.Tensor) -> torch.Tensor:

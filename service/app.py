@@ -13,7 +13,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from . import errors
-from .children import CappedPool
+from .children import CappedPool, tune_malloc
 from .deps import ApiKeys
 from .forms import generation_defaults
 from .middleware import ApiKeyGate, BodyLimit, JsonCORS, RequestMetrics
@@ -39,6 +39,9 @@ Every error is JSON `{"error": {"code", "message"}}`."""
 
 def create_app(settings: Settings | None = None, store: Store | None = None) -> FastAPI:
     settings = settings or Settings()
+    # Uploads and stored inputs pass through in blocks of MBs: in pages of their own, they go back to the system
+    # when freed, so the API's size returns to its baseline after a burst.
+    tune_malloc(arenas=None)
     store = store or Store(settings)
     keys = ApiKeys(settings.api_keys)
     metrics = Metrics(store)

@@ -128,16 +128,22 @@ def serve(conn, memory_bytes: int, niceness: int, parent: int) -> None:
         except (EOFError, OSError):
             return
         except MemoryError:  # the payload itself did not fit: say so, the parent decides
-            conn.send(("memory", "", True))
+            try:
+                conn.send(("memory", "", True))
+            except OSError:
+                return
             continue
         reply = _answer(fn, payload, args)
         del payload
         # What the allocator kept counts against the next task's cap: past a share of it, start afresh.
         retire = _address_space() > RETIRE_SHARE * memory_bytes
         try:
-            conn.send((*reply, retire))
-        except MemoryError:
-            conn.send(("memory", "", True))
+            try:
+                conn.send((*reply, retire))
+            except MemoryError:
+                conn.send(("memory", "", True))
+        except OSError:  # the API process is gone (killed mid-task): nobody to answer
+            return
 
 
 class _Child:

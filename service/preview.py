@@ -5,7 +5,7 @@ mesh) before that, or when the job failed or was cancelled, so a client always h
 show.  Rendering is :mod:`fastmesh.render` (numpy z-buffer, CPU only), and ``input.ply`` a sample of the
 stored input, both in a small pool of memory-capped child processes (:mod:`service.render_pool`), so the API's
 memory does not grow with the inputs; both take one of ``max_concurrent_renders`` slots, and a request
-waiting for one holds no input in memory.
+waiting for one holds no input in memory.  Concurrent requests for the same overlay share one sample.
 
 Each (job, what, size, wireframe) is rendered once: concurrent requests for it wait for the one
 render (single flight), whose PNG is cached in Redis for ``cache_seconds`` (at most the job's
@@ -96,13 +96,12 @@ def preview_blob(store: Store, job: dict) -> tuple[str, bytes]:
 
 
 class _Flight:
-    """One render in progress; the requests that asked for the same one wait on ``done``."""
+    """One render or sample in progress; the requests that asked for the same one wait on ``done``."""
 
     def __init__(self):
         self.done = anyio.Event()
-        self.png: bytes | None = None
+        self.value = None
         self.error: ApiError | None = None
-        self.of = ""
 
 
 def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAULT_PREVIEW) -> APIRouter:
@@ -114,6 +113,7 @@ def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAU
     flights: dict[str, _Flight] = {}
     slots: list[anyio.Semaphore] = []  # made on first use, inside the event loop
     router.renders = 0  # renders started, for tests and the benchmark
+    router.samples = 0  # input.ply samples started, likewise
 
     def busy(why: str) -> ApiError:
         return ApiError(503, "busy", f"{why}; retry shortly", {"Retry-After": "2"})
@@ -150,12 +150,36 @@ def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAU
             raise busy("too many previews are being rendered")
         return slots[0]
 
-    async def lead(job: dict, size: int, wireframe: bool, flight: _Flight) -> None:
-        held = await slot()
-        try:
-            flight.of, flight.png = await anyio.to_thread.run_sync(render_and_cache, job, size, wireframe)
-        finally:
-            held.release()
+    async def shared(name: str, work):
+        """``work()``'s value, run in a thread holding a render slot, once for all the requests that ask for
+        ``name`` meanwhile (single flight); 503 busy when ``max_pending`` others are pending."""
+        flight = flights.get(name)
+        if flight is None:  # no await between the look-up and the claim: one leader per name
+            if len(flights) >= config.max_pending:
+                raise busy(f"{len(flights)} previews are waiting to be rendered")
+            flight = flights[name] = _Flight()
+            try:
+                held = await slot()
+                try:
+                    flight.value = await anyio.to_thread.run_sync(work)
+                finally:
+                    held.release()
+            except ApiError as e:
+                flight.error = e
+            except Exception:  # Redis trouble: the waiting requests get an answer too, the leader the error
+                flight.error = busy("the preview failed")
+                raise
+            finally:
+                flights.pop(name, None)
+                flight.done.set()
+        else:
+            with anyio.move_on_after(config.render_wait_seconds) as waited:
+                await flight.done.wait()
+            if waited.cancelled_caught:
+                raise busy("the preview is still being rendered")
+        if flight.error is not None:
+            raise flight.error
+        return flight.value
 
     def overlay(job_id: str, points: int) -> bytes:
         """``input.ply`` made by the pool.  Runs in a thread holding a render slot: the stored input is read
@@ -163,6 +187,7 @@ def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAU
         blob = store.get_input(job_id)
         if blob is None:
             raise ApiError(404, "not_found", "the job's input is no longer stored")
+        router.samples += 1
         try:
             return pool.overlay(blob, points, config.render_wait_seconds)
         except (ChildShapeError, ChildFailed) as e:
@@ -190,33 +215,11 @@ def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAU
         field = cache_field(of, size, wireframe)
         png = await anyio.to_thread.run_sync(store.redis.hget, cache_key(store, job_id), field)
         if png is None:
-            name = f"{job_id}|{field}"
-            flight = flights.get(name)
-            if flight is None:  # no await between the look-up and the claim: one leader per name
-                if len(flights) >= config.max_pending:
-                    raise busy(f"{len(flights)} previews are waiting to be rendered")
-                flight = flights[name] = _Flight()
-                try:
-                    await lead(job, size, wireframe, flight)
-                except ApiError as e:
-                    flight.error = e
-                except Exception:  # Redis trouble: the waiting requests get an answer too, the leader the error
-                    flight.error = busy("the preview failed")
-                    raise
-                finally:
-                    flights.pop(name, None)
-                    flight.done.set()
-            else:
-                with anyio.move_on_after(config.render_wait_seconds) as waited:
-                    await flight.done.wait()
-                if waited.cancelled_caught:
-                    raise busy("the preview is still being rendered")
-            if flight.error is not None:
-                raise flight.error
-            png, of = flight.png, flight.of
+            of, png = await shared(f"{job_id}|{field}", lambda: render_and_cache(job, size, wireframe))
         # A result preview never changes; an input preview turns into the result's at the same URL.
         cache = "private, max-age=86400" if of == "result" else "no-cache"
         return Response(png, media_type="image/png", headers={"Cache-Control": cache, "X-Preview-Of": of})
+
     @router.get("/v1/jobs/{job_id}/input.ply", response_class=Response,
                 summary="The input as points (PLY), to overlay on the result",
                 responses={**error_responses(401, 404, 422, 429, 503),
@@ -228,11 +231,7 @@ def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAU
                                                description="At most this many points (evenly picked or sampled).")
                            ) -> Response:
         await anyio.to_thread.run_sync(owned_job, store, job_id, who)
-        held = await slot()
-        try:
-            ply = await anyio.to_thread.run_sync(overlay, job_id, points)
-        finally:
-            held.release()
+        ply = await shared(f"{job_id}|input.ply|{points}", lambda: overlay(job_id, points))
         return Response(ply, media_type="application/ply",
                         headers={"Cache-Control": "private, max-age=86400",
                                  "Content-Disposition": f'inline; filename="{job_id}-input.ply"'})

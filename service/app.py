@@ -54,6 +54,8 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
         # Jobs of dead workers are requeued by this process too, so they are even when no worker is alive.
         stop = threading.Event()
         threading.Thread(target=reap_loop, args=(store, stop), name="fastmesh-reaper", daemon=True).start()
+        # Parsing processes take a second or two to start: started now, the first uploads do not wait for that.
+        threading.Thread(target=parses.warm, name="fastmesh-parse-warm", daemon=True).start()
         yield
         stop.set()
         renders.close()

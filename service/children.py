@@ -245,6 +245,24 @@ class CappedPool:
                 child = None
             self._idle.put(child)
 
+    def warm(self) -> None:
+        """Start the children now (each takes a second or two to import its libraries, in the background), so
+        the first tasks do not wait for that."""
+        taken: list[_Child | None] = []
+        while len(taken) < self.workers:  # all idle slots at once: the queue is last-in, first-out
+            try:
+                taken.append(self._idle.get_nowait())
+            except queue.Empty:
+                break
+        try:
+            for i, child in enumerate(taken):
+                if child is None and not self._closed:
+                    taken[i] = _Child(self.memory_bytes, self.niceness, f"{self.name}-{self.started}")
+                    self.started += 1
+        finally:
+            for child in taken:
+                self._idle.put(child)
+
     def pids(self) -> list[int]:
         """The live children's process ids (for tests and benchmarks)."""
         kids = multiprocessing.active_children()

@@ -206,3 +206,14 @@ def test_normal_estimation_takes_memory_in_blocks():
         tracemalloc.stop()
     assert normals.shape == points.shape and np.allclose(np.linalg.norm(normals, axis=1), 1)
     assert peak < 60 * MIB, peak / MIB
+
+
+def test_warm_starts_every_child_and_close_stops_them():
+    pool = CappedPool(2, 768 * MIB, name="fastmesh-test-warm")
+    try:
+        pool.warm()
+        assert len(pool.pids()) == 2 and pool.started == 2
+        assert pool.call(allocate, None, 1, timeout=60) == MIB and pool.started == 2  # a warm child served it
+    finally:
+        pool.close()
+    assert pool.pids() == []

@@ -159,6 +159,14 @@ def test_obj_faces_without_a_space_are_counted(no_parser):
     assert e.value.code == "too_large"
 
 
+def test_obj_polygons_are_counted_as_triangles(no_parser):
+    corners = " ".join(str(i + 1) for i in range(255))
+    data = "".join(f"v {i} {i * i % 7} 0\n" for i in range(255)).encode() + f"f {corners}\n".encode() * 10
+    with pytest.raises(ShapeError) as e:
+        load_shape(data, filename="fan.obj", max_faces=2000)  # 10 faces, 2,530 triangles
+    assert e.value.code == "too_large" and "2530 triangles" in e.value.message
+
+
 def test_a_gltf_of_many_empty_objects_is_refused_before_it_is_parsed(monkeypatch):
     def refuse(*_):
         raise AssertionError("the JSON was parsed")

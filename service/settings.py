@@ -61,9 +61,9 @@ class Settings(BaseSettings):
     parse_wait_seconds: float = Field(1.0, ge=0, description="Longest wait of an upload for a parsing slot.")
     upload_deadline_seconds: float = Field(300.0, gt=0, description="A request body not complete this long after "
                                            "the request began is answered 408, however steadily it trickles.")
-    child_memory_mb: int = Field(1536, ge=256, description="Address-space cap in MiB of each child process that "
-                                 "parses an upload, samples an input or renders a preview; what needs more is "
-                                 "refused (413) and the API process never grows with a file.")
+    child_memory_mb: int = Field(1536, ge=384, description="Address-space cap in MiB of each child process that "
+                                 "parses an upload, samples an input or renders a preview (its libraries take about "
+                                 "330); what needs more is refused (413) and the API process never grows with a file.")
     parse_timeout_seconds: float = Field(60.0, gt=0, description="An upload not parsed in this time is refused "
                                          "(413) and its child process killed.")
     max_wait_seconds: float = Field(300.0, ge=0, description="Longest long-poll of GET .../result?wait=S.")

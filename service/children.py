@@ -14,8 +14,10 @@ This module imports no web framework and nothing heavy at import time: it is wha
 
 from __future__ import annotations
 
+import io
 import multiprocessing
 import os
+import pickle
 import queue
 import threading
 import time
@@ -146,6 +148,18 @@ def serve(conn, memory_bytes: int, niceness: int, parent: int) -> None:
             return
 
 
+class _PlainUnpickler(pickle.Unpickler):
+    """Answers of children hold plain data (tuples, dicts, str, bytes, numbers): a child works on hostile bytes,
+    so nothing it sends may name a class or function for the API process to call."""
+
+    def find_class(self, module: str, name: str):
+        raise pickle.UnpicklingError(f"a child's answer named {module}.{name}; only plain data is accepted")
+
+
+def _plain_data(raw: bytes):
+    return _PlainUnpickler(io.BytesIO(raw)).load()
+
+
 class _Child:
     """One child process and the parent's end of its pipe."""
 
@@ -167,11 +181,13 @@ class _Child:
                 self.conn.send_bytes(payload)
             if not self.conn.poll(timeout):
                 raise ChildFailed("deadline", f"the work did not finish within {timeout:g} s")
-            reply = self.conn.recv()
+            reply = _plain_data(self.conn.recv_bytes())
         except (EOFError, OSError):
             self.proc.join(1)
             raise ChildFailed("crashed", f"the process doing the work died (exit code {self.proc.exitcode})") \
                 from None
+        except pickle.UnpicklingError as e:
+            raise ChildFailed("crashed", str(e)) from None
         kind, self.retire = reply[0], reply[-1]
         if kind == "ok":
             return reply[1]

@@ -94,3 +94,10 @@ def die() -> None:
     import os
 
     os._exit(7)
+
+
+def returns_an_object() -> object:
+    """An answer that is not plain data (a class instance): the API process must refuse to unpickle it."""
+    from pathlib import PurePosixPath
+
+    return PurePosixPath("/etc/passwd")

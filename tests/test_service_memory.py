@@ -17,6 +17,7 @@ from hostile import (
     obj_unspaced_faces,
     off_one_vertex_faces,
     ply_fans,
+    returns_an_object,
     sleep_for,
     strided_accessor_glb,
 )
@@ -214,6 +215,16 @@ def test_normal_estimation_takes_memory_in_blocks():
         tracemalloc.stop()
     assert normals.shape == points.shape and np.allclose(np.linalg.norm(normals, axis=1), 1)
     assert peak < 60 * MIB, peak / MIB
+
+
+def test_a_child_may_answer_plain_data_only():
+    pool = CappedPool(1, 768 * MIB, name="fastmesh-test-plain")
+    try:
+        with pytest.raises(ChildFailed, match="only plain data"):
+            pool.call(returns_an_object, None, timeout=60)
+        assert pool.call(allocate, None, 1, timeout=60) == MIB
+    finally:
+        pool.close()
 
 
 def test_warm_starts_every_child_and_close_stops_them():

@@ -82,7 +82,7 @@ class Client:
 
     def submit(self, path: str | os.PathLike, idempotency_key: str | None = None, **params) -> dict:
         """Upload a shape file; ``params``: seed, temperature, top_k, top_p, max_vertices, enhancer,
-        filtering, candidates, target_faces, formats.  A retry after a lost answer returns the same job
+        filtering, candidates, target_faces, closed, formats.  A retry after a lost answer returns the same job
         (Idempotency-Key)."""
         path = Path(path)
         data = path.read_bytes()

@@ -158,7 +158,7 @@ def _cheapest_chains(k: int, cost: dict[tuple[int, int, int], float]) -> dict[tu
 
 
 def _best_triangulation(loop: list[int], book: _Selection, support: SupportCache,
-                        limit: float) -> list[tuple[int, int, int]] | None:
+                        limit: float, folds: bool = False) -> list[tuple[int, int, int]] | None:
     """The triangulation of ``loop`` (no inner vertices) with the least total support distance, among
     triangles that lie on the surface, add no edge the selection already has, and fit it.
 
@@ -166,7 +166,8 @@ def _best_triangulation(loop: list[int], book: _Selection, support: SupportCache
     support): ear clipping commits to the best ear first and can leave itself a last triangle that
     does not fit; this finds a way through whenever one exists among the triangles allowed alone.
     Returns the faces (added to ``book``), or None (``book`` unchanged) when there is none or its
-    faces do not fit together."""
+    faces do not fit together.  With ``folds`` the faces are not checked against the selection's folds
+    and overlaps, only against edges it already has (the closure's last step, ``closure.close_loops``)."""
     k = len(loop)
     if k < 3:
         return None
@@ -176,7 +177,8 @@ def _best_triangulation(loop: list[int], book: _Selection, support: SupportCache
     # Every edge of the loop lies in exactly one face of a triangulation: one that no supported
     # triangle covers rules the loop out before any triangle is checked against the selection.
     lo, mid, hi = ijm.T
-    on = d <= limit
+    # A loop that passes a vertex twice (``closure.hole_loops``) has triangles on both of its visits: not faces.
+    on = (d <= limit) & (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])
     covered = np.zeros(k, dtype=bool)  # edge (p, p + 1), and (k - 1, 0) as edge k - 1
     covered[lo[on & (mid == lo + 1)]] = True
     covered[mid[on & (hi == mid + 1)]] = True
@@ -207,7 +209,7 @@ def _best_triangulation(loop: list[int], book: _Selection, support: SupportCache
             m = best[(i, j)][1]
             used.append((i, m, j))
             todo += [c for c in ((i, m), (m, j)) if c[1] - c[0] > 1]
-        failed = [x for x in used if x not in checked and not book.fits(*face[x])]
+        failed = [] if folds else [x for x in used if x not in checked and not book.fits(*face[x])]
         if not failed:
             break
         checked.update(used)
@@ -216,13 +218,21 @@ def _best_triangulation(loop: list[int], book: _Selection, support: SupportCache
     faces = [face[x] for x in used]
     added = []
     for t in faces:  # each fits the selection alone; together they may still overlap
-        if not book.fits(*t):
+        if not (_edges_free(book, t) if folds else book.fits(*t)):
             for u in added:
                 book.remove(*u)
             return None
         book.add(*t)
         added.append(t)
     return added
+
+
+def _edges_free(book: _Selection, face) -> bool:
+    """Whether each edge of ``face`` is in at most one selected face (adding it keeps the surface
+    edge-manifold).  A loop that passes a vertex twice can hold one edge twice: as a chord from one visit
+    and as a chord or loop edge from the other."""
+    a, b, c = face
+    return all(len(book.third.get((x, y) if x < y else (y, x), ())) < 2 for x, y in ((a, b), (b, c), (a, c)))
 
 
 def _close_loop(loop: list[int], book: _Selection, support: SupportCache,

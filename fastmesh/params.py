@@ -17,6 +17,8 @@ MIN_TEMPERATURE = 1e-3
 MAX_TEMPERATURE = 5.0
 DEFAULT_VERTEX_LIMIT = 1000  # a vertex decoder's max_vertices unless its config says otherwise
 LARGEST_VERTEX_LIMIT = 4000  # the largest max_vertices of a trained decoder: the limit while the model is unknown
+# ``closed``: close the result's holes when the input is closed (auto), always (true) or never (false).
+CLOSED_CHOICES = ("auto", "true", "false")
 
 
 @dataclass(frozen=True)
@@ -97,6 +99,8 @@ class GenerateParams:
     filtering: bool = False
     candidates: int = 2  # meshes made (seeds seed, seed+1, ...); the one nearest the input is returned
     target_faces: int | None = None
+    # Whether the result is closed: "auto" closes it when the input is (``fastmesh.closure.decide_closed``).
+    closed: str = "auto"
 
     def validate(self, limit: int = LARGEST_VERTEX_LIMIT) -> None:
         """Raise ValueError naming the first bad field; ``limit`` is the vertex decoder's ``max_vertices``."""
@@ -105,6 +109,8 @@ class GenerateParams:
             if value is None and getattr(GenerateParams, name) is None:  # unset: the pipeline decides
                 continue
             bound.check(name, value, hi=min(bound.hi, limit) if name == "max_vertices" else None)
+        if self.closed not in CLOSED_CHOICES:
+            raise ValueError(f"closed must be one of {', '.join(CLOSED_CHOICES)}")
 
     def sampling(self, limit: int) -> SamplingConfig:
         """The decoder's ``SamplingConfig`` with ``max_vertices`` resolved against ``limit``."""

@@ -37,6 +37,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .canonical import canonical_rotation, frame_normals, rotate_shape, turned_degrees
+from .closure import decide_closed
 from .filtering import FilterConfig, Predictor, predict_edges
 from .fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
 from .io import Normalization, Shape, export_mesh, input_surface, sample_surface
@@ -46,12 +48,13 @@ from .models.encoder import EncoderConfig
 from .models.generate import Cancelled, StackedEvidence, generate
 from .models.onnx_decode import choose_decoder
 from .params import GenerateParams
-from .quality import mesh_quality
+from .pieces import drop_strays, split_pinches
+from .quality import edge_face_counts, input_pieces, mesh_quality, weld
 from .support import surface_fit
 from .tokenizer import dequantize
 from .tokenizer import vertex as vt
 from .tokenizer.grid import CELL
-from .triangles import TriangleConfig, mesh_from_adjacency
+from .triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced
 
 __all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "Pipeline", "default_weights_dir"]
 
@@ -63,6 +66,9 @@ CELL_SEED = 0  # of the input sample the cell evidence reads
 STAGES = (("encode", 0.0, 0.03), ("vertices", 0.03, 0.80), ("enhancer", 0.80, 0.83), ("faces", 0.83, 0.90),
           ("filtering", 0.90, 1.0))
 _STAGE_SPAN = {name: (lo, hi) for name, lo, hi in STAGES}
+# A result made in the canonical frame (``canonical``) is kept unless its surface_fit exceeds the input frame's
+# by more than this factor.
+FRAME_MARGIN = 1.1
 # torch CPU threads when neither the caller nor $FASTMESH_TORCH_THREADS says: decoding one sequence is a chain of
 # small matrix-vector products, and on our 2-core machine a second thread made generation slower, not faster.
 CPU_THREADS = 1
@@ -110,6 +116,17 @@ def _timed(predict: Predictor, timings: dict[str, float], report: Callable[[str,
         return out
 
     return timed
+
+
+def _low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """A mesh input, welded, when it has at most ``faces`` faces and is a surface (no edge in three faces):
+    a result never has more faces than a low-poly input unless a count is asked for."""
+    if shape.faces is None or len(shape.faces) > 4 * faces:  # too many to become few by welding: not weighed
+        return None
+    v, f = weld(shape.vertices, shape.faces)
+    if len(f) == 0 or len(f) > faces or edge_face_counts(f).max() > 2:
+        return None
+    return remove_unreferenced(v, f)[:2]
 
 
 class GenerationError(RuntimeError):
@@ -304,10 +321,61 @@ class Pipeline:
         self._target(params)  # refuses a target_faces this decoder cannot read, before any work
         report = progress or (lambda stage, fraction: None)
 
+        close, why = decide_closed(shape, params.closed)
+        timings = {name: 0.0 for name, _, _ in STAGES}
+        # The input's own frame, and its canonical one where that lays more of its walls along the axes
+        # (``canonical``): each is generated, and the mesh nearer the input kept.
+        frames = [np.eye(3)]
+        turn = canonical_rotation(shape.vertices, frame_normals(shape))
+        if not np.array_equal(turn, frames[0]):
+            frames.append(turn)
+        made, errors = [], []
+        for i, rotation in enumerate(frames):
+            def part(stage, fraction, i=i):
+                report(stage, (i + fraction) / len(frames))
+
+            try:
+                made.append({**self._in_frame(shape, rotation, params, close, part, should_cancel, timings),
+                             "rotation": rotation})
+            except GenerationError as err:
+                errors.append(err)
+        if not made:
+            raise errors[0]
+        best = made[0]
+        if len(made) > 1:
+            with stage("filtering", timings):
+                norm = Normalization.fit(shape.vertices)
+                reference = input_surface(shape, norm.apply(shape.vertices), self.triangle_config.support_points,
+                                          params.seed)
+                fits = [surface_fit(norm.apply(m["vertices"]), m["faces"], reference, params.seed) for m in made]
+            # The canonical frame unless clearly farther: on a box both lie on its planes, but the turned
+            # one has its eight corners where the input's frame has a staircase of vertices along each wall.
+            best = made[-1] if fits[-1] <= FRAME_MARGIN * fits[0] else made[0]
+        # Whole: no surface pinched at a vertex, no stray pieces beyond the input's (``pieces``).
+        vertices, faces = split_pinches(best["vertices"], best["faces"])
+        vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, input_pieces(shape)))[:2]
+        best = {**best, "vertices": vertices, "faces": faces}
+        info = {**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3),
+                "closed_decision": {"close": close, "reason": why}, "result_from": "model"}
+        low = _low_poly(shape, len(best["faces"])) if params.target_faces is None else None
+        if low is not None:  # the input is already a low-poly surface: fewer faces than ours, and exact
+            best = {**best, "vertices": low[0], "faces": low[1]}
+            info["result_from"] = "input"
+        quality = {**mesh_quality(best["vertices"], best["faces"], shape), "faces": int(len(best["faces"])),
+                   "closed_decision": why if why == "asked" else ("closed" if close else "open"),
+                   "target_faces": params.target_faces}
+        return GenerateResult(vertices=best["vertices"], faces=best["faces"], tokens=best["tokens"],
+                              timings=timings, info=info, quality=quality)
+
+    def _in_frame(self, shape: Shape, rotation: np.ndarray, params: GenerateParams, close: bool, report,
+                  should_cancel, timings: dict) -> dict:
+        """The best of the candidates made with ``shape`` turned by ``rotation`` (3, 3), turned back: a dict of
+        vertices (input frame), faces, tokens and info."""
+        if not np.array_equal(rotation, np.eye(3)):
+            shape = rotate_shape(shape, rotation)
         norm = Normalization.fit(shape.vertices)
         unit = norm.apply(shape.vertices)
         n_cand = params.candidates if params.temperature > 0 else 1  # greedy decoding: one answer
-        timings = {name: 0.0 for name, _, _ in STAGES}
         # Candidate k is exactly what seed + k gives alone; all are scored against one sample of the input.
         reference = input_surface(shape, unit, self.triangle_config.support_points, params.seed) if n_cand > 1 else None
         with stage("encode", timings):
@@ -322,7 +390,7 @@ class Pipeline:
 
             try:
                 cand = self._candidate(shape, unit, params, params.seed + k, pts, nrm, tokens, share,
-                                       should_cancel, timings, cells)
+                                       should_cancel, timings, cells, close)
             except GenerationError as err:
                 errors.append(err)
                 fits.append(None)
@@ -339,9 +407,8 @@ class Pipeline:
                 "chosen_seed": best["seed"]}
         if n_cand > 1:
             info["fits"] = fits  # per candidate: its surface_fit in the unit cube, None if it made no mesh
-        vertices = norm.invert(best["vertices"])
-        return GenerateResult(vertices=vertices, faces=best["faces"], tokens=best["tokens"], timings=timings,
-                              info=info, quality=mesh_quality(vertices, best["faces"], shape, params.seed))
+        return {"vertices": norm.invert(best["vertices"]) @ rotation, "faces": best["faces"],
+                "tokens": best["tokens"], "info": info}
 
     def _target(self, params: GenerateParams) -> torch.Tensor | None:
         """(1,) faces asked for, as the decoder's count token reads them (None: the model's choice)."""
@@ -432,9 +499,10 @@ class Pipeline:
 
     def _candidate(self, shape: Shape, unit: np.ndarray, params: GenerateParams, seed: int, pts: np.ndarray,
                    nrm: np.ndarray, tokens: np.ndarray, report: Callable[[str, float], None], should_cancel,
-                   timings: dict, cells: torch.Tensor | None = None) -> dict:
+                   timings: dict, cells: torch.Tensor | None = None, close: bool = False) -> dict:
         """One mesh from the vertex ``tokens`` decoded for ``seed`` on the surface sample ``pts``/``nrm``,
-        in the normalised frame (``unit``: the shape's vertices there); adds its stage times to ``timings``."""
+        in the normalised frame (``unit``: the shape's vertices there), its holes closed with ``close``; adds
+        its stage times to ``timings``."""
         q = self.vertex_cells(tokens, cells, params)
         if len(q) < 3:
             raise GenerationError("no_vertices", f"the vertex decoder produced {len(q)} vertices; try another seed")
@@ -469,7 +537,7 @@ class Pipeline:
         # Triangles on the input surface, scored by the edge logits, kept a surface, holes closed, flat vertices
         # removed (but not below a face-count target).
         with stage("faces", timings):
-            tc = self.triangle_config
+            tc = replace(self.triangle_config, close=close)
             if params.target_faces is not None:  # the count asked for: flat regions keep their vertices
                 tc = replace(tc, flat_tol=None)
             surface = None

@@ -120,6 +120,63 @@ LADDER: dict[str, Callable[[], Shape]] = {
 }
 
 
+def random_shape(kind: str, rng: np.random.Generator) -> Shape:
+    """One shape of a family drawn at random: its proportions, and for prisms its outline.
+
+    Parameters
+    ----------
+    kind : one of ``RANDOM_KINDS``: ``box`` (sides 0.2-1 each), ``l_block`` (a box less a corner box, both of
+        random sides), ``prism`` (a convex polygon of 3-8 corners at random angles, extruded), ``cylinder``
+        and ``cone`` (16 sides, radius and height at random; trimesh's, with cap centres)
+    rng : numpy Generator
+
+    Returns
+    -------
+    Shape : a closed mesh whose vertices are all its artist vertices, longest side about 1, at the origin.
+    """
+    import trimesh
+
+    if kind == "box":
+        return _from_trimesh(trimesh.creation.box(extents=rng.uniform(0.2, 1.0, 3)))
+    if kind == "l_block":
+        w, d = rng.uniform(0.4, 1.0, 2)
+        cw, cd = w * rng.uniform(0.25, 0.75), d * rng.uniform(0.25, 0.75)  # the corner cut away
+        outline = np.array([[0, 0], [w, 0], [w, d - cd], [w - cw, d - cd], [w - cw, d], [0, d]])
+        cap = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 5], [3, 4, 5]])
+        return prism(outline, [list(range(6))], cap, rng.uniform(0.2, 1.0))
+    if kind == "prism":
+        k = int(rng.integers(3, 9))
+        # Corners on an ellipse, each moved off its even spacing by up to 0.6 of its share: convex, in order.
+        angles = np.linspace(0, 2 * np.pi, k, endpoint=False) + rng.uniform(-0.6, 0.6, k) * np.pi / k
+        angles += rng.uniform(0, 2 * np.pi)
+        outline = 0.5 * np.c_[np.cos(angles), rng.uniform(0.4, 1.0) * np.sin(angles)]
+        cap = np.array([[0, i, i + 1] for i in range(1, k - 1)])
+        return prism(outline, [list(range(k))], cap, rng.uniform(0.2, 1.0))
+    if kind == "cylinder":
+        return _from_trimesh(trimesh.creation.cylinder(radius=rng.uniform(0.1, 0.5), height=rng.uniform(0.2, 1.0),
+                                                       sections=SIDES))
+    if kind == "cone":
+        return _from_trimesh(trimesh.creation.cone(radius=rng.uniform(0.1, 0.5), height=rng.uniform(0.2, 1.0),
+                                                   sections=SIDES))
+    raise ValueError(f"unknown kind {kind!r}; one of {', '.join(RANDOM_KINDS)}")
+
+
+RANDOM_KINDS = ("box", "l_block", "prism", "cylinder", "cone")
+
+
+def posed(shape: Shape, rng: np.random.Generator, turn: bool = True, millimetres: bool = False) -> Shape:
+    """``shape`` turned at random (``turn``), and with ``millimetres`` scaled by 1,000 and moved up to 10 m
+    from the origin, as a CAD export in millimetres would be."""
+    import trimesh
+
+    v = np.asarray(shape.vertices, dtype=np.float64)
+    if turn:
+        v = v @ trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3].T
+    if millimetres:
+        v = v * 1000.0 + rng.uniform(-1e4, 1e4, 3)
+    return Shape(vertices=v, faces=shape.faces)
+
+
 def primitive(name: str) -> Shape:
     """The mesh of the ladder's shape ``name`` (one of ``LADDER``)."""
     if name not in LADDER:

@@ -19,6 +19,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .closure import close_loops
 from .holes import fill_holes
 from .support import support_distance, support_limit
 from .triangles import TriangleConfig, drop_degenerate, limit_faces_per_edge, orient_faces, triangles_from_adjacency
@@ -241,6 +242,12 @@ class _Selection:
         self.face_normals: dict[tuple[int, int, int], list[float]] = {}
         self.open: dict[int, set[int]] = {}
 
+    def add_vertex(self, position: np.ndarray) -> None:
+        """A vertex after the others (the closure's), with no tangent plane: its corners have no sector."""
+        self.v.append([float(x) for x in position])
+        self.frames.append([[math.nan] * 3, [math.nan] * 3])
+        self.normals.append([math.nan] * 3)
+
     def _sector(self, a: int, b: int, c: int, f: list[float]) -> tuple[float, float]:
         """(start, width) in radians of the corner of face (a, b, c) (unit normal ``f``) at ``a``, seen in
         a's tangent plane; NaN where a has no tangent plane or the face lies across it."""
@@ -354,7 +361,7 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
     points : (P, 3) float, samples of the input surface in the frame of ``vertices``
     config : TriangleConfig
         ``surface_tol``, ``fold_angle``, ``fill_max_loop``,
-        ``support_weight``, ``model_weight``, ``model_triangles``.
+        ``support_weight``, ``model_weight``, ``model_triangles``, ``close``.
     logits : (N, N) float, optional
         The model's edge logits: a triangle scores ``model_weight`` times the mean log-probability of
         its edges minus ``support_weight`` times its support distance in units of the limit.  Without them the
@@ -362,7 +369,8 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
 
     Returns
     -------
-    (F, 3) int64 oriented faces into ``vertices``.
+    vertices : (N + k, 3) float64, ``vertices`` and the k vertices the closure added (``config.close``)
+    faces : (F, 3) int64, oriented
     """
     cfg = config or TriangleConfig()
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
@@ -383,4 +391,7 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
     f = orient_faces(v, f)  # boundary loops follow the windings
     if cfg.fill_max_loop:
         f = orient_faces(v, fill_holes(v, f, book, pts, limit, tree, cfg.fill_max_loop))
-    return f
+    if cfg.close:
+        v, f = close_loops(v, f, book, pts, limit, tree)
+        f = orient_faces(v, f)
+    return v, f

@@ -78,6 +78,9 @@ class TriangleConfig:
         ``"surface"``: the 3-cycles of the predicted edges that pass the support test are
         candidates too (else only the restricted Delaunay triangles, scored by the model; on the
         out-of-package validation meshes the extra triangles raise CD and HD).
+    close : bool
+        ``"surface"``: close the loops hole filling left open (:func:`fastmesh.closure.close_loops`): the
+        pipeline sets it per request, for an input that is closed (``closure.decide_closed``).
     flat_tol : float or None
         Last, remove the vertices of flat regions, straight creases and straight open borders
         (:func:`fastmesh.simplify.collapse_flat`): a kept vertex stays within ``flat_tol * L``
@@ -101,6 +104,7 @@ class TriangleConfig:
     support_weight: float = 1.0
     model_weight: float = 1.0
     model_triangles: bool = False
+    close: bool = False
     flat_tol: float | None = 0.5 * CELL
 
     def __post_init__(self):
@@ -440,7 +444,8 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: TriangleConfig | None
 
     Returns
     -------
-    vertices : (M, 3) float64 (M = N unless ``remove_unreferenced``)
+    vertices : (M, 3) float64 (M = N unless ``remove_unreferenced``, or the closure of ``selection``
+        "surface" added vertices)
     faces : (F, 3) int64
     """
     cfg = config or TriangleConfig()
@@ -450,7 +455,8 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: TriangleConfig | None
 
         if points is None:
             raise ValueError("selection 'surface' needs samples of the input surface (points)")
-        f = _flat_removed(v, surface_mesh(v, as_edges(adj, len(v))[0], points, cfg, logits), cfg)
+        v, f = surface_mesh(v, as_edges(adj, len(v))[0], points, cfg, logits)
+        f = _flat_removed(v, f, cfg)
         return remove_unreferenced(v, f)[:2] if cfg.remove_unreferenced else (v, f)
     f = triangles_from_adjacency(adj, len(v))
     if cfg.drop_zero_area:

@@ -16,11 +16,13 @@ JOB_EXAMPLE = {
     "started_at": "2025-05-01T12:00:00.210000Z",
     "finished_at": "2025-05-01T12:00:04.870000Z",
     "params": {"seed": 0, "temperature": 0.3, "top_k": 10, "top_p": 0.95, "max_vertices": 1000,
-               "enhancer": True, "filtering": False, "candidates": 2, "target_faces": None, "formats": ["glb"]},
+               "enhancer": True, "filtering": False, "candidates": 2, "target_faces": None, "closed": "auto",
+               "formats": ["glb"]},
     "input": {"filename": "chair.ply", "kind": "points", "points": 20000, "vertices": None, "faces": None},
     "result": {"vertices": 412, "faces": 806, "tokens": 412, "formats": ["glb"], "seed": 1,
-               "quality": {"cd": 2.61, "hd": 11.4, "boundary_edges": 18, "non_manifold_edges": 0, "components": 3,
-                           "watertight": False}},
+               "quality": {"cd": 2.61, "hd": 11.4, "boundary_edges": 0, "non_manifold_edges": 0,
+                           "non_manifold_vertices": 0, "components": 1, "pieces": 1, "input_pieces": 1,
+                           "watertight": True, "closed_decision": "closed", "faces": 806, "target_faces": None}},
     "timings": {"queue": 0.21, "load": 0.05, "encode": 0.12, "vertices": 3.1, "enhancer": 0.2, "faces": 0.9,
                 "filtering": 0.05, "export": 0.02, "total": 4.87},
     "error": None,
@@ -59,8 +61,18 @@ class Quality(BaseModel):
     hd: float = Field(description="Hausdorff distance between result and input, % of the input's longest side.")
     boundary_edges: int = Field(description="Edges with one face: the rims of holes and open borders.")
     non_manifold_edges: int = Field(description="Edges with three or more faces.")
+    non_manifold_vertices: int | None = Field(None, description="Vertices whose faces form more than one fan "
+                                                                "(pieces touching at a point).")
     components: int = Field(description="Pieces of the mesh (faces connected through shared vertices).")
+    pieces: int | None = Field(None, description="Pieces of the mesh (faces connected through shared edges).")
+    input_pieces: int | None = Field(None, description="The input's pieces: a mesh's (vertices welded), or a point "
+                                                       "cloud's groups of nearby points.")
     watertight: bool = Field(description="Every edge in exactly two faces.")
+    closed_decision: str | None = Field(None, description="closed or open (closed=auto, decided from the input: a "
+                                                          "closed mesh, or oriented points enclosing a volume), or "
+                                                          "asked (closed=true/false).")
+    faces: int | None = Field(None, description="Faces of the result.")
+    target_faces: int | None = Field(None, description="Faces asked for (null: the model chose).")
 
 
 class ResultInfo(BaseModel):

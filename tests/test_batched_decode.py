@@ -16,7 +16,7 @@ from fastmesh.models.onnx_decode import NumpyCache, OrtDecoder
 from fastmesh.models.vertex import VertexConfig, VertexDecoder
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.primitives import primitive
+from fastmesh.primitives import point_cloud, primitive
 from fastmesh.support import surface_fit
 from fastmesh.tokenizer import vertex as vt
 from fastmesh.tokenizer.grid import BLOCK_SIDE, block_coords, offset_coords
@@ -132,7 +132,7 @@ def test_onnx_batch_rows_are_computed_as_alone_before_and_after_finished_rows_le
 def test_pipeline_candidates_are_each_seed_alone():
     """Every candidate (not only the chosen one) is the mesh its seed gives alone, scored as before."""
     pipe = Pipeline.random(seed=0)
-    shape = primitive("l_block")
+    shape = point_cloud(primitive("l_block"), 4000)  # its points: the block's own 20 faces would come back
     params = dict(max_vertices=24, temperature=1.0)
     both = pipe.generate(shape, GenerateParams(seed=11, candidates=2, **params))
     norm = Normalization.fit(shape.vertices)

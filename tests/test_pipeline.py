@@ -19,6 +19,7 @@ from fastmesh.fitting import FitConfig
 from fastmesh.io import Shape, load_shape, sample_surface
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weights_dir
+from fastmesh.primitives import point_cloud
 from fastmesh.quality import mesh_quality
 from fastmesh.support import surface_fit
 from fastmesh.tokenizer.grid import CELL
@@ -33,7 +34,8 @@ def pipe() -> Pipeline:
 
 
 def _sphere(center=(10.0, -4.0, 2.0), scale=3.0) -> Shape:
-    m = trimesh.creation.icosphere(2)
+    """A dense mesh (1,280 faces): more than the tiny networks' results, which a low-poly input would replace."""
+    m = trimesh.creation.icosphere(3)
     return Shape(vertices=np.asarray(m.vertices) * scale + np.asarray(center), faces=np.asarray(m.faces))
 
 
@@ -49,9 +51,57 @@ def test_generate_returns_mesh_in_input_frame(pipe):
     assert set(res.timings) == {"encode", "vertices", "enhancer", "faces", "filtering"}
     assert all(v >= 0 for v in res.timings.values())
     assert res.tokens >= 3 + len(res.vertices)  # BOS, >= 1 block token, offsets, EOS
-    # The Python API result carries the quality report of exactly this mesh against this input.
-    assert res.quality == mesh_quality(res.vertices, res.faces, shape, seed=1)
+    # The Python API result carries the quality report of exactly this mesh against this input, and the
+    # closure's decision: the sphere is a closed mesh.
+    assert res.quality == {**mesh_quality(res.vertices, res.faces, shape), "closed_decision": "closed",
+                           "faces": len(res.faces), "target_faces": None}
     assert res.quality["cd"] > 0 and res.quality["components"] >= 1
+    assert res.info["closed_decision"] == {"close": True, "reason": "closed_mesh"}
+
+
+def test_a_low_poly_mesh_input_comes_back_as_it_is_unless_a_count_is_asked(pipe):
+    """A mesh with fewer faces than the result (here the 12 of a box split at its seams, as files store
+    it) is returned welded: never more faces than a low-poly input.  A face-count target is a request."""
+    m = trimesh.creation.box(extents=(1.0, 2.0, 0.5))
+    split = Shape(vertices=m.vertices[m.faces].reshape(-1, 3) + 100.0, faces=np.arange(36).reshape(-1, 3))
+    res = pipe.generate(split, GenerateParams(seed=0, max_vertices=24))
+    assert res.info["result_from"] == "input" and len(res.vertices) == 8 and len(res.faces) == 12
+    assert res.quality["watertight"] and res.quality["hd"] == 0.0
+    asked = pipe.generate(split, GenerateParams(seed=0, max_vertices=24, target_faces=40))
+    assert asked.info["result_from"] == "model"
+    dense = pipe.generate(_sphere(), GenerateParams(seed=0, max_vertices=24))
+    assert dense.info["result_from"] == "model" and len(dense.faces) < 1280
+
+
+def test_a_turned_shape_is_also_made_in_its_canonical_frame(pipe, monkeypatch):
+    """A box turned at an angle is made in its own frame and in its oriented box's, each turned back to the
+    input's frame; an axis-aligned one only once."""
+    from fastmesh.canonical import canonical_rotation, frame_normals
+
+    calls = []
+    made = pipe._in_frame
+
+    def spy(shape, rotation, *args):
+        calls.append(rotation)
+        return made(shape, rotation, *args)
+
+    monkeypatch.setattr(pipe, "_in_frame", spy)
+    box = trimesh.creation.box(extents=(3.0, 2.0, 1.0)).subdivide().subdivide()  # 192 faces: no low-poly input
+    turn = trimesh.transformations.rotation_matrix(0.6, [1.0, 2.0, 3.0])
+    turned = box.copy()
+    turned.apply_transform(turn)
+    shape = Shape(vertices=np.asarray(turned.vertices), faces=np.asarray(turned.faces))
+    res = pipe.generate(shape, GenerateParams(seed=0, max_vertices=24, candidates=1))
+    expected = canonical_rotation(shape.vertices, frame_normals(shape))
+    assert len(calls) == 2 and np.array_equal(calls[0], np.eye(3)) and np.array_equal(calls[1], expected)
+    assert np.allclose(expected @ turn[:3, :3], np.eye(3), atol=1e-6)  # the box's own axes, as built
+    lo, hi = shape.bounds
+    assert (res.vertices >= lo - 0.05).all() and (res.vertices <= hi + 0.05).all()  # back in the input frame
+    assert res.info["turned_degrees"] in (0.0, round(np.degrees(0.6), 3))
+    calls.clear()
+    pipe.generate(Shape(vertices=np.asarray(box.vertices), faces=np.asarray(box.faces)),
+                  GenerateParams(seed=0, max_vertices=24, candidates=1))
+    assert len(calls) == 1
 
 
 def test_same_seed_same_mesh_and_save_load_roundtrip(pipe, weights):
@@ -74,8 +124,10 @@ def test_filtering_and_cleanup_settings_survive_save_load(tmp_path):
 
 
 def test_vertices_are_fitted_to_the_input_planes_unless_off(pipe):
-    """The fit moves the enhancer's positions onto the box's planes; radius None leaves them."""
-    box = Shape(vertices=np.asarray(trimesh.creation.box().vertices), faces=np.asarray(trimesh.creation.box().faces))
+    """The fit moves the enhancer's positions onto the box's planes; radius None leaves them.  (Its points: the
+    box's own 12 faces are fewer than any result, and come back as they are.)"""
+    box = point_cloud(Shape(vertices=np.asarray(trimesh.creation.box().vertices),
+                            faces=np.asarray(trimesh.creation.box().faces)), 4000)
     params = GenerateParams(seed=0, max_vertices=24)
     fitted = pipe.generate(box, params)
     saved = pipe.fit_config
@@ -134,10 +186,11 @@ def test_vertices_merged_below_three_are_a_clear_error(monkeypatch):
 
 def test_flat_vertices_go_except_with_a_face_count_target(pipe):
     """``TriangleConfig.flat_tol`` removes vertices on the box's faces; a ``target_faces`` keeps them (the
-    count asked for)."""
+    count asked for).  The box as points: its own 12 faces would come back as they are."""
     from dataclasses import replace
 
-    box = Shape(vertices=np.asarray(trimesh.creation.box().vertices), faces=np.asarray(trimesh.creation.box().faces))
+    box = point_cloud(Shape(vertices=np.asarray(trimesh.creation.box().vertices),
+                            faces=np.asarray(trimesh.creation.box().faces)), 4000)
     saved = pipe.triangle_config
     surface = TriangleConfig(remove_unreferenced=True, selection="surface")  # a surface, as shipped
     runs = {}
@@ -304,7 +357,9 @@ def test_cli_generate_file_json(tmp_path, weights):
     r = _cli("generate", str(src), "-o", str(out), "--weights", weights, "--max-vertices", "20", "--json")
     rec = json.loads(r.stdout.strip().splitlines()[-1])
     assert set(rec) == {"input", "output", "vertices", "faces", "tokens", "timings", "quality"}
-    assert set(rec["quality"]) == {"cd", "hd", "boundary_edges", "non_manifold_edges", "components", "watertight"}
+    assert set(rec["quality"]) == {"cd", "hd", "boundary_edges", "non_manifold_edges", "non_manifold_vertices",
+                                   "components", "pieces", "input_pieces", "watertight", "closed_decision", "faces",
+                                   "target_faces"}
     assert set(rec["timings"]) == {"load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total"}
     mesh = trimesh.load(out, force="mesh")
     assert len(mesh.faces) == rec["faces"] > 0

@@ -139,6 +139,8 @@ def test_upload_poll_download_glb(served):
     parts = trimesh.graph.connected_components(mesh.edges_unique, nodes=np.unique(mesh.faces), min_len=1)
     assert q["boundary_edges"] == int((uses == 1).sum()) and q["non_manifold_edges"] == int((uses > 2).sum())
     assert q["components"] == len(parts) and q["watertight"] == bool(mesh.is_watertight)
+    # A point cloud of a sphere with outward normals encloses a volume: closed=auto closes the result.
+    assert q["closed_decision"] == "closed" and q["input_pieces"] == 1 and q["faces"] == res["faces"]
     pts = np.loadtxt(io.BytesIO(sphere_xyz()))
     lo, hi = pts.min(0), pts.max(0)
     scale = 100.0 / (hi - lo).max()  # distances in % of the input's longest side
@@ -199,7 +201,7 @@ def test_openapi_documents_the_interface(served):
     ref = form["$ref"].rsplit("/", 1)[1]
     props = spec["components"]["schemas"][ref]["properties"]
     assert {"file", "seed", "temperature", "top_k", "top_p", "max_vertices", "enhancer", "filtering",
-            "formats"} <= set(props)
+            "closed", "formats"} <= set(props)
     assert "429" in paths["/v1/jobs"]["post"]["responses"]
 
 
@@ -229,6 +231,7 @@ def test_bad_uploads_are_clear_4xx(served, name, data, status, code):
     ({"top_k": -1}, "top_k"), ({"max_vertices": 0}, "max_vertices"), ({"max_vertices": "x"}, "max_vertices"),
     ({"enhancer": "maybe"}, "enhancer"), ({"formats": "fbx"}, "formats"), ({"formats": "glb,../x"}, "formats"),
     ({"target_faces": 2}, "target_faces"), ({"target_faces": 10 ** 6}, "target_faces"),
+    ({"closed": "yes"}, "closed"), ({"closed": ""}, "closed"),
 ])
 def test_bad_parameters_are_422_naming_the_field(served, fields, word):
     app, _ = served

@@ -106,7 +106,7 @@ def test_selection_never_puts_an_edge_in_three_faces():
     s /= np.linalg.norm(s, axis=1, keepdims=True)
     close = np.argwhere(np.linalg.norm(s[:, None] - s[None], axis=2) < 0.9)
     pts = trimesh.sample.sample_surface(trimesh.creation.icosphere(4), 8192, seed=0)[0]
-    f = sf.surface_mesh(s, close, pts, TriangleConfig(selection="surface", support_tol=0.1))
+    f = sf.surface_mesh(s, close, pts, TriangleConfig(selection="surface", support_tol=0.1))[1]
     assert len(f) and _max_faces_per_edge(f) <= 2
 
 
@@ -137,7 +137,7 @@ def test_fill_closes_a_hole_and_leaves_an_open_input_open():
     x, y = np.meshgrid(np.arange(k), np.arange(k), indexing="ij")
     grid = np.stack([x.ravel(), y.ravel(), np.zeros(k * k)], 1) / (k - 1)
     plane = np.c_[np.random.default_rng(0).random((8192, 2)), np.zeros(8192)]
-    f = sf.surface_mesh(grid, np.zeros((0, 2), dtype=np.int64), plane)
+    f = sf.surface_mesh(grid, np.zeros((0, 2), dtype=np.int64), plane)[1]
     assert len(f) == 2 * (k - 1) ** 2 and not mesh_topology(grid, f)["watertight"]
 
 

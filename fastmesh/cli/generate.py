@@ -20,7 +20,7 @@ TIMING_KEYS = ("load", "encode", "vertices", "enhancer", "faces", "filtering", "
 
 def add_sampling_args(p) -> None:
     """Flags shared by ``generate`` and ``eval``."""
-    from fastmesh.params import GenerateParams
+    from fastmesh.params import CLOSED_CHOICES, GenerateParams
 
     d = GenerateParams()
     p.add_argument("--seed", type=int, default=d.seed)
@@ -30,6 +30,9 @@ def add_sampling_args(p) -> None:
     p.add_argument("--max-vertices", type=int, default=None, help="default: the model's limit")
     p.add_argument("--target-faces", type=int, default=None, metavar="N",
                    help="faces to aim for (default: the model chooses the count from the shape)")
+    p.add_argument("--closed", choices=CLOSED_CHOICES, default=d.closed,
+                   help="close the result's holes: auto = when the input is closed (a closed mesh, or oriented points "
+                        "that enclose a volume)")
     p.add_argument("--candidates", type=int, default=d.candidates,
                    help="meshes sampled (seeds SEED, SEED+1, ...); the one nearest the input is kept "
                         "(1 = fastest)")
@@ -49,7 +52,7 @@ def params_from_args(args):
     return GenerateParams(seed=args.seed, temperature=args.temperature, top_k=args.top_k, top_p=args.top_p,
                           max_vertices=args.max_vertices, enhancer=not args.no_enhancer,
                           filtering=args.filtering, candidates=args.candidates,
-                          target_faces=args.target_faces)
+                          target_faces=args.target_faces, closed=args.closed)
 
 
 def load_pipeline(args):

@@ -24,6 +24,8 @@ def register(sub) -> None:
     p.add_argument("--candidates", type=int, default=None, help="meshes sampled; the nearest the input is kept")
     p.add_argument("--target-faces", type=int, default=None, metavar="N",
                    help="faces to aim for (default: the model chooses)")
+    p.add_argument("--closed", choices=("auto", "true", "false"), default=None,
+                   help="close the result's holes (default: the server's, auto: when the input is closed)")
     p.add_argument("--no-enhancer", action="store_true", help="skip the fidelity enhancer")
     p.add_argument("--filtering", action=argparse.BooleanOptionalAction, default=None,
                    help="prediction filtering on or off (default: the server's, off)")
@@ -57,7 +59,7 @@ def _submit(args) -> int:
         with Client(args.url, api_key=args.api_key) as client:
             job = client.submit(src, seed=args.seed, temperature=args.temperature, top_k=args.top_k,
                                 top_p=args.top_p, max_vertices=args.max_vertices, candidates=args.candidates,
-                                target_faces=args.target_faces,
+                                target_faces=args.target_faces, closed=args.closed,
                                 enhancer=False if args.no_enhancer else None,
                                 filtering=args.filtering, formats=fmt)
             job = client.wait(job["id"], progress=show, timeout=args.timeout)

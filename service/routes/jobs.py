@@ -9,6 +9,7 @@ from __future__ import annotations
 import threading
 import time
 from pathlib import PurePath
+from typing import Literal
 from urllib.parse import quote
 
 import anyio
@@ -76,6 +77,10 @@ def jobs_router(settings: Settings, parses: CappedPool) -> APIRouter:
                target_faces: int | None = Form(None, **BOUNDS["target_faces"].form_range(),
                                                description="Faces to aim for; unset = the model chooses the count "
                                                            "from the shape.", examples=[300]),
+               closed: Literal["auto", "true", "false"] | None = Form(
+                   None, description="Close the result's holes: auto = when the input is closed (a closed mesh, or "
+                                     f"oriented points that enclose a volume); the decision is in result.quality "
+                                     f"({d('closed')}).", examples=["auto"]),
                formats: str | None = Form(None, description="Comma list of glb, obj, ply exported with the job "
                                                             f"(default {','.join(settings.default_formats)}).",
                                           examples=["glb,obj"]),
@@ -88,7 +93,7 @@ def jobs_router(settings: Settings, parses: CappedPool) -> APIRouter:
                                                 "per minute for this key", {"Retry-After": str(wait)})
         params = build_params({"seed": seed, "temperature": temperature, "top_k": top_k, "top_p": top_p,
                                "max_vertices": max_vertices, "enhancer": enhancer, "filtering": filtering,
-                               "candidates": candidates, "target_faces": target_faces},
+                               "candidates": candidates, "target_faces": target_faces, "closed": closed},
                               formats, settings.default_formats, store.vertex_limit())
         # Reading and parsing hold up to a few times the upload in memory: a fixed number at once keeps the
         # API's peak a known multiple of the limits; beyond it the client is told to come back.

@@ -7,7 +7,7 @@ const KEY_STORE = 'fastmesh.apiKey';
 const JOBS_STORE = 'fastmesh.jobs';
 const MAX_RECENT = 20;
 const POLL_MS = 400;
-const PARAMS = ['seed', 'temperature', 'top_k', 'top_p', 'max_vertices', 'candidates', 'target_faces'];
+const PARAMS = ['seed', 'temperature', 'top_k', 'top_p', 'max_vertices', 'candidates', 'target_faces', 'closed'];
 const FLAGS = ['enhancer', 'filtering'];
 const TIMINGS = ['queue', 'load', 'encode', 'vertices', 'enhancer', 'faces', 'filtering', 'export', 'total'];
 const FINAL = ['succeeded', 'failed', 'cancelled'];
@@ -356,6 +356,8 @@ function showResultFacts(result) {
     'c-vertices': result.vertices, 'c-faces': result.faces, 'c-tokens': result.tokens,
     'c-boundary': q.boundary_edges, 'c-non-manifold': q.non_manifold_edges, 'c-components': q.components,
     'c-watertight': q.watertight == null ? null : q.watertight ? 'yes' : 'no',
+    'c-pieces': q.pieces == null ? null : `${q.pieces} / ${q.input_pieces ?? '-'}`,
+    'c-closed': q.closed_decision,
   };
   for (const [id, v] of Object.entries(facts)) $(`#${id}`).textContent = v ?? '-';
   $('#c-distance').textContent = q.cd == null ? '-' : `${q.cd.toFixed(2)} % / ${q.hd.toFixed(2)} %`;

@@ -1,0 +1,58 @@
+"""Whole results (fastmesh.pieces): pinched vertices split per fan, stray pieces dropped."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from fastmesh.pieces import drop_strays, split_pinches
+from fastmesh.quality import topology
+
+
+def _boxes(offsets, sizes=None) -> trimesh.Trimesh:
+    parts = []
+    for i, o in enumerate(offsets):
+        b = trimesh.creation.box(extents=np.full(3, 1.0 if sizes is None else sizes[i]))
+        b.apply_translation(o)
+        parts.append(b)
+    m = trimesh.util.concatenate(parts)
+    m.merge_vertices()
+    return m
+
+
+def test_boxes_touching_at_corners_are_split_into_manifold_pieces():
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        # A chain of boxes, each touching the last at one corner: every shared corner is pinched.
+        k = int(rng.integers(2, 5))
+        m = _boxes([[i, i, i] for i in range(k)])
+        assert topology(m.faces)["non_manifold_vertices"] == k - 1
+        v, f = split_pinches(m.vertices, m.faces)
+        top = topology(f)
+        assert top["non_manifold_vertices"] == 0 and top["watertight"] and top["pieces"] == k
+        assert len(v) == len(m.vertices) + k - 1
+        assert np.array_equal(v[f], np.asarray(m.vertices)[m.faces])  # no corner moved
+
+
+def test_a_manifold_mesh_is_left_as_it_is():
+    m = trimesh.creation.icosphere(2)
+    v, f = split_pinches(m.vertices, m.faces)
+    assert np.array_equal(v, m.vertices) and np.array_equal(f, m.faces)
+
+
+def test_strays_go_smallest_first_down_to_the_inputs_pieces():
+    m = _boxes([[0, 0, 0], [5, 0, 0], [0, 5, 0], [0, 0, 5]], sizes=[2.0, 1.0, 0.03, 0.04])
+    f = np.asarray(m.faces)
+    # Two small boxes (under half a percent of the area each) beside two big ones.
+    assert topology(drop_strays(m.vertices, f, keep=4))["pieces"] == 4
+    three = drop_strays(m.vertices, f, keep=3)
+    assert topology(three)["pieces"] == 3 and len(three) == 36  # the smallest went
+    assert topology(drop_strays(m.vertices, f, keep=1))["pieces"] == 2  # the unit box is no stray
+    sliver = np.array([[0, 1, 2], [0, 2, 1]])  # a triangle closed with its own back: two faces
+    long = np.array([[10.0, 0, 0], [11, 0, 0], [10, 0.01, 0]])  # two faces, but a sixteenth of the size long
+    v = np.concatenate([m.vertices, long])
+    assert topology(drop_strays(v, np.concatenate([f, sliver + len(m.vertices)]), keep=1))["pieces"] == 3
+    tri = np.array([[10.0, 0, 0], [10.05, 0, 0], [10, 0.05, 0]])
+    v = np.concatenate([m.vertices, tri])
+    both = np.concatenate([f, sliver + len(m.vertices)])
+    assert len(drop_strays(v, both, keep=1)) == len(f) - 24  # the sliver and the two small boxes

@@ -36,6 +36,7 @@ from .io import (
     write_mesh,
 )
 from .metrics import edge_metrics, edges_from_faces, mesh_topology, surface_distance, vertex_metrics
+from .quality import topology, weld
 from .surface_triangles import restricted_delaunay_mesh
 from .tokenizer import dequantize, quantize_mesh
 from .triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced
@@ -76,6 +77,39 @@ def poisson(shape: Shape, target_faces: int, seed: int = 0) -> tuple[np.ndarray,
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts.astype(np.float64), v_normals_matrix=nrm.astype(np.float64)))
     ms.generate_surface_reconstruction_screened_poisson(depth=8, preclean=True)
     ms.meshing_decimation_quadric_edge_collapse(targetfacenum=max(4, int(target_faces)), preservenormal=True)
+    m = ms.current_mesh()
+    return np.asarray(m.vertex_matrix()), np.asarray(m.face_matrix())
+
+
+def decimation(shape: Shape, target_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """Quadric edge-collapse decimation of a mesh input to about ``target_faces`` (``fast-simplification``,
+    the input's vertices welded first): what a user does with a dense mesh instead of retopology."""
+    import fast_simplification
+
+    if shape.faces is None:
+        raise ShapeError("not_a_mesh", "decimation needs a mesh input")
+    v, f = weld(shape.vertices, shape.faces)
+    if len(f) <= target_faces:
+        return v, f
+    return fast_simplification.simplify(v.astype(np.float32), f.astype(np.int32),
+                                        target_reduction=1.0 - target_faces / len(f))
+
+
+def dense_remesh(vertices: np.ndarray, faces: np.ndarray, target_faces: int = 20_000, seed: int = 0
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """A dense mesh of the same surface without the artist's structure: isotropic remeshing (pymeshlab) to
+    edges of the length that gives about ``target_faces`` equilateral faces, as a scan or a sculpt would
+    be.  Creases of over 30 degrees keep a line of vertices; corners and the artist's vertices do not."""
+    import pymeshlab
+
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum()
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f.astype(np.int32)))
+    ms.meshing_merge_close_vertices()
+    ms.meshing_isotropic_explicit_remeshing(iterations=4, targetlen=pymeshlab.PureValue(
+        float(np.sqrt(4.0 * area / (np.sqrt(3.0) * target_faces)))))
     m = ms.current_mesh()
     return np.asarray(m.vertex_matrix()), np.asarray(m.face_matrix())
 
@@ -136,6 +170,9 @@ def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("
                     mesh = convex_hull(shape)
                 elif system == "poisson":
                     mesh = poisson(shape, len(ref.faces), seed=params.seed)
+                elif system == "decimation":  # to our own face count (the reference's without a result)
+                    ours = row.get("fastmesh", {})
+                    mesh = decimation(shape, ours.get("faces") or len(ref.faces))
                 else:
                     raise ValueError(f"unknown system {system!r}")
                 out = {**_score(mesh, ref, artist), **_topology_row(*mesh)}
@@ -150,7 +187,15 @@ def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("
         rows.append(row)
         if log:
             log(f"[{i}/{len(pairs)}] {inp.name}: " + ", ".join(f"{s} " + _line(row[s]) for s in systems))
-    return {"meshes": rows, "summary": {s: summarise(rows, s) for s in systems}}
+    packages = sorted({_package(r["name"]) for r in rows})
+    by_package = {p: {s: summarise([r for r in rows if _package(r["name"]) == p], s) for s in systems}
+                  for p in packages}
+    return {"meshes": rows, "summary": {s: summarise(rows, s) for s in systems}, "by_package": by_package}
+
+
+def _package(name: str) -> str:
+    """The Debian package of an eval-set name (``fastmesh data eval-set`` names files package__path)."""
+    return name.split("__", 1)[0]
 
 
 def _line(out: dict) -> str:
@@ -184,6 +229,11 @@ def summarise(rows: list[dict], system: str) -> dict:
         out["share_watertight"] = (sum(r[system]["watertight"] for r in closed) / len(closed)
                                    if closed else float("nan"))
         out["more_pieces_than_reference"] = int(sum(r[system]["pieces"] > r["reference"]["pieces"] for r in ok))
+        out["share_pieces_within_reference"] = sum(r[system]["pieces"] <= r["reference"]["pieces"]
+                                                   for r in ok) / len(rows)
+        out["median_boundary_edges"] = float(np.median([r[system]["boundary_edges"] for r in ok]))
+        out["median_boundary_edges_closed_references"] = (
+            float(np.median([r[system]["boundary_edges"] for r in closed])) if closed else float("nan"))
         out["vertex_metrics"] = summarise_vertex_metrics([r[system]["vertex_metrics"] for r in ok])
         if "timings" in ok[0][system]:
             out["mean_timings"] = {k: float(np.mean([r[system]["timings"][k] for r in ok]))
@@ -203,7 +253,8 @@ def _save(save: str | Path | None, system: str, name: str, vertices: np.ndarray,
 
 def _topology_row(vertices: np.ndarray, faces: np.ndarray) -> dict:
     t = mesh_topology(vertices, faces)
-    return {"edge_manifold": t["edge_manifold"], "watertight": t["watertight"], "pieces": t["pieces"]}
+    return {"edge_manifold": t["edge_manifold"], "watertight": t["watertight"], "pieces": t["pieces"],
+            "boundary_edges": topology(weld(vertices, faces)[1])["boundary_edges"]}
 
 
 def gt_vertex_systems(triangle_config: TriangleConfig, baseline: bool) -> dict[str, TriangleConfig | None]:
@@ -304,13 +355,15 @@ def summarise_gt(rows: list[dict], system: str) -> dict:
 
 
 def export_eval_set(ds, source_root: str | Path, out: str | Path, split: str = "val", n_points: int = 8192,
-                    seed: int = 0, max_vertices: int | None = None, per_package: int | None = None) -> int:
+                    seed: int = 0, max_vertices: int | None = None, per_package: int | None = None,
+                    dense_faces: int | None = None) -> int:
     """Write ``inputs/<name>.npz`` (points + normals, the reference's frame) and ``reference/<name>.ply``.
 
     The input point cloud is sampled from the original reference mesh, as a user's scan
     of it would be; returns the number of pairs written.  With ``per_package`` = n, only n
     meshes of each package, evenly spaced in its list, so that a small set still holds every
-    package of the split.
+    package of the split.  With ``dense_faces`` the inputs are meshes instead, ``inputs/<name>.ply``:
+    the reference remeshed densely without its structure (:func:`dense_remesh`).
     """
     import shutil
 
@@ -330,9 +383,12 @@ def export_eval_set(ds, source_root: str | Path, out: str | Path, split: str = "
         name = str(ds.arrays["name"][i])
         src = Path(source_root) / name
         ref = load_shape(src)
-        pts, nrm = sample_surface(ref, n_points, seed=seed)
         stem = name.replace("/", "__").rsplit(".", 1)[0]
-        np.savez(out / "inputs" / f"{stem}.npz", points=pts, normals=nrm)
+        if dense_faces:
+            write_mesh(out / "inputs" / f"{stem}.ply", *dense_remesh(ref.vertices, ref.faces, dense_faces))
+        else:
+            pts, nrm = sample_surface(ref, n_points, seed=seed)
+            np.savez(out / "inputs" / f"{stem}.npz", points=pts, normals=nrm)
         shutil.copyfile(src, out / "reference" / f"{stem}{src.suffix}")
         count += 1
     return count

@@ -52,6 +52,30 @@ def test_convex_hull_of_a_box_finds_every_artist_vertex(box_set):
         "mean_count_ratio", "median_count_ratio"}
 
 
+def test_mesh_inputs_are_set_beside_their_decimation_per_package(tmp_path):
+    """A dense mesh input: its quadric decimation to our own face count is scored beside our result, and the
+    summary (overall and per package) says how many results are closed, whole and open where."""
+    sphere = trimesh.creation.icosphere(4)  # 5,120 faces
+    for sub in ("inputs", "reference"):
+        (tmp_path / sub).mkdir()
+    for name in ("pkgA__ball", "pkgB__ball"):
+        sphere.export(tmp_path / "inputs" / f"{name}.ply")
+        trimesh.creation.icosphere(1).export(tmp_path / "reference" / f"{name}.ply")
+    report = evaluate_end_to_end(Pipeline.random(seed=0), pair_inputs(tmp_path / "inputs", tmp_path / "reference"),
+                                 GenerateParams(max_vertices=16), systems=("fastmesh", "decimation"))
+    for row in report["meshes"]:
+        ours, dec = row["fastmesh"], row["decimation"]
+        assert abs(dec["faces"] - ours["faces"]) <= 2 and dec["watertight"] and dec["boundary_edges"] == 0
+        assert row["reference"]["watertight"] and ours["boundary_edges"] >= 0
+    assert set(report["by_package"]) == {"pkgA", "pkgB"}
+    for system in ("fastmesh", "decimation"):
+        whole = report["summary"][system]
+        assert whole["meshes"] == 2 and report["by_package"]["pkgA"][system]["meshes"] == 1
+        assert {"share_watertight", "share_pieces_within_reference", "median_boundary_edges",
+                "median_boundary_edges_closed_references"} <= set(whole)
+    assert report["summary"]["decimation"]["share_watertight"] == 1.0
+
+
 def test_artist_vertices_merge_per_cell_in_the_reference_frame(box_set):
     ref = load_shape(box_set / "reference" / "mesh.ply")
     # A second copy of each corner (a seam splits vertices): one artist vertex each.

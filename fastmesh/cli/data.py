@@ -39,6 +39,9 @@ def register(sub) -> None:
     e.add_argument("--max-vertices", type=int, default=0, help="only meshes up to this many (7-bit) vertices")
     e.add_argument("--per-package", type=int, default=0, metavar="N",
                    help="only N meshes of each package, evenly spread (a small set that holds every package)")
+    e.add_argument("--dense-meshes", type=int, default=0, metavar="FACES",
+                   help="inputs as dense meshes of about FACES faces (isotropic remeshing of each reference, "
+                        "needs pymeshlab) instead of point clouds")
     e.set_defaults(func=_eval_set)
     c = dsub.add_parser("cells", help="some meshes of a cache plus the cell evidence network's log-odds of each "
                                       "(training data of a decoder that reads them)")
@@ -105,6 +108,7 @@ def _eval_set(args) -> int:
     from fastmesh.eval import export_eval_set
 
     n = export_eval_set(load_dataset(args.file), args.source, args.out, split=args.split, n_points=args.points,
-                        max_vertices=args.max_vertices or None, per_package=args.per_package or None)
+                        max_vertices=args.max_vertices or None, per_package=args.per_package or None,
+                        dense_faces=args.dense_meshes or None)
     print(f"wrote {n} input/reference pairs to {args.out}")
     return 0

@@ -186,14 +186,16 @@ def _best_triangulation(loop: list[int], book: _Selection, support: SupportCache
     if not covered.all():
         return None
 
-    def new_edge_taken(p: int, q: int) -> bool:  # a chord of the loop that the selection already has
-        a, b = sorted((loop[p], loop[q]))
-        return q - p != 1 and (p, q) != (0, k - 1) and bool(book.third.get((a, b)))
-
-    cost, face = {}, {}  # index triple -> support distance, and -> the triangle's vertices
-    for (i, m, j), t, dt in zip(ijm[on].tolist(), tris[on].tolist(), d[on].tolist(), strict=True):
-        if not any(new_edge_taken(p, q) for p, q in ((i, m), (m, j), (i, j))):
-            cost[(i, m, j)], face[(i, m, j)] = dt, t
+    # The chords of the loop that the selection already has (as a table over loop positions): no triangle
+    # may add one.  A loop edge is no chord.
+    taken = np.zeros((k, k), dtype=bool)
+    for p, q in itertools.combinations(range(k), 2):
+        if q - p != 1 and (p, q) != (0, k - 1):
+            a, b = sorted((loop[p], loop[q]))
+            taken[p, q] = bool(book.third.get((a, b)))
+    on &= ~(taken[lo, mid] | taken[mid, hi] | taken[lo, hi])
+    cost = dict(zip(map(tuple, ijm[on].tolist()), d[on].tolist(), strict=True))  # index triple -> support
+    face = dict(zip(cost, map(tuple, tris[on].tolist()), strict=True))  # index triple -> the triangle's vertices
     # The check against the selection is the costly part, and most loops that reach here have no
     # triangulation in the end: find the cheapest one among the triangles not yet known to fail it,
     # check only its faces, and look again without those that fail (the cheapest found with every

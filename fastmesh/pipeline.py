@@ -118,6 +118,17 @@ def _timed(predict: Predictor, timings: dict[str, float], report: Callable[[str,
     return timed
 
 
+def _whole(shape: Shape, vertices: np.ndarray, faces: np.ndarray, params: GenerateParams
+           ) -> tuple[np.ndarray, np.ndarray, str]:
+    """The result made whole (``pieces``: no surface pinched at a vertex, no stray pieces beyond the input's),
+    or the input itself where it is a low-poly surface with no more faces (not with a face-count target).
+    Returns vertices, faces and where they come from: "model" or "input"."""
+    vertices, faces = split_pinches(vertices, faces)
+    vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, input_pieces(shape)))[:2]
+    low = _low_poly(shape, len(faces)) if params.target_faces is None else None
+    return (vertices, faces, "model") if low is None else (*low, "input")
+
+
 def _low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:
     """A mesh input, welded, when it has at most ``faces`` faces and is a surface (no edge in three faces):
     a result never has more faces than a low-poly input unless a count is asked for."""
@@ -341,31 +352,29 @@ class Pipeline:
                 errors.append(err)
         if not made:
             raise errors[0]
-        best = made[0]
-        if len(made) > 1:
-            with stage("filtering", timings):
-                norm = Normalization.fit(shape.vertices)
-                reference = input_surface(shape, norm.apply(shape.vertices), self.triangle_config.support_points,
-                                          params.seed)
-                fits = [surface_fit(norm.apply(m["vertices"]), m["faces"], reference, params.seed) for m in made]
-            # The canonical frame unless clearly farther: on a box both lie on its planes, but the turned
-            # one has its eight corners where the input's frame has a staircase of vertices along each wall.
-            best = made[-1] if fits[-1] <= FRAME_MARGIN * fits[0] else made[0]
-        # Whole: no surface pinched at a vertex, no stray pieces beyond the input's (``pieces``).
-        vertices, faces = split_pinches(best["vertices"], best["faces"])
-        vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, input_pieces(shape)))[:2]
-        best = {**best, "vertices": vertices, "faces": faces}
+        best = self._nearest_frame(shape, made, params, timings)
+        vertices, faces, result_from = _whole(shape, best["vertices"], best["faces"], params)
         info = {**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3),
-                "closed_decision": {"close": close, "reason": why}, "result_from": "model"}
-        low = _low_poly(shape, len(best["faces"])) if params.target_faces is None else None
-        if low is not None:  # the input is already a low-poly surface: fewer faces than ours, and exact
-            best = {**best, "vertices": low[0], "faces": low[1]}
-            info["result_from"] = "input"
-        quality = {**mesh_quality(best["vertices"], best["faces"], shape), "faces": int(len(best["faces"])),
+                "closed_decision": {"close": close, "reason": why}, "result_from": result_from}
+        quality = {**mesh_quality(vertices, faces, shape), "faces": int(len(faces)),
                    "closed_decision": why if why == "asked" else ("closed" if close else "open"),
                    "target_faces": params.target_faces}
-        return GenerateResult(vertices=best["vertices"], faces=best["faces"], tokens=best["tokens"],
-                              timings=timings, info=info, quality=quality)
+        return GenerateResult(vertices=vertices, faces=faces, tokens=best["tokens"], timings=timings, info=info,
+                              quality=quality)
+
+    def _nearest_frame(self, shape: Shape, made: list[dict], params: GenerateParams, timings: dict) -> dict:
+        """Of the results ``made`` in the input's frame and (last) in its canonical one, the canonical one
+        unless its surface_fit exceeds the other's by more than ``FRAME_MARGIN``: on a box both lie on its
+        planes, but the turned one has its eight corners where the input's frame has a staircase of vertices
+        along each wall."""
+        if len(made) == 1:
+            return made[0]
+        with stage("filtering", timings):
+            norm = Normalization.fit(shape.vertices)
+            reference = input_surface(shape, norm.apply(shape.vertices), self.triangle_config.support_points,
+                                      params.seed)
+            fits = [surface_fit(norm.apply(m["vertices"]), m["faces"], reference, params.seed) for m in made]
+        return made[-1] if fits[-1] <= FRAME_MARGIN * fits[0] else made[0]
 
     def _in_frame(self, shape: Shape, rotation: np.ndarray, params: GenerateParams, close: bool, report,
                   should_cancel, timings: dict) -> dict:

@@ -48,8 +48,10 @@ _SOURCES = 16384
 # step that allows folds too.  A cap farther from the input than that covers an opening the input has (a
 # nozzle, a sleeve): it stays open.
 RELAX = (2.0, 4.0)
-# Longest loop the closure triangulates as a whole (it weighs all C(k, 3) triangles of a k-loop).
+# Longest loop the closure closes (by ears, or by a fan about an input point), and the longest it triangulates
+# as a whole (that weighs all C(k, 3) triangles of a k-loop: 41,664 at 64 edges, 4,960 at 32).
 CLOSE_MAX_LOOP = 64
+WHOLE_MAX = 32
 # A loop of at most this many edges is a hole of the result, not an opening of the input: its fan about an
 # input point (the last step) may stray twice as far as a cap.
 SMALL_LOOP = 6
@@ -145,10 +147,11 @@ def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarra
     """Close the boundary loops of a selected surface, giving up a little more at each step.
 
     Each loop of at most ``max_loop`` edges is closed, at the first step that closes it, by: ear clipping
-    and whole triangulation under the selection's rules (:func:`fastmesh.holes._close_loop`) with the
-    support limit relaxed by each factor of ``RELAX``; then, within the last of them, the whole triangulation
-    of least support distance that adds no edge the surface already has, folds allowed (it stays
-    edge-manifold); a loop that passes a vertex twice and does not close so is closed in its simple parts.
+    and (up to ``WHOLE_MAX`` edges) whole triangulation under the selection's rules
+    (:func:`fastmesh.holes._close_loop`) with the support limit relaxed by each factor of ``RELAX``; then,
+    within the last of them, the whole triangulation of least support distance that adds no edge the surface
+    already has, folds allowed (it stays edge-manifold); a loop that passes a vertex twice and does not close
+    so is closed in its simple parts.
     A cap with a point farther from the input than the last relaxed limit is not taken: a loop whose every
     cap strays so far is an opening of the input, and stays open.  A loop that nothing on its own vertices
     closes gets a fan about a new vertex, the input point nearest its middle.
@@ -188,15 +191,15 @@ def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarra
                 continue
             pinched = len(set(loop)) < len(loop)  # ears would clip across the vertex it passes twice
             ears = None if pinched else near(_close_loop(loop, book, support, limit * relax))
-            if ears is None and (pinched or len(loop) > WHOLE_LOOP_MAX):
+            if ears is None and (pinched or len(loop) > WHOLE_LOOP_MAX) and len(loop) <= WHOLE_MAX:
                 ears = near(_best_triangulation(loop, book, support, limit * relax))
             out += ears or []
     for loop in hole_loops(vertices, np.asarray(out, dtype=np.int64)):
         faces = None
-        if len(loop) <= max_loop:
+        if len(loop) <= WHOLE_MAX:
             faces = near(_best_triangulation(loop, book, support, reach, folds=True))
         if faces is None and len(set(loop)) < len(loop):  # a pinched loop that cannot close whole: in parts
-            faces = [t for part in _simple_loops(loop) if 3 <= len(part) <= max_loop
+            faces = [t for part in _simple_loops(loop) if 3 <= len(part) <= WHOLE_MAX
                      for t in near(_best_triangulation(part, book, support, reach, folds=True)) or []]
         out += faces or []
     # Last, a loop no triangulation of its own vertices closes gets a vertex of the input's: the input point

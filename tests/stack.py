@@ -114,3 +114,15 @@ def forget_run(url: str) -> None:
                  if k.decode().split(":")[2].rsplit("-", 1)[0] in ids]
     for i in range(0, len(keys), 500):
         client.delete(*keys[i:i + 500])
+
+
+def printed(proc, lines: list[str], text: str):
+    """A ``wait_for`` condition: reads ``proc``'s stdout a line at a time (kept in ``lines``) until one holds
+    ``text``; raises with everything printed if the process exits first."""
+    def seen() -> bool:
+        line = proc.stdout.readline()
+        if not line and proc.poll() is not None:
+            raise RuntimeError("service.run exited:\n" + "".join(lines))
+        lines.append(line)
+        return text in line
+    return seen

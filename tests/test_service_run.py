@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import trimesh
+from stack import printed
 
 from service.processes import free_port, wait_for
 
@@ -82,21 +83,12 @@ def test_make_run_restarts_a_worker_that_dies(weights, tmp_path):
                                                    FASTMESH_HEARTBEAT_TTL="2", FASTMESH_HEARTBEAT_INTERVAL="0.5"))
     lines: list[str] = []
 
-    def printed(text: str):
-        def seen():
-            line = proc.stdout.readline()
-            if not line and proc.poll() is not None:
-                raise RuntimeError("service.run exited:\n" + "".join(lines))
-            lines.append(line)
-            return text in line
-        return seen
-
     try:
-        wait_for(printed("Ctrl-C stops everything"), 120, 0, what="the service to be ready")
+        wait_for(printed(proc, lines, "Ctrl-C stops everything"), 120, 0, what="the service to be ready")
         worker = next(k for k in children(proc.pid) if "fastmesh-worker" in Path(f"/proc/{k}/cmdline").read_text()
                       or "worker.main" in Path(f"/proc/{k}/cmdline").read_text())
         os.kill(worker, signal.SIGKILL)
-        wait_for(printed("starting it again"), 30, 0, what="the restart message")
+        wait_for(printed(proc, lines, "starting it again"), 30, 0, what="the restart message")
         url = f"http://127.0.0.1:{port}"
         points = "".join(f"{x:.4f} {y:.4f} {z:.4f}\n" for x, y, z in trimesh.creation.icosphere(2).vertices)
         job = httpx.post(f"{url}/v1/jobs", files={"file": ("ball.xyz", points)}, data={"max_vertices": "16"},

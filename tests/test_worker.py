@@ -13,7 +13,7 @@ import time
 import httpx
 import pytest
 import redis
-from stack import flushed_redis
+from stack import flushed_redis, printed
 from test_service_api import assert_error, make_settings, submit, wait_final
 
 from service.processes import ServedApp, WorkerProcess, wait_for
@@ -374,20 +374,11 @@ def test_make_run_starts_a_fresh_worker_after_a_device_error(weights, tmp_path):
                             text=True, env=env)
     lines: list[str] = []
 
-    def printed(text: str):
-        def seen():
-            line = proc.stdout.readline()
-            if not line and proc.poll() is not None:
-                raise RuntimeError("service.run exited:\n" + "".join(lines))
-            lines.append(line)
-            return text in line
-        return seen
-
     try:
-        wait_for(printed("Ctrl-C stops everything"), 120, 0, what="the service to be ready")
+        wait_for(printed(proc, lines, "Ctrl-C stops everything"), 120, 0, what="the service to be ready")
         url = f"http://127.0.0.1:{port}"
         job_id = submit(url, max_vertices=10, seed=BAD_SEED).json()["id"]
-        wait_for(printed("exited with code 3 after a GPU error"), 60, 0, what="the restart message")
+        wait_for(printed(proc, lines, "exited with code 3 after a GPU error"), 60, 0, what="the restart message")
         final = wait_final(url, job_id, timeout=120)
         assert final["status"] == "succeeded", final
     finally:

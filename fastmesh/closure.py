@@ -116,7 +116,7 @@ def winding_closed_share(points: np.ndarray, normals: np.ndarray, seed: int = 0)
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     if len(p) < 16:
         return 0.0
-    p = Normalization.fit(p).apply(p)  # winding numbers do not change with scale; float64 squares would
+    p = Normalization.fit(p).apply(p)  # the same winding numbers at any scale, without overflowing squares
     src = rng.choice(len(p), size=min(len(p), _SOURCES), replace=False)
     p, n = p[src], n[src]
     k = 8
@@ -143,7 +143,7 @@ def _winding(queries: np.ndarray, points: np.ndarray, normals: np.ndarray, area:
 
 
 def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarray, limit: float,
-                tree: cKDTree | None = None, max_loop: int = CLOSE_MAX_LOOP) -> np.ndarray:
+                tree: cKDTree | None = None, max_loop: int = CLOSE_MAX_LOOP) -> tuple[np.ndarray, np.ndarray]:
     """Close the boundary loops of a selected surface, giving up a little more at each step.
 
     Each loop of at most ``max_loop`` edges is closed, at the first step that closes it, by: ear clipping

@@ -351,7 +351,7 @@ def select_faces(vertices: np.ndarray, faces: np.ndarray, score: np.ndarray, fra
 
 
 def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, config: TriangleConfig | None = None,
-                 logits: np.ndarray | None = None) -> np.ndarray:
+                 logits: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Faces among the surface candidates, chosen by the model, kept a surface, holes closed.
 
     Parameters

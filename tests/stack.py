@@ -126,3 +126,9 @@ def printed(proc, lines: list[str], text: str):
         lines.append(line)
         return text in line
     return seen
+
+
+def post(url: str, name: str, data: bytes, headers=None, timeout: float = 60, **fields) -> httpx.Response:
+    """``POST /v1/jobs`` of ``data`` as the file ``name``, with ``fields`` as form fields (sent as strings)."""
+    return httpx.post(f"{url}/v1/jobs", files={"file": (name, data)}, data={k: str(v) for k, v in fields.items()},
+                      headers=headers, timeout=timeout)

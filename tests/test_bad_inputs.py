@@ -31,7 +31,7 @@ from schemathesis.specs.openapi.checks import (
     response_schema_conformance,
     status_code_conformance,
 )
-from stack import assert_error, make_settings, sphere_points, wait_final, wp, xyz_bytes
+from stack import assert_error, make_settings, post, sphere_points, wait_final, wp, xyz_bytes
 
 from fastmesh.io import SUPPORTED_FORMATS
 from service.processes import ServedApp, wait_for
@@ -62,11 +62,6 @@ def idle(redis_url):
     app = ServedApp(make_settings(redis_url, "badidle", max_queue_depth=100_000))
     yield app
     app.stop()
-
-
-def post(url: str, name: str, data: bytes, timeout: float = 60, **fields) -> httpx.Response:
-    return httpx.post(f"{url}/v1/jobs", files={"file": (name, data)}, data={k: str(v) for k, v in fields.items()},
-                      timeout=timeout)
 
 
 def outcome(url: str, r: httpx.Response) -> str:

@@ -18,7 +18,7 @@ import httpx
 import numpy as np
 import pytest
 import redis
-from stack import assert_error, make_settings, sphere_points, xyz_bytes
+from stack import assert_error, make_settings, post, sphere_points, xyz_bytes
 
 import service.http
 from service.processes import RedisServer, ServedApp
@@ -49,11 +49,6 @@ def reply_of(s: socket.socket) -> bytes:
     while chunk := s.recv(65536):
         out += chunk
     return out
-
-
-def post(url: str, name: str, data: bytes, headers=None, **fields) -> httpx.Response:
-    return httpx.post(f"{url}/v1/jobs", files={"file": (name, data)}, data={k: str(v) for k, v in fields.items()},
-                      headers=headers, timeout=60)
 
 
 # ---------------------------------------------------------------------------------------- /metrics

@@ -10,7 +10,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from stack import assert_error, make_settings, sphere_points, xyz_bytes
+from stack import assert_error, make_settings, post, sphere_points, xyz_bytes
 
 import service.render_pool
 from service.processes import ServedApp
@@ -19,11 +19,6 @@ from service.store import Store, mesh_to_bytes
 
 KEY, KEY2 = "limits-test-key", "limits-test-key-2"
 README = Path(__file__).resolve().parents[1] / "README.md"
-
-
-def post(url: str, name: str, data: bytes, headers=None, **fields) -> httpx.Response:
-    return httpx.post(f"{url}/v1/jobs", files={"file": (name, data)}, data={k: str(v) for k, v in fields.items()},
-                      headers=headers, timeout=60)
 
 
 @pytest.fixture(scope="module")

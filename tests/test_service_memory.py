@@ -9,6 +9,7 @@ import time
 
 import httpx
 import pytest
+import stack
 from hostile import (
     allocate,
     die,
@@ -57,8 +58,7 @@ class PeakRss:
 
 
 def post(url: str, name: str, data: bytes, headers=None, **fields) -> httpx.Response:
-    return httpx.post(f"{url}/v1/jobs", files={"file": (name, data)}, data={k: str(v) for k, v in fields.items()},
-                      headers=headers, timeout=120)
+    return stack.post(url, name, data, headers, timeout=120, **fields)  # big uploads: a longer wait
 
 
 @pytest.fixture(scope="module")

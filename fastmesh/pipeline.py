@@ -118,13 +118,13 @@ def _timed(predict: Predictor, timings: dict[str, float], report: Callable[[str,
     return timed
 
 
-def _whole(shape: Shape, vertices: np.ndarray, faces: np.ndarray, params: GenerateParams
+def _whole(shape: Shape, vertices: np.ndarray, faces: np.ndarray, params: GenerateParams, pieces_in: int
            ) -> tuple[np.ndarray, np.ndarray, str]:
-    """The result made whole (``pieces``: no surface pinched at a vertex, no stray pieces beyond the input's),
-    or the input itself where it is a low-poly surface with no more faces (not with a face-count target).
-    Returns vertices, faces and where they come from: "model" or "input"."""
+    """The result made whole (``pieces``: no surface pinched at a vertex, no stray pieces beyond the input's
+    ``pieces_in``), or the input itself where it is a low-poly surface with no more faces (not with a
+    face-count target).  Returns vertices, faces and where they come from: "model" or "input"."""
     vertices, faces = split_pinches(vertices, faces)
-    vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, input_pieces(shape)))[:2]
+    vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, pieces_in))[:2]
     low = _low_poly(shape, len(faces)) if params.target_faces is None else None
     return (vertices, faces, "model") if low is None else (*low, "input")
 
@@ -353,10 +353,11 @@ class Pipeline:
         if not made:
             raise errors[0]
         best = self._nearest_frame(shape, made, params, timings)
-        vertices, faces, result_from = _whole(shape, best["vertices"], best["faces"], params)
+        pieces_in = input_pieces(shape)  # read by the whole step and the report
+        vertices, faces, result_from = _whole(shape, best["vertices"], best["faces"], params, pieces_in)
         info = {**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3),
                 "closed_decision": {"close": close, "reason": why}, "result_from": result_from}
-        quality = {**mesh_quality(vertices, faces, shape), "faces": int(len(faces)),
+        quality = {**mesh_quality(vertices, faces, shape, pieces_in=pieces_in), "faces": int(len(faces)),
                    "closed_decision": why if why == "asked" else ("closed" if close else "open"),
                    "target_faces": params.target_faces}
         return GenerateResult(vertices=vertices, faces=faces, tokens=best["tokens"], timings=timings, info=info,

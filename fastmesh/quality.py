@@ -202,7 +202,8 @@ def topology(faces: np.ndarray) -> dict:
             "pieces": count_pieces(faces), "watertight": bool(len(uses) > 0 and boundary == 0 and non_manifold == 0)}
 
 
-def mesh_quality(vertices: np.ndarray, faces: np.ndarray, shape: Shape, seed: int = SEED) -> dict:
+def mesh_quality(vertices: np.ndarray, faces: np.ndarray, shape: Shape, seed: int = SEED,
+                 pieces_in: int | None = None) -> dict:
     """The quality report of a result against the shape it was made from.
 
     Parameters
@@ -211,6 +212,7 @@ def mesh_quality(vertices: np.ndarray, faces: np.ndarray, shape: Shape, seed: in
     faces : (F, 3) int, at least one face
     shape : Shape, the input (mesh or point cloud)
     seed : int, of the samples drawn on both (fixed by default: the report depends on the meshes only)
+    pieces_in : int, optional, ``input_pieces(shape)`` where the caller has it already
 
     Returns
     -------
@@ -219,4 +221,5 @@ def mesh_quality(vertices: np.ndarray, faces: np.ndarray, shape: Shape, seed: in
     """
     frame = Normalization.fit(np.asarray(shape.vertices, dtype=np.float64))
     d = surface_distance((vertices, faces), (shape.vertices, shape.faces), n=N_SAMPLES, seed=seed, frame=frame)
-    return {"cd": round(d.cd, 3), "hd": round(d.hd, 3), **topology(faces), "input_pieces": input_pieces(shape)}
+    return {"cd": round(d.cd, 3), "hd": round(d.hd, 3), **topology(faces),
+            "input_pieces": input_pieces(shape) if pieces_in is None else int(pieces_in)}

@@ -49,6 +49,7 @@ from .models.generate import Cancelled, StackedEvidence, generate
 from .models.onnx_decode import choose_decoder
 from .params import GenerateParams
 from .pieces import drop_strays, split_pinches
+from .planar import polyhedron
 from .quality import edge_face_counts, input_pieces, mesh_quality, weld
 from .support import surface_fit
 from .tokenizer import dequantize
@@ -72,6 +73,7 @@ FRAME_MARGIN = 1.1
 # torch CPU threads when neither the caller nor $FASTMESH_TORCH_THREADS says: decoding one sequence is a chain of
 # small matrix-vector products, and on our 2-core machine a second thread made generation slower, not faster.
 CPU_THREADS = 1
+PLANAR_SAMPLES = 8192  # surface samples of a mesh input read by ``planar.polyhedron`` (a point cloud's own points)
 
 
 def default_weights_dir() -> Path:
@@ -334,6 +336,13 @@ class Pipeline:
 
         close, why = decide_closed(shape, params.closed)
         timings = {name: 0.0 for name, _, _ in STAGES}
+        decision = {"close": close, "reason": why}
+        flat = self._planar(shape, params, close, timings)
+        if flat is not None:  # a low-poly mesh input with no more faces is given back as it is
+            low = _low_poly(shape, len(flat[1]))
+            report("faces", 1.0)
+            return self._result(shape, *(flat if low is None else low), params, decision, timings, tokens=0,
+                                info={"turned_degrees": 0.0, "result_from": "planes" if low is None else "input"})
         # The input's own frame, and its canonical one where that lays more of its walls along the axes
         # (``canonical``): each is generated, and the mesh nearer the input kept.
         frames = [np.eye(3)]
@@ -355,13 +364,38 @@ class Pipeline:
         best = self._nearest_frame(shape, made, params, timings)
         pieces_in = input_pieces(shape)  # read by the whole step and the report
         vertices, faces, result_from = _whole(shape, best["vertices"], best["faces"], params, pieces_in)
-        info = {**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3),
-                "closed_decision": {"close": close, "reason": why}, "result_from": result_from}
+        return self._result(shape, vertices, faces, params, decision, timings, tokens=best["tokens"],
+                            info={**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3),
+                                  "result_from": result_from}, pieces_in=pieces_in)
+
+    @staticmethod
+    def _result(shape: Shape, vertices: np.ndarray, faces: np.ndarray, params: GenerateParams, decision: dict,
+                timings: dict, tokens: int, info: dict, pieces_in: int | None = None) -> GenerateResult:
+        """The result with its quality report (``pieces_in``: the input's pieces, counted when None)."""
+        pieces_in = input_pieces(shape) if pieces_in is None else pieces_in
+        why = decision["reason"]
         quality = {**mesh_quality(vertices, faces, shape, pieces_in=pieces_in), "faces": int(len(faces)),
-                   "closed_decision": why if why == "asked" else ("closed" if close else "open"),
+                   "closed_decision": why if why == "asked" else ("closed" if decision["close"] else "open"),
                    "target_faces": params.target_faces}
-        return GenerateResult(vertices=vertices, faces=faces, tokens=best["tokens"], timings=timings, info=info,
-                              quality=quality)
+        return GenerateResult(vertices=vertices, faces=faces, tokens=tokens, timings=timings,
+                              info={**info, "closed_decision": decision}, quality=quality)
+
+    def _planar(self, shape: Shape, params: GenerateParams, close: bool, timings: dict
+                ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The closed polyhedron of a piecewise-planar input (``planar.polyhedron``: exact corners, whatever
+        the pose), in the input's frame; None where the input is not one, the result is not to be closed, or
+        a face count is asked for (the polyhedron has the count it has)."""
+        if not close or params.target_faces is not None:
+            return None
+        with stage("faces", timings):
+            norm = Normalization.fit(shape.vertices)
+            unit = norm.apply(shape.vertices)
+            if shape.faces is None and shape.normals is not None:
+                points, normals = unit, shape.normals
+            else:
+                points, normals = sample_surface(shape, PLANAR_SAMPLES, seed=0, vertices=unit)
+            found = polyhedron(points, normals)
+        return None if found is None else (norm.invert(found[0]), found[1])
 
     def _nearest_frame(self, shape: Shape, made: list[dict], params: GenerateParams, timings: dict) -> dict:
         """Of the results ``made`` in the input's frame and (last) in its canonical one, the canonical one

@@ -91,7 +91,8 @@ def test_a_turned_shape_is_also_made_in_its_canonical_frame(pipe, monkeypatch):
     turned = box.copy()
     turned.apply_transform(turn)
     shape = Shape(vertices=np.asarray(turned.vertices), faces=np.asarray(turned.faces))
-    res = pipe.generate(shape, GenerateParams(seed=0, max_vertices=24, candidates=1))
+    # closed=false: a box closed would be rebuilt from its planes (test_planar), with no frame made
+    res = pipe.generate(shape, GenerateParams(seed=0, max_vertices=24, candidates=1, closed="false"))
     expected = canonical_rotation(shape.vertices, frame_normals(shape))
     assert len(calls) == 2 and np.array_equal(calls[0], np.eye(3)) and np.array_equal(calls[1], expected)
     assert np.allclose(expected @ turn[:3, :3], np.eye(3), atol=1e-6)  # the box's own axes, as built
@@ -100,7 +101,7 @@ def test_a_turned_shape_is_also_made_in_its_canonical_frame(pipe, monkeypatch):
     assert res.info["turned_degrees"] in (0.0, round(np.degrees(0.6), 3))
     calls.clear()
     pipe.generate(Shape(vertices=np.asarray(box.vertices), faces=np.asarray(box.faces)),
-                  GenerateParams(seed=0, max_vertices=24, candidates=1))
+                  GenerateParams(seed=0, max_vertices=24, candidates=1, closed="false"))
     assert len(calls) == 1
 
 
@@ -128,7 +129,7 @@ def test_vertices_are_fitted_to_the_input_planes_unless_off(pipe):
     box's own 12 faces are fewer than any result, and come back as they are.)"""
     box = point_cloud(Shape(vertices=np.asarray(trimesh.creation.box().vertices),
                             faces=np.asarray(trimesh.creation.box().faces)), 4000)
-    params = GenerateParams(seed=0, max_vertices=24)
+    params = GenerateParams(seed=0, max_vertices=24, closed="false")  # not rebuilt from its planes
     fitted = pipe.generate(box, params)
     saved = pipe.fit_config
     try:
@@ -163,7 +164,7 @@ def test_vertices_fitted_onto_one_point_become_one(monkeypatch):
     monkeypatch.setattr(pipeline_module, "mesh_from_adjacency", spy)
     pipe = Pipeline.from_pretrained()
     cloud = point_cloud(primitive("l_block"))
-    params = GenerateParams(seed=0, candidates=1)
+    params = GenerateParams(seed=0, candidates=1, closed="false")  # not rebuilt from its planes
     pipe.fit_config = replace(pipe.fit_config, merge=None)
     kept = pipe.generate(cloud, params)
     pipe.fit_config = replace(pipe.fit_config, merge=0.1)
@@ -199,7 +200,7 @@ def test_flat_vertices_go_except_with_a_face_count_target(pipe):
             pipe.triangle_config = replace(surface, flat_tol=tol)
             for target in (None, 40):
                 runs[tol is None, target] = pipe.generate(box, GenerateParams(seed=0, max_vertices=24,
-                                                                              target_faces=target))
+                                                                              target_faces=target, closed="false"))
     finally:
         pipe.triangle_config = saved
     assert len(runs[False, None].vertices) < len(runs[True, None].vertices)

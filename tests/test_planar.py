@@ -1,0 +1,78 @@
+"""Piecewise-planar inputs rebuilt from their planes (``fastmesh.planar``), on families drawn at random."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from fastmesh.io import Normalization, Shape
+from fastmesh.params import GenerateParams
+from fastmesh.pipeline import Pipeline
+from fastmesh.planar import polyhedron
+from fastmesh.primitives import point_cloud, posed, random_shape
+
+
+def _rebuilt(mesh: Shape, seed: int, noise: float = 0.0):
+    cloud = point_cloud(mesh, seed=seed)
+    norm = Normalization.fit(cloud.vertices)
+    pts = norm.apply(cloud.vertices)
+    pts = pts + np.random.default_rng(seed).normal(0, noise, pts.shape)
+    found = polyhedron(pts, cloud.normals)
+    return norm, found
+
+
+@pytest.mark.parametrize("kind", ["box", "l_block", "prism"])
+def test_random_flat_shapes_come_back_as_their_own_corners_closed(kind):
+    """Boxes, L blocks and prisms of random proportions, turned at random, half of them in millimetres far from
+    the origin: as many vertices as the shape, each on one of its own, closed, oriented outward."""
+    rng = np.random.default_rng(7)
+    for i in range(5):
+        mesh = posed(random_shape(kind, rng), rng, turn=True, millimetres=i % 2 == 1)
+        norm, found = _rebuilt(mesh, seed=i)
+        assert found is not None
+        vertices, faces = found
+        reference = norm.apply(mesh.vertices)
+        assert len(vertices) == len(reference)
+        nearest = np.linalg.norm(vertices[:, None] - reference[None], axis=-1).min(1)
+        assert nearest.max() < 1e-4
+        result = trimesh.Trimesh(vertices, faces, process=False)
+        truth = trimesh.Trimesh(reference, mesh.faces, process=False)
+        assert result.is_watertight and result.is_winding_consistent
+        assert np.isclose(result.volume, abs(truth.volume), rtol=1e-3)  # positive: faces point outward
+
+
+def test_a_faceted_cylinder_keeps_its_caps_as_polygons():
+    """A 16-sided cylinder: 18 planes; the caps' outlines have 16 corners, no sliver of the arrangement's
+    crossing lines beyond them."""
+    rng = np.random.default_rng(3)
+    mesh = posed(random_shape("cylinder", rng), rng)
+    _, found = _rebuilt(mesh, seed=1)
+    assert found is not None and len(found[0]) == 32
+    assert trimesh.Trimesh(*found, process=False).is_watertight
+
+
+def test_curved_or_noisy_inputs_are_not_polyhedra():
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    assert _rebuilt(Shape(vertices=sphere.vertices, faces=sphere.faces), seed=0)[1] is None
+    box = random_shape("box", np.random.default_rng(0))
+    assert _rebuilt(box, seed=0)[1] is not None
+    assert _rebuilt(box, seed=0, noise=2e-3)[1] is None  # points off their planes: the networks decide
+
+
+def test_the_pipeline_rebuilds_a_dense_flat_mesh_unless_asked_otherwise():
+    """A subdivided, turned box (192 faces, no low-poly input): its 8 corners from the planes, no tokens decoded;
+    closed=false or a face-count target leave it to the networks."""
+    pipe = Pipeline.random("tiny", seed=0)
+    box = trimesh.creation.box(extents=(3.0, 2.0, 1.0)).subdivide().subdivide()
+    box.apply_transform(trimesh.transformations.rotation_matrix(0.6, [1.0, 2.0, 3.0]))
+    shape = Shape(vertices=np.asarray(box.vertices), faces=np.asarray(box.faces))
+    res = pipe.generate(shape, GenerateParams(seed=0, max_vertices=24))
+    assert res.info["result_from"] == "planes" and res.tokens == 0
+    assert len(res.vertices) == 8 and len(res.faces) == 12 and res.quality["watertight"]
+    corners = np.asarray(trimesh.creation.box(extents=(3.0, 2.0, 1.0)).vertices)
+    corners = trimesh.transform_points(corners, trimesh.transformations.rotation_matrix(0.6, [1.0, 2.0, 3.0]))
+    assert np.linalg.norm(res.vertices[:, None] - corners[None], axis=-1).min(1).max() < 1e-3
+    for params in (GenerateParams(seed=0, max_vertices=24, closed="false"),
+                   GenerateParams(seed=0, max_vertices=24, target_faces=40)):
+        assert pipe.generate(shape, params).info["result_from"] != "planes"

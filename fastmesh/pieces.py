@@ -4,15 +4,18 @@ The face stage and the closure can leave two fans of faces meeting at one vertex
 touching at a point) and small islands: a triangle closed with its own back face, a sliver of a few faces
 beside a thin part.  :func:`split_pinches` gives each fan a vertex of its own (the surface becomes a
 manifold; the parts still touch, now as separate pieces), and :func:`drop_strays` takes out the smallest
-pieces while the result has more than the input.
+pieces while the result has more than the input.  :func:`pull_in` moves a vertex left far from the input
+(a closure's cap across a wide opening, a stray position the enhancer gave) onto it.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .io import Normalization
 from .quality import corner_fans, piece_labels
+from .tokenizer.grid import CELL
 
 # A piece is a stray when it has at most this many faces or this share of the result's area, and spans at most
 # STRAY_SPAN of the result's bounding-box diagonal: dropping it moves the result at most that far from the
@@ -20,6 +23,10 @@ from .quality import corner_fans, piece_labels
 STRAY_FACES = 4
 STRAY_AREA = 0.005
 STRAY_SPAN = 0.01
+# A vertex may lie this many of the vertex grid's cells (of the input's longest side) from the nearest input
+# surface sample; one farther is moved onto that sample.  The enhancer places vertices within a cell of the
+# surface, and samples are about a cell apart (8,192 on a unit box), so three cells leave every sound vertex be.
+FAR_CELLS = 3
 
 
 def split_pinches(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -85,3 +92,30 @@ def drop_strays(vertices: np.ndarray, faces: np.ndarray, keep: int) -> np.ndarra
     stray[np.argmax(piece_area)] = False
     order = [p for p in np.argsort(piece_area, kind="stable") if stray[p]][: n - max(keep, 1)]
     return f[~np.isin(labels, order)]
+
+
+def pull_in(vertices: np.ndarray, surface: np.ndarray, limit: float) -> tuple[np.ndarray, int]:
+    """Vertices farther than ``limit`` from every surface sample moved onto the nearest sample.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float
+    surface : (M, 3) float, samples of the input surface in the same frame
+    limit : float, in the same units (``FAR_CELLS`` cells of the input's longest side in the pipeline)
+
+    Returns
+    -------
+    (N, 3) float64 vertices, the connectivity unchanged, and how many moved
+    """
+    v = np.asarray(vertices, dtype=np.float64).copy()
+    if len(v) == 0 or len(surface) == 0:
+        return v, 0
+    dist, nearest = cKDTree(surface).query(v)
+    far = dist > limit
+    v[far] = np.asarray(surface, dtype=np.float64)[nearest[far]]
+    return v, int(far.sum())
+
+
+def far_limit(shape_vertices: np.ndarray) -> float:
+    """``FAR_CELLS`` cells of the vertex grid in the units of a shape with these (N, 3) vertices."""
+    return FAR_CELLS * CELL / Normalization.fit(shape_vertices).scale

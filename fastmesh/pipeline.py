@@ -48,7 +48,7 @@ from .models.encoder import EncoderConfig
 from .models.generate import Cancelled, StackedEvidence, generate
 from .models.onnx_decode import choose_decoder
 from .params import GenerateParams
-from .pieces import drop_strays, split_pinches
+from .pieces import drop_strays, far_limit, pull_in, split_pinches
 from .planar import polyhedron
 from .quality import edge_face_counts, input_pieces, mesh_quality, weld
 from .support import surface_fit
@@ -73,6 +73,9 @@ FRAME_MARGIN = 1.1
 # torch CPU threads when neither the caller nor $FASTMESH_TORCH_THREADS says: decoding one sequence is a chain of
 # small matrix-vector products, and on our 2-core machine a second thread made generation slower, not faster.
 CPU_THREADS = 1
+# A low-poly mesh input of a polyhedron is given back as it is when it has at most this many times the faces
+# of the polyhedron rebuilt from its planes (which has no vertex inside a face, such as a cylinder cap's centre).
+LOW_POLY_SLACK = 1.25
 PLANAR_SAMPLES = 8192  # surface samples of a mesh input read by ``planar.polyhedron`` (a point cloud's own points)
 
 
@@ -121,14 +124,25 @@ def _timed(predict: Predictor, timings: dict[str, float], report: Callable[[str,
 
 
 def _whole(shape: Shape, vertices: np.ndarray, faces: np.ndarray, params: GenerateParams, pieces_in: int
-           ) -> tuple[np.ndarray, np.ndarray, str]:
+           ) -> tuple[np.ndarray, np.ndarray, str, int]:
     """The result made whole (``pieces``: no surface pinched at a vertex, no stray pieces beyond the input's
-    ``pieces_in``), or the input itself where it is a low-poly surface with no more faces (not with a
-    face-count target).  Returns vertices, faces and where they come from: "model" or "input"."""
+    ``pieces_in``, no vertex more than ``pieces.FAR_CELLS`` cells from the input), or the input itself where it
+    is a low-poly surface with no more faces (not with a face-count target).  Returns vertices, faces, where
+    they come from ("model" or "input") and how many vertices were pulled in to the input."""
     vertices, faces = split_pinches(vertices, faces)
     vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, pieces_in))[:2]
+    vertices, pulled = pull_in(vertices, _surface_samples(shape), far_limit(shape.vertices))
     low = _low_poly(shape, len(faces)) if params.target_faces is None else None
-    return (vertices, faces, "model") if low is None else (*low, "input")
+    return (vertices, faces, "model", pulled) if low is None else (*low, "input", 0)
+
+
+def _surface_samples(shape: Shape) -> np.ndarray:
+    """(M, 3) points of the input surface in its own frame: a point cloud's own, a mesh's ``PLANAR_SAMPLES``
+    samples (fixed seed; drawn in the unit cube, where the areas of far-apart coordinates cannot overflow)."""
+    if shape.faces is None:
+        return np.asarray(shape.vertices, dtype=np.float64)
+    norm = Normalization.fit(shape.vertices)
+    return norm.invert(sample_surface(shape, PLANAR_SAMPLES, seed=0, vertices=norm.apply(shape.vertices))[0])
 
 
 def _low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -334,15 +348,18 @@ class Pipeline:
         self._target(params)  # refuses a target_faces this decoder cannot read, before any work
         report = progress or (lambda stage, fraction: None)
 
-        close, why = decide_closed(shape, params.closed)
         timings = {name: 0.0 for name, _, _ in STAGES}
-        decision = {"close": close, "reason": why}
-        flat = self._planar(shape, params, close, timings)
-        if flat is not None:  # a low-poly mesh input with no more faces is given back as it is
-            low = _low_poly(shape, len(flat[1]))
+        # A point cloud that bounds a polyhedron is closed: the winding numbers are read only where it does not.
+        cheap = shape.faces is not None or params.closed != "auto"
+        close, why = decide_closed(shape, params.closed) if cheap else (True, "closed_points")
+        flat = self._planar(shape, params, timings) if close else None
+        if flat is not None:
             report("faces", 1.0)
-            return self._result(shape, *(flat if low is None else low), params, decision, timings, tokens=0,
-                                info={"turned_degrees": 0.0, "result_from": "planes" if low is None else "input"})
+            return self._result(shape, *flat[:2], params, {"close": close, "reason": why}, timings, tokens=0,
+                                info={"turned_degrees": 0.0, "result_from": flat[2]})
+        if not cheap:
+            close, why = decide_closed(shape, params.closed)
+        decision = {"close": close, "reason": why}
         # The input's own frame, and its canonical one where that lays more of its walls along the axes
         # (``canonical``): each is generated, and the mesh nearer the input kept.
         frames = [np.eye(3)]
@@ -363,10 +380,10 @@ class Pipeline:
             raise errors[0]
         best = self._nearest_frame(shape, made, params, timings)
         pieces_in = input_pieces(shape)  # read by the whole step and the report
-        vertices, faces, result_from = _whole(shape, best["vertices"], best["faces"], params, pieces_in)
+        vertices, faces, result_from, pulled = _whole(shape, best["vertices"], best["faces"], params, pieces_in)
         return self._result(shape, vertices, faces, params, decision, timings, tokens=best["tokens"],
                             info={**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3),
-                                  "result_from": result_from}, pieces_in=pieces_in)
+                                  "result_from": result_from, "pulled_in": pulled}, pieces_in=pieces_in)
 
     @staticmethod
     def _result(shape: Shape, vertices: np.ndarray, faces: np.ndarray, params: GenerateParams, decision: dict,
@@ -380,12 +397,14 @@ class Pipeline:
         return GenerateResult(vertices=vertices, faces=faces, tokens=tokens, timings=timings,
                               info={**info, "closed_decision": decision}, quality=quality)
 
-    def _planar(self, shape: Shape, params: GenerateParams, close: bool, timings: dict
-                ) -> tuple[np.ndarray, np.ndarray] | None:
+    def _planar(self, shape: Shape, params: GenerateParams, timings: dict
+                ) -> tuple[np.ndarray, np.ndarray, str] | None:
         """The closed polyhedron of a piecewise-planar input (``planar.polyhedron``: exact corners, whatever
-        the pose), in the input's frame; None where the input is not one, the result is not to be closed, or
-        a face count is asked for (the polyhedron has the count it has)."""
-        if not close or params.target_faces is not None:
+        the pose), in the input's frame, with where it comes from ("planes"); or a low-poly mesh input of the
+        same shape, welded, where it has at most ``LOW_POLY_SLACK`` times the polyhedron's faces ("input": a
+        cylinder's caps keep their centres).  None where the input is not a polyhedron or a face count is asked
+        for (the polyhedron has the count it has)."""
+        if params.target_faces is not None:
             return None
         with stage("faces", timings):
             norm = Normalization.fit(shape.vertices)
@@ -395,7 +414,10 @@ class Pipeline:
             else:
                 points, normals = sample_surface(shape, PLANAR_SAMPLES, seed=0, vertices=unit)
             found = polyhedron(points, normals)
-        return None if found is None else (norm.invert(found[0]), found[1])
+        if found is None:
+            return None
+        low = _low_poly(shape, int(LOW_POLY_SLACK * len(found[1])))
+        return (norm.invert(found[0]), found[1], "planes") if low is None else (*low, "input")
 
     def _nearest_frame(self, shape: Shape, made: list[dict], params: GenerateParams, timings: dict) -> dict:
         """Of the results ``made`` in the input's frame and (last) in its canonical one, the canonical one

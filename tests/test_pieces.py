@@ -56,3 +56,18 @@ def test_strays_go_smallest_first_down_to_the_inputs_pieces():
     v = np.concatenate([m.vertices, tri])
     both = np.concatenate([f, sliver + len(m.vertices)])
     assert len(drop_strays(v, both, keep=1)) == len(f) - 24  # the sliver and the two small boxes
+
+
+def test_vertices_far_from_the_input_are_pulled_onto_it_and_only_those():
+    """A vertex beyond the limit moves onto its nearest surface sample; the others and the faces stay."""
+    from fastmesh.pieces import FAR_CELLS, far_limit, pull_in
+    from fastmesh.tokenizer.grid import CELL
+
+    rng = np.random.default_rng(0)
+    surface = np.c_[rng.uniform(0, 10, (4000, 2)), np.zeros(4000)]  # a 10 x 10 square: 1 cell is 10/128
+    limit = far_limit(surface)
+    assert np.isclose(limit, FAR_CELLS * CELL * np.ptp(surface, axis=0).max())
+    vertices = np.array([[5.0, 5.0, 0.5 * limit], [2.0, 3.0, 1.5 * limit], [8.0, 8.0, -3 * limit]])
+    moved, count = pull_in(vertices, surface, limit)
+    assert count == 2 and np.array_equal(moved[0], vertices[0])
+    assert (moved[1:, 2] == 0).all() and np.linalg.norm(moved[1:, :2] - vertices[1:, :2], axis=1).max() < 0.5

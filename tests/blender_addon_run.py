@@ -104,7 +104,8 @@ def main() -> None:
     cube.location, cube.scale = (5, 1, 2), (1, 2, 3)
     bpy.context.view_layer.update()
     s = bpy.context.scene.fastmesh
-    out = {"gltf_works": gltf_works()}
+    faces = s.bl_rna.properties["target_faces"]
+    out = {"gltf_works": gltf_works(), "target_faces_range": [faces.hard_min, faces.hard_max]}
 
     s.use_target_faces, s.target_faces, s.origin = True, 500, "bottom"
     out["drawn_running"] = send(addon, cube)
@@ -132,7 +133,12 @@ def main() -> None:
     send(addon, cube)
     out["fallback"] = facts(bpy.data.objects["Cube_fastmesh.002"])
 
-    s.seed = 99  # a job the stub runs for ever: cancelled from the panel
+    s.use_seed, s.topology, s.origin, s.up, s.uv = False, "quad", "center", "z", True
+    send(addon, cube)
+    out["Cube_fastmesh.003"] = facts(bpy.data.objects["Cube_fastmesh.003"])
+
+    s.use_seed, s.seed, s.topology, s.origin, s.up, s.uv = True, 99, "DEFAULT", "DEFAULT", "DEFAULT", False
+    # a job the stub runs for ever: cancelled from the panel
     send(addon, cube, cancel=True)
     out["cancelled"] = addon._status["text"]
     print("RESULT " + json.dumps(out))

@@ -76,7 +76,7 @@ def parse_form(content_type: str, body: bytes) -> tuple[dict, str, bytes]:
 
 def result_of(sub: dict, fmt: str) -> bytes:
     """The upload (an OBJ) back as ``fmt``, moved as the submission's ``origin`` asks (in the file's Y-up
-    frame): OBJ with its polygons kept, or GLB."""
+    frame), as the service does: OBJ with its polygons kept (turned Z-up for ``up=z``), or GLB (always Y-up)."""
     lines = sub["data"].decode().splitlines()
     v = np.array([[float(t) for t in ln.split()[1:4]] for ln in lines if ln.startswith("v ")])
     lo, hi = v.min(axis=0), v.max(axis=0)
@@ -87,7 +87,10 @@ def result_of(sub: dict, fmt: str) -> bytes:
     elif origin == "bottom":
         shift = -np.array([(lo[0] + hi[0]) / 2, lo[1], (lo[2] + hi[2]) / 2])
     if fmt == "obj":
-        moved = iter(v + shift)
+        moved = v + shift
+        if sub["fields"].get("up") == "z":
+            moved = moved @ np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]).T  # (x, y, z) -> (x, -z, y)
+        moved = iter(moved)
         return "".join("v {:.9g} {:.9g} {:.9g}\n".format(*next(moved)) if ln.startswith("v ") else ln + "\n"
                        for ln in lines).encode()
     mesh = trimesh.load(io.BytesIO(sub["data"]), file_type="obj", process=False)

@@ -25,6 +25,7 @@ import trimesh
 from blender_stub import StubServer, error_body
 from test_service_api import make_settings, sphere_xyz
 
+from fastmesh.params import TARGET_FACES
 from service.processes import ServedApp, WorkerProcess, free_port, local_redis
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -97,7 +98,9 @@ def test_placement_beside_the_original():
     assert client.placement(lo, hi, "center") == (4, 0.5, 2)
     assert client.placement(lo, hi, "bottom") == (4, 0.5, 0)
     assert client.import_format({"topology": "quad"}) == "obj" and client.import_format({}) == "glb"
-    assert client.up_correction({"up": "z"}) == -math.pi / 2 and client.up_correction({"up": "y"}) == 0
+    assert client.up_correction("z", "obj") == -math.pi / 2  # the service's Z-up OBJ, read as Y-up
+    assert client.up_correction("z", "glb") == client.up_correction("y", "obj") == 0
+    assert client.up_correction(None, "obj") == 0
 
 
 # ------------------------------------------------------------------------------------- against a stub
@@ -263,10 +266,11 @@ def test_addon_in_blender(stub, tmp_path):
     assert [s["fields"] for s in subs] == [{"target_faces": "500", "origin": "bottom", "formats": "glb"},
                                            {"topology": "quad", "height": "1.8", "formats": "obj"}, {"formats": "glb"},
                                            {"seed": "13", "formats": "glb"}, {"seed": "7", "formats": "glb"},
-                                           {"seed": "99", "formats": "glb"}]
+                                           {"topology": "quad", "origin": "center", "up": "z", "uv": "true",
+                                            "formats": "obj"}, {"seed": "99", "formats": "glb"}]
     # Where the glTF importer fails (Debian's Blender 3.4 with numpy 1.24) the add-on fetches the OBJ.
     glb = ["glb"] if got["gltf_works"] else ["glb", "obj"]
-    assert stub.stub.downloads == glb + ["obj"] + glb + ["glb", "obj"]  # none for the failed job
+    assert stub.stub.downloads == glb + ["obj"] + glb + ["glb", "obj", "obj"]  # none for the failed job
     assert all(s["headers"]["Authorization"] == "Bearer sekrit" for s in subs)
     # The uploaded cube: scaled (1, 2, 3) in Blender's Z-up frame, so 2 x 6 x 4 in the file's Y-up frame.
     up = trimesh.load(io.BytesIO(subs[0]["data"]), file_type="obj", process=False)
@@ -278,16 +282,23 @@ def test_addon_in_blender(stub, tmp_path):
     assert np.allclose(first["location"], [7, 1, -1], atol=1e-5)
     quads = got["Cube_fastmesh.001"]  # the second run's name: Blender numbers a taken name
     assert quads["polygon_sizes"] == [4] * 6 and np.allclose(quads["min"], [6, -1, -1], atol=1e-5)
+    assert np.allclose(quads["location"], [2, 0, 0], atol=1e-5)  # origin=input: moved one width
     assert got["file"]["name"] == "box_fastmesh" and np.allclose(got["file"]["min"], [-1, -1, -1], atol=1e-5)
     assert got["failed"] == "Cube: job failed: the model made no faces"
     # A GLB the importer cannot read: the same result as OBJ, placed alike.
     assert got["fallback"]["polygon_sizes"] == [4] * 6 and np.allclose(got["fallback"]["min"], [6, -1, -1], atol=1e-5)
+    # A Z-up OBJ (up=z turns OBJ files; Blender's importer turns it as Y-up) stands beside the original too,
+    # its pivot one width from the original's centre.
+    turned = got["Cube_fastmesh.003"]
+    assert turned["polygon_sizes"] == [4] * 6 and np.allclose(turned["location"], [7, 1, 2], atol=1e-5)
+    assert np.allclose(turned["min"], [6, -1, -1], atol=1e-5) and np.allclose(turned["max"], [8, 3, 5], atol=1e-5)
+    assert got["target_faces_range"] == list(TARGET_FACES)
     assert got["cancelled"] == "Cube: cancelled" and len(stub.stub.cancelled) == 1
     # The panel: every setting, the job's progress and Cancel while it runs, the outcome after.
     running = [tuple(d) for d in got["drawn_running"]]
     assert [n for kind, n in running if kind == "prop"] == [
         "source", "use_target_faces", "target_faces", "use_height", "height", "use_seed", "seed", "topology",
-        "origin", "up", "closed"]
+        "origin", "up", "closed", "uv"]
     assert ("operator", "fastmesh.send") in running and ("operator", "fastmesh.cancel") in running
     assert any(kind == "label" and n.startswith("Cube: ") and n.endswith("%)") for kind, n in running), running
     assert ["label", "Cube_fastmesh: done: 8 vertices, 12 faces"] in got["drawn_done"]

@@ -38,7 +38,7 @@ class Running:
     task: client.Task
     name: str  # the original's name; the result is "<name>_fastmesh"
     offset: tuple[float, float, float]  # added to the imported result's location
-    rotate_x: float  # radians, before the offset (client.up_correction)
+    up: str | None  # the up axis asked for (client.up_correction)
     fmt: str  # the result format downloaded: glb, or obj for quads
 
 
@@ -75,6 +75,7 @@ class FastMeshSettings(bpy.types.PropertyGroup):
                                              ("FILE", "File", "A mesh or point-cloud file")])
     filepath: StringProperty(name="File", subtype="FILE_PATH")
     use_target_faces: BoolProperty(name="Target faces", description="Ask for a face count")
+    # fastmesh.params.TARGET_FACES (the add-on ships without the package; a test checks the two agree)
     target_faces: IntProperty(name="Faces", default=1000, min=4, max=8000)
     topology: EnumProperty(name="Topology", items=_choice("triangles", [
         ("triangle", "Triangles only"), ("quad", "Quad-dominant (downloaded as OBJ: the GLB holds triangles)")]))
@@ -84,9 +85,10 @@ class FastMeshSettings(bpy.types.PropertyGroup):
     use_height: BoolProperty(name="Height", description="Scale the result to this height")
     height: FloatProperty(name="Height", default=1.8, min=1e-4, max=1e5, unit="LENGTH", precision=3)
     up: EnumProperty(name="Up axis", items=_choice("Y", [
-        ("y", "Y up (glTF)"), ("z", "Z up (stood upright again on import)")]))
+        ("y", "Y up (glTF)"), ("z", "Z up in OBJ files (a GLB is always Y up); upright in Blender either way")]))
     closed: EnumProperty(name="Closed", items=_choice("auto", [
         ("auto", "Close when the input is closed"), ("true", "Always close holes"), ("false", "Never close")]))
+    uv: BoolProperty(name="UV layout", description="Ask for a UV layout (GLB TEXCOORD_0, OBJ vt)")
     use_seed: BoolProperty(name="Seed", description="Fix the sampling seed")
     seed: IntProperty(name="Seed", default=0, min=0)
 
@@ -99,7 +101,8 @@ def params_of(s: FastMeshSettings) -> dict:
             "origin": pick(s.origin),
             # Blender stores floats in single precision: send the 6 digits the user typed, not 1.7999999523
             "height": float(f"{s.height:.6g}") if s.use_height else None,
-            "up": pick(s.up), "closed": pick(s.closed), "seed": s.seed if s.use_seed else None}
+            "up": pick(s.up), "closed": pick(s.closed), "uv": True if s.uv else None,
+            "seed": s.seed if s.use_seed else None}
 
 
 def world_mesh(context, obj) -> tuple[list, list]:
@@ -142,7 +145,7 @@ class FASTMESH_OT_send(bpy.types.Operator):
             return {"CANCELLED"}
         fmt = client.import_format(params)
         task = client.Task(c, filename, data, params, fmt=fmt).start()
-        _running.append(Running(task, name, offset, client.up_correction(params), fmt))
+        _running.append(Running(task, name, offset, params["up"], fmt))
         if not bpy.app.timers.is_registered(tick):
             bpy.app.timers.register(tick, first_interval=POLL_SECONDS)
         self.report({"INFO"}, f"FastMesh: sending {filename}")
@@ -201,7 +204,7 @@ def tick() -> float | None:
                     # Blender's glTF importer needs numpy, which some Linux builds leave out or ship too new for
                     # it (Debian's 3.4 with numpy 1.24): the same result as OBJ, which Blender reads natively.
                     task = client.Task.download(run.task.client, snap["job"], "obj").start()
-                    _running.append(Running(task, run.name, run.offset, run.rotate_x, "obj"))
+                    _running.append(Running(task, run.name, run.offset, run.up, "obj"))
                     _status["text"] = f"{run.name}: the glTF importer failed; fetching the result as OBJ"
         else:
             _status["text"] = f"{run.name}: {snap['message']}"
@@ -246,14 +249,25 @@ def import_result(run: Running, data: bytes) -> list[str]:
     finally:
         os.remove(path)
     roots = [o for o in new if o.parent is None or o.parent.name in before]
-    move = Matrix.Translation(run.offset) @ Matrix.Rotation(run.rotate_x, 4, "X")
+    move = Matrix.Translation(run.offset) @ Matrix.Rotation(client.up_correction(run.up, run.fmt), 4, "X")
     for o in roots:
         o.matrix_world = move @ o.matrix_world
-    for i, o in enumerate(sorted(new, key=lambda o: (o.type != "MESH", o.name))):
-        o.name = f"{run.name}_fastmesh" if i == 0 else f"{run.name}_fastmesh_{i}"
+    new.sort(key=lambda o: (o.type != "MESH", o.name))
+    for i, o in enumerate(new):
+        o.name = free_name(f"{run.name}_fastmesh" if i == 0 else f"{run.name}_fastmesh_{i}")
         if o.type == "MESH":
             o.data.name = o.name
-    return [o.name for o in sorted(new, key=lambda o: (o.type != "MESH", o.name))]
+    return [o.name for o in new]
+
+
+def free_name(base: str) -> str:
+    """``base``, or ``base.001``, ``base.002``, ... when taken.  Given a taken name, Blender 3.4 sometimes
+    hands it to the renamed object and renames the one that had it (the earlier result would change name)."""
+    name, i = base, 0
+    while name in bpy.data.objects:
+        i += 1
+        name = f"{base}.{i:03d}"
+    return name
 
 
 class VIEW3D_PT_fastmesh(bpy.types.Panel):
@@ -277,7 +291,7 @@ class VIEW3D_PT_fastmesh(bpy.types.Panel):
             sub = row.row(align=True)
             sub.active = getattr(s, flag)
             sub.prop(s, value, text="")
-        for name in ("topology", "origin", "up", "closed"):
+        for name in ("topology", "origin", "up", "closed", "uv"):
             layout.prop(s, name)
         layout.operator(FASTMESH_OT_send.bl_idname, icon="EXPORT")
         for run in _running:

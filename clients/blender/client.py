@@ -25,8 +25,8 @@ from collections.abc import Iterable, Mapping, Sequence
 FINAL = ("succeeded", "failed", "cancelled")
 # The fields the panel offers, with the values each takes (fastmesh.params, the service's form); numbers
 # are checked by the service, which names the field in its 422.
-CHOICES = {"topology": ("triangle", "quad"), "origin": ("input", "center", "bottom"), "up": ("y", "z"),
-           "closed": ("auto", "true", "false")}
+CHOICES = {"topology": ("triangle", "quad"), "uv": ("true", "false"), "origin": ("input", "center", "bottom"),
+           "up": ("y", "z"), "closed": ("auto", "true", "false")}
 POLL_SECONDS = 0.5  # first wait between status reads; it grows 1.3x a read up to max_poll
 RETRY_429 = 5  # queue full or rate limited: waits of the service's Retry-After before giving up
 MAX_RETRY_AFTER = 60.0
@@ -342,7 +342,10 @@ def import_format(params: Mapping[str, object]) -> str:
     return "obj" if params.get("topology") == "quad" else "glb"
 
 
-def up_correction(params: Mapping[str, object]) -> float:
-    """Rotation about X, radians, that stands a result upright after Blender's importer read it as Y-up:
-    -90 degrees when ``up=z`` asked the service for a Z-up file, else 0."""
-    return -math.pi / 2 if params.get("up") == "z" else 0.0
+def up_correction(up: str | None, fmt: str) -> float:
+    """Rotation about X, radians, that stands a result upright after Blender's importer read it as Y-up.
+
+    ``up=z`` turns the service's OBJ and PLY files by (x, y, z) -> (x, -z, y), the very turn Blender's
+    importers apply to a Y-up file, so an OBJ comes in turned twice: -90 degrees undoes one.  A GLB is Y-up
+    whatever ``up`` says (glTF fixes its up axis): 0."""
+    return -math.pi / 2 if up == "z" and fmt == "obj" else 0.0

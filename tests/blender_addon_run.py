@@ -43,6 +43,11 @@ class CheckingLayout:
         assert icon in ICONS, icon
         self.drawn.append(("label", text))
 
+    if "progress" in bpy.types.UILayout.bl_rna.functions:  # Blender 4.0+; the panel draws a label in older ones
+        def progress(self, factor=0.0, type="BAR", text=""):
+            assert 0.0 <= factor <= 1.0 and type in ("BAR", "RING"), (factor, type)
+            self.drawn.append(("progress", text))
+
 
 def draw(addon) -> list:
     layout = CheckingLayout()

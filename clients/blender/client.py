@@ -253,9 +253,9 @@ class Task:
         interval = self.poll
         while True:
             progress = job.get("progress") or {}
-            self._set(state=job["status"], job=job, stage=progress.get("stage"),
-                      fraction=float(progress.get("fraction") or 0.0),
-                      message=f"{job['status']}: {progress.get('stage') or ''}".rstrip(": "))
+            stage = progress.get("stage")
+            self._set(state=job["status"], job=job, stage=stage, fraction=float(progress.get("fraction") or 0.0),
+                      message=f"{job['status']}: {stage}" if stage and stage != job["status"] else job["status"])
             if job["status"] in FINAL:
                 return job
             if self._stop.wait(interval):

@@ -1,6 +1,6 @@
 """Run inside Blender by tests/test_blender_client.py::test_addon_in_blender: install the add-on from the zip
-$FASTMESH_ZIP, send the default cube (three ways) and a file to the stub service $FASTMESH_STUB through the
-panel's operator, and print what was imported as one ``RESULT <json>`` line.
+$FASTMESH_ZIP, send the default cube with several settings, and a file, to the stub service $FASTMESH_STUB
+through the panel's operators, and print what the add-on imported and drew as one ``RESULT <json>`` line.
 
 Background mode has no event loop, so the timer the operator registers never fires: the script calls the same
 ``tick`` the timer calls until no job is left.

@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test lint install bench-tokens web chromium assimp
+.PHONY: run test lint install bench-tokens web chromium assimp blender blender-addon
 
 # torch: PyPI's default Linux wheel is the CUDA build (about 2.7 GB with its nvidia-* packages).  On Linux
 # without an NVIDIA GPU we install the CPU build (about 200 MB) from PyTorch's CPU index instead; its own
@@ -41,15 +41,24 @@ chromium:
 assimp:
 	sh scripts/install-assimp-testmodels.sh
 
+# Debian's blender: the add-on's test in Blender itself (tests/test_blender_client.py).
+blender:
+	sh scripts/install-blender.sh
+
+# The Blender add-on (clients/blender/) as the zip Blender's Preferences > Add-ons > Install takes.
+BLENDER_ZIP ?= build/fastmesh_blender.zip
+blender-addon:
+	$(PY) scripts/blender_addon.py $(BLENDER_ZIP)
+
 run: $(STAMP) web
 	$(BIN)/python -m service.run
 
-test: $(STAMP) web chromium assimp
-	$(BIN)/ruff check fastmesh service worker tests benchmarks
+test: $(STAMP) web chromium assimp blender
+	$(BIN)/ruff check fastmesh service worker tests benchmarks clients
 	$(BIN)/python -m pytest -q tests
 
 lint: $(STAMP)
-	$(BIN)/ruff check fastmesh service worker tests benchmarks
+	$(BIN)/ruff check fastmesh service worker tests benchmarks clients
 
 bench-tokens: $(STAMP)
 	$(BIN)/python benchmarks/tokens.py ../shared/corpus

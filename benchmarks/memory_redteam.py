@@ -8,7 +8,7 @@ Starts its own redis-server, the API as ``make run`` serves it (uvicorn subproce
 and one ``fastmesh-worker`` (shipped weights unless ``--weights``), samples each process's resident memory every
 20 ms, and prints one line per case: the answers, the API's RSS before, at its peak and 1 s after, the peak of
 the API's child processes (parsing, rendering), the worker's and Redis's peaks.  ``--markdown`` prints the
-table of docs/results.md at the end.
+cases as a Markdown table at the end (summarised in docs/results.md).
 """
 
 from __future__ import annotations

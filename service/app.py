@@ -21,17 +21,22 @@ from .preview import DEFAULT_PREVIEW, preview_router
 from .reaper import reap_loop
 from .render_pool import RenderPool
 from .routes import ops
+from .routes.batches import batches_router
 from .routes.jobs import jobs_router
 from .settings import Settings
 from .store import Store
 from .telemetry import Metrics
 from .web.routes import web_router
+from .webhooks import dispatch_loop
 
 DESCRIPTION = """Upload a point cloud or a dense mesh, poll the job, download a clean artist-style mesh.
 
 1. `POST /v1/jobs` with a multipart `file` (obj, glb, gltf, ply, stl, off, xyz, txt, npy, npz) -> 202 + job.
 2. `GET /v1/jobs/{id}` until `status` is `succeeded` (or `failed` / `cancelled`).
 3. `GET /v1/jobs/{id}/result?format=glb` (add `&wait=60` to long-poll instead of step 2).
+
+`POST /v1/batches` submits several files with one set of parameters; `GET /v1/jobs` lists the key's jobs;
+`callback_url` has the finished job POSTed to a URL (signed `X-FastMesh-Signature`).
 
 When the server has API keys, send `Authorization: Bearer <key>`; a key sees only its own jobs.
 Every error is JSON `{"error": {"code", "message"}}`."""
@@ -54,6 +59,8 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
         # Jobs of dead workers are requeued by this process too, so they are even when no worker is alive.
         stop = threading.Event()
         threading.Thread(target=reap_loop, args=(store, stop), name="fastmesh-reaper", daemon=True).start()
+        # Webhooks are delivered from here, never from a worker (service.webhooks).
+        threading.Thread(target=dispatch_loop, args=(store, stop), name="fastmesh-webhooks", daemon=True).start()
         # Parsing processes take a second or two to start: started now, the first uploads do not wait for that.
         threading.Thread(target=parses.warm, name="fastmesh-parse-warm", daemon=True).start()
         yield
@@ -69,7 +76,10 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     errors.install(app)
 
     app.state.parses = parses  # tests and benchmarks read its children
-    app.include_router(jobs_router(settings, parses))
+    slots = threading.BoundedSemaphore(settings.max_concurrent_parses)  # uploads read at once (service.submission)
+    jobs = jobs_router(settings, parses, slots)
+    app.include_router(jobs)
+    app.include_router(batches_router(settings, parses, slots, jobs))
     app.include_router(ops.router)
     app.state.previews = preview_router(store, renders)  # on state: tests read its ``renders`` count
     app.include_router(app.state.previews)  # /v1/jobs/{id}/preview.png, .../input.ply

@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import dataclasses
+import difflib
+import functools
+import inspect
 import math
 import re
 import sys
 import typing
 import unicodedata
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
-from fastapi import Request
+from fastapi import Request, params
+from starlette.datastructures import FormData
 
 from fastmesh.io import EXPORT_FORMATS
 
@@ -66,10 +70,52 @@ def check_spelling(raw: Mapping[str, object]) -> None:
             raise ApiError(422, "invalid_parameter", f"{name}: '{value[:30]}' is not {what}")
 
 
+@functools.lru_cache(maxsize=64)
+def declared_fields(endpoint: Callable) -> dict[str, bool]:
+    """The form and file fields a route's function declares (by their name on the wire), each with whether it
+    may be sent more than once (a list)."""
+    try:
+        sig = inspect.signature(endpoint, eval_str=True)
+    except (NameError, TypeError):  # an annotation names something local: lists are then not recognised
+        sig = inspect.signature(endpoint)
+    out = {}
+    for p in sig.parameters.values():
+        info = p.default if isinstance(p.default, params.Form) else next(
+            (m for m in typing.get_args(p.annotation)[1:] if isinstance(m, params.Form)), None)
+        if info is not None:  # File is a kind of Form
+            hint = typing.get_args(p.annotation)[0] if typing.get_origin(p.annotation) is typing.Annotated \
+                else p.annotation
+            out[info.alias or p.name] = typing.get_origin(hint) is list
+    return out
+
+
+def check_known(form: FormData, fields: Mapping[str, bool]) -> None:
+    """Refuse form fields the route does not take, and single fields sent twice.
+
+    A misspelt field (``target_face``) would otherwise be dropped and its default used without a word.
+
+    Raises
+    ------
+    ApiError
+        422 ``unknown_field`` or ``invalid_parameter``, naming the field.
+    """
+    for name in dict.fromkeys(form.keys()):
+        if name not in fields:
+            near = difflib.get_close_matches(name, list(fields), n=1)
+            hint = f"did you mean '{near[0]}'? " if near else ""
+            raise ApiError(422, "unknown_field", f"{name[:40]}: unknown field; {hint}"
+                                                 f"the fields are {', '.join(sorted(fields))}")
+        count = len(form.getlist(name))
+        if count > 1 and not fields[name]:
+            raise ApiError(422, "invalid_parameter", f"{name}: sent {count} times; send it once")
+
+
 async def strict_form(request: Request) -> None:
-    """Dependency of the submission route: :func:`check_spelling` on its form as sent (the form is parsed
-    once; this reads Starlette's parsed copy)."""
-    check_spelling(await request.form())
+    """Dependency of the form routes: :func:`check_known` and :func:`check_spelling` on the form as sent (the
+    form is parsed once; this reads Starlette's parsed copy)."""
+    form = await request.form()
+    check_known(form, declared_fields(request.scope["route"].endpoint))
+    check_spelling(form)
 
 
 def build_params(values: dict, formats: str | None, default_formats: list[str], limit: int | None = None) -> dict:

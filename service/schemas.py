@@ -26,6 +26,9 @@ JOB_EXAMPLE = {
     "timings": {"queue": 0.21, "load": 0.05, "encode": 0.12, "vertices": 3.1, "enhancer": 0.2, "faces": 0.9,
                 "filtering": 0.05, "export": 0.02, "total": 4.87},
     "error": None,
+    "expires_at": "2025-05-02T12:00:04.870000Z",
+    "webhook": {"url": "https://example.com/fastmesh-hook", "state": "delivered", "attempts": 1, "last_status": 200,
+                "last_error": None, "last_attempt_at": "2025-05-01T12:00:05.010000Z", "next_attempt_at": None},
 }
 
 
@@ -100,6 +103,21 @@ class Timings(BaseModel):
     total: float | None = None
 
 
+class Webhook(BaseModel):
+    """The job's ``callback_url`` and its deliveries (service.webhooks)."""
+
+    url: str
+    state: Literal["waiting", "retrying", "delivered", "failed"] = Field(
+        description="waiting: the job is not finished (or its first delivery is under way); retrying: an attempt "
+                    "failed and another is due at next_attempt_at; delivered: a 2xx answer; failed: every "
+                    "attempt failed.")
+    attempts: int = Field(description="Deliveries tried.")
+    last_status: int | None = Field(description="HTTP status of the last attempt (null: no answer).")
+    last_error: str | None = Field(description="Why the last attempt failed (null when it did not).")
+    last_attempt_at: str | None
+    next_attempt_at: str | None
+
+
 class Job(BaseModel):
     id: str
     status: Status
@@ -112,7 +130,24 @@ class Job(BaseModel):
     result: ResultInfo | None
     timings: Timings
     error: ErrorDetail | None
+    expires_at: str = Field(description="When the job, its input and its results are deleted: retention_seconds "
+                                        "after it finished (or after it was created, while it has not finished).")
+    webhook: Webhook | None = Field(description="Deliveries to the job's callback_url (null: none was given).")
     model_config = ConfigDict(json_schema_extra={"examples": [JOB_EXAMPLE]})
+
+
+class JobPage(BaseModel):
+    """One page of ``GET /v1/jobs``: the key's jobs, newest first."""
+
+    jobs: list[Job]
+    next_cursor: str | None = Field(description="Pass as ?cursor= for the next page; null on the last page.")
+
+
+class Batch(BaseModel):
+    """The jobs ``POST /v1/batches`` created, one per file, in the order of the files."""
+
+    job_ids: list[str]
+    jobs: list[Job]
 
 
 class Health(BaseModel):

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import Field, field_validator
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from fastmesh.io import EXPORT_FORMATS
@@ -68,8 +68,11 @@ class Settings(BaseSettings):
                                          "(413) and its child process killed.")
     max_wait_seconds: float = Field(300.0, ge=0, description="Longest long-poll of GET .../result?wait=S.")
 
+    max_batch_files: int = Field(16, ge=1, le=100, description="Most files in one POST /v1/batches.")
+
     # --- jobs and workers
-    retention_seconds: int = Field(24 * 3600, gt=0, description="How long jobs, inputs and results stay in Redis.")
+    retention_seconds: int = Field(24 * 3600, gt=0, description="How long a job, its input and its results stay "
+                                   "in Redis after it finishes (the job's `expires_at`).")
     job_timeout: float = Field(600.0, gt=0, description="Seconds a job may run before it fails with 'timeout'.")
     max_attempts: int = Field(3, ge=1, description="Runs of a job whose worker died before it fails 'worker_lost'.")
     heartbeat_interval: float = Field(2.0, gt=0, description="Seconds between a worker's heartbeats.")
@@ -84,6 +87,19 @@ class Settings(BaseSettings):
                                     "progress callback, so fault and cancellation tests can catch a job mid-run.")
     torch_threads: int | None = Field(None, ge=1, description="torch threads in a worker; unset = the pipeline's "
                                      "choice (1 on CPU, the fastest measured for one job at a time).")
+
+    # --- webhooks (service.webhooks)
+    webhook_secret: SecretStr | None = Field(None, description="Key of the HMAC-SHA256 signature of webhook bodies "
+                                             "(`X-FastMesh-Signature`); unset = `callback_url` is refused.")
+    webhook_allow_private: bool = Field(False, description="Allow callback URLs over plain http and to private, "
+                                        "loopback, link-local and other non-public addresses (tests, closed "
+                                        "networks); off = https to public addresses only.")
+    webhook_max_attempts: int = Field(8, ge=1, le=50, description="Deliveries tried per job before the webhook "
+                                      "is given up (`webhook.state` failed).")
+    webhook_backoff_seconds: float = Field(5.0, gt=0, description="Wait before the first retry of a webhook; "
+                                           "it doubles with each further attempt.")
+    webhook_timeout_seconds: float = Field(10.0, gt=0, description="Longest wait for a receiver to answer one "
+                                           "delivery.")
 
     @field_validator("api_keys", "cors_origins", "default_formats", "trusted_proxies", mode="before")
     @classmethod

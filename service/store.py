@@ -3,13 +3,16 @@
 Layout (``P`` is ``Settings.redis_prefix``)::
 
     P:job:<id>              hash: owner status attempt stage fraction created_at started_at finished_at
-                                  params input result timings error filename worker   (JSON-encoded values)
+                                  params input result timings error filename worker webhook
+                                  (JSON-encoded values)
     P:input:<id>            npz bytes of the parsed input shape
     P:result:<id>:<fmt>     exported mesh (glb/obj/ply) and ``npz`` (vertices, faces) for other formats
     P:hb:<id>               heartbeat of the attempt running the job (value = attempt), short TTL
     P:running               set of job ids in status "running" (what the reaper scans)
     P:queued                zset job id -> time enqueued (the reaper finds queue entries lost with a worker)
     P:suspects              hash job id -> when its queue entry was first seen missing
+    P:owned:<owner>         zset job id -> created_at: an API key's jobs (``service.listing``)
+    P:webhooks              zset job id -> when its webhook delivery is due (``service.webhooks``)
     P:idem:<owner>:<sha>    "<job id> <request fingerprint>" for Idempotency-Key (+ " pending" until created)
     P:rate:<kind>:<owner>:<minute>   fixed-window request counters
     P:authok:<address>:<owner>  a key that authenticated from an address before a lockout (``auth_admit``)
@@ -65,9 +68,11 @@ return redis.call('EXISTS', KEYS[2])
 """
 AUTH_REMEMBER_SECONDS = 3600  # a key that authenticated from an address is not locked out there for this long
 
-# KEYS: job, hb, running set, queued zset, keys to EXPIRE...
+# KEYS: job, hb, running set, queued zset, webhooks zset, keys to EXPIRE...
 # ARGV: allowed statuses (comma list), attempt ('' = any), ttl ('' = keep), job id,
-#       final ('1' = leaves running/queued), field, value, ...
+#       final ('1' = leaves running/queued, '2' = that and, for a job with a webhook, its delivery is due),
+#       field, value, ...
+# The delivery is queued in the same step as the final status: no process dying in between can lose it.
 _TRANSITION = """
 local st = redis.call('HGET', KEYS[1], 'status')
 if not st then return 0 end
@@ -76,11 +81,14 @@ for s in string.gmatch(ARGV[1], '[^,]+') do if s == st then ok = true end end
 if not ok then return 0 end
 if ARGV[2] ~= '' and redis.call('HGET', KEYS[1], 'attempt') ~= ARGV[2] then return 0 end
 if #ARGV > 5 then redis.call('HSET', KEYS[1], unpack(ARGV, 6)) end
-if ARGV[5] == '1' then
+if ARGV[5] ~= '0' then
   redis.call('SREM', KEYS[3], ARGV[4]); redis.call('ZREM', KEYS[4], ARGV[4]); redis.call('DEL', KEYS[2])
 end
+if ARGV[5] == '2' and redis.call('HEXISTS', KEYS[1], 'webhook') == 1 then
+  redis.call('ZADD', KEYS[5], 'NX', 0, ARGV[4])
+end
 if ARGV[3] ~= '' then
-  for i = 1, #KEYS do if i == 1 or i > 4 then redis.call('EXPIRE', KEYS[i], ARGV[3]) end end
+  for i = 1, #KEYS do if i == 1 or i > 5 then redis.call('EXPIRE', KEYS[i], ARGV[3]) end end
 end
 return 1
 """
@@ -201,6 +209,13 @@ class Store:
     def k_queued(self) -> str:
         return f"{self.prefix}:queued"
 
+    @property
+    def k_webhooks(self) -> str:
+        return f"{self.prefix}:webhooks"
+
+    def k_owned(self, owner: str) -> str:
+        return f"{self.prefix}:owned:{owner}"
+
     def k_preview(self, job_id: str) -> str:
         """Hash of the job's rendered previews (``service.preview``)."""
         return f"{self.prefix}:preview:{job_id}"
@@ -237,6 +252,9 @@ class Store:
             "result": job.get("result"),
             "timings": timings,
             "error": job.get("error"),
+            # The retention clock runs from creation and starts again when the job finishes (``finish``).
+            "expires_at": iso((job.get("finished_at") or job["created_at"]) + self.settings.retention_seconds),
+            "webhook": job.get("webhook"),
         }
 
     def queue_depth(self) -> int:
@@ -258,21 +276,26 @@ class Store:
     # ------------------------------------------------------------------ transitions
     def transition(self, job_id: str, allowed: str | tuple[str, ...], fields: dict | None = None,
                    attempt: int | None = None, final: bool = False, ttl: int | None = None,
-                   expire: list[str] | None = None) -> bool:
-        """Compare-and-set: apply ``fields`` only if status is in ``allowed`` (and attempt matches)."""
+                   expire: list[str] | None = None, notify: bool = False) -> bool:
+        """Compare-and-set: apply ``fields`` only if status is in ``allowed`` (and attempt matches).
+
+        ``notify`` (with ``final``): the job's webhook, if it has one, is queued for delivery in the same step.
+        """
         allowed = allowed if isinstance(allowed, str) else ",".join(allowed)
         argv = [allowed, "" if attempt is None else str(attempt), "" if ttl is None else str(ttl), job_id,
-                "1" if final else "0"]
+                ("2" if notify else "1") if final else "0"]
         for k, v in (fields or {}).items():
             argv += [k, v if k in ("owner", "status", "worker", "rq_id") else json.dumps(v)]
-        keys = [self.k_job(job_id), self.k_hb(job_id), self.k_running, self.k_queued, *(expire or [])]
+        keys = [self.k_job(job_id), self.k_hb(job_id), self.k_running, self.k_queued, self.k_webhooks,
+                *(expire or [])]
         return bool(self._transition(keys=keys, args=argv))
 
     def create(self, owner: str, params: dict, input_info: dict, shape_bytes: bytes, load_seconds: float,
-               max_queued: int | None = None, job_id: str | None = None) -> str:
+               max_queued: int | None = None, job_id: str | None = None, webhook: dict | None = None) -> str:
         """Store a new queued job and its input, and enqueue it.  Returns the job id.
 
-        ``job_id`` (from :meth:`new_id`) lets a caller name the job before it exists.
+        ``job_id`` (from :meth:`new_id`) lets a caller name the job before it exists; ``webhook``
+        (:func:`service.webhooks.new_webhook`) is delivered when the job finishes.
         Raises :class:`QueueFull` when ``max_queued`` jobs are already queued (checked atomically).
         """
         job_id = job_id or self.new_id()
@@ -283,11 +306,15 @@ class Store:
         fields = {"owner": owner, "status": "queued", "attempt": 1, "stage": "queued", "fraction": 0.0,
                   "created_at": now, "started_at": None, "finished_at": None, "params": params,
                   "input": input_info, "result": None, "timings": {"load": load_seconds}, "error": None}
+        if webhook is not None:
+            fields["webhook"] = webhook
         with self.redis.pipeline() as pipe:
             pipe.set(self.k_input(job_id), shape_bytes, ex=ttl)
             pipe.hset(self.k_job(job_id), mapping={
                 k: v if k in ("owner", "status") else json.dumps(v) for k, v in fields.items()})
             pipe.expire(self.k_job(job_id), ttl)
+            pipe.zadd(self.k_owned(owner), {job_id: now})
+            pipe.expire(self.k_owned(owner), ttl)
             pipe.hincrby(f"{self.prefix}:stats:jobs", "submitted", 1)
             pipe.execute()
         self.enqueue(job_id, 1)
@@ -342,12 +369,14 @@ class Store:
                   "fraction": 1.0 if status == "succeeded" else job.get("fraction", 0.0)}
         if result is not None:
             fields["result"] = result
-        ok = self.transition(job_id, allowed, fields, attempt=attempt, final=True,
+        ok = self.transition(job_id, allowed, fields, attempt=attempt, final=True, notify=True,
                              ttl=self.settings.retention_seconds,
                              expire=[self.k_input(job_id), *self.result_keys(job_id)])
         if ok:
             with self.redis.pipeline() as pipe:
                 pipe.hincrby(f"{self.prefix}:stats:jobs", status, 1)
+                # The key's list of jobs lives as long as its last job to finish.
+                pipe.expire(self.k_owned(job["owner"]), self.settings.retention_seconds)
                 if status == "succeeded":
                     for k, v in t.items():
                         if v is not None:

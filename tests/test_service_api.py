@@ -113,7 +113,7 @@ def test_upload_poll_download_glb(served):
     job = r.json()
     assert r.headers["location"] == f"/v1/jobs/{job['id']}"
     assert set(job) == {"id", "status", "progress", "created_at", "started_at", "finished_at", "params", "input",
-                        "result", "timings", "error"}
+                        "result", "timings", "error", "expires_at", "webhook"}
     assert job["input"] == {"filename": "sphere.xyz", "kind": "points", "points": 400, "vertices": None,
                             "faces": None}
     assert job["params"]["seed"] == 3 and job["params"]["max_vertices"] == 12

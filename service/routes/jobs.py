@@ -24,21 +24,25 @@ from ..deps import JobId, Owner, StoreDep, owned_job
 from ..errors import SHAPE_STATUS, ApiError
 from ..forms import build_params, generation_defaults, safe_filename, strict_form
 from ..idempotency import Idempotency
+from ..listing import MAX_LIMIT, list_jobs
 from ..parsing import parse_upload
-from ..schemas import Job, error_responses
+from ..schemas import Job, JobPage, error_responses
 from ..settings import Settings
-from ..store import FINAL, QueueFull, Store, mesh_from_bytes
+from ..store import FINAL, STATUSES, QueueFull, Store, mesh_from_bytes
+from ..submission import charge, parse_slot, read_upload, webhook_of
 
 MEDIA = {"glb": "model/gltf-binary", "obj": "model/obj", "ply": "application/ply"}
 
 
-def jobs_router(settings: Settings, parses: CappedPool) -> APIRouter:
+def jobs_router(settings: Settings, parses: CappedPool,
+                slots: threading.BoundedSemaphore | None = None) -> APIRouter:
     """The routes of one app.  They are built per ``settings`` because the OpenAPI schema shows them (the
     long-poll limit, the default formats) and the upload-parsing slots are counted per app; uploads are
-    parsed in ``parses`` (``settings.max_concurrent_parses`` capped child processes)."""
+    parsed in ``parses`` (``settings.max_concurrent_parses`` capped child processes) while holding one of
+    ``slots`` (shared with ``POST /v1/batches``)."""
     router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
     defaults = generation_defaults()
-    parse_slots = threading.BoundedSemaphore(settings.max_concurrent_parses)
+    parse_slots = slots or threading.BoundedSemaphore(settings.max_concurrent_parses)
 
     def d(name: str) -> str:
         return f"default {defaults.get(name)!r}"
@@ -84,28 +88,24 @@ def jobs_router(settings: Settings, parses: CappedPool) -> APIRouter:
                formats: str | None = Form(None, description="Comma list of glb, obj, ply exported with the job "
                                                             f"(default {','.join(settings.default_formats)}).",
                                           examples=["glb,obj"]),
+               callback_url: str | None = Form(None, max_length=2000,
+                                               description="https URL POSTed the job JSON, signed, when it "
+                                                           "succeeds, fails or is cancelled (README, Webhooks).",
+                                               examples=["https://example.com/fastmesh-hook"]),
                idempotency_key: str | None = Header(None, alias="Idempotency-Key", max_length=200,
                                                     description="Retrying with the same key returns the same job.")
                ) -> JSONResponse:
-        wait = store.rate_hit("submit", request.state.bucket, settings.submit_rate_limit_per_minute)
-        if wait:
-            raise ApiError(429, "rate_limited", f"more than {settings.submit_rate_limit_per_minute} submissions "
-                                                "per minute for this key", {"Retry-After": str(wait)})
+        charge(store, settings, request.state.bucket)
         params = build_params({"seed": seed, "temperature": temperature, "top_k": top_k, "top_p": top_p,
                                "max_vertices": max_vertices, "enhancer": enhancer, "filtering": filtering,
                                "candidates": candidates, "target_faces": target_faces, "closed": closed},
                               formats, settings.default_formats, store.vertex_limit())
-        # Reading and parsing hold up to a few times the upload in memory: a fixed number at once keeps the
-        # API's peak a known multiple of the limits; beyond it the client is told to come back.
-        if not parse_slots.acquire(timeout=settings.parse_wait_seconds):
-            raise ApiError(429, "busy", f"{settings.max_concurrent_parses} uploads are being read; retry shortly",
-                           {"Retry-After": "2"})
-        try:
-            data = file.file.read(settings.max_upload_bytes + 1)
-            if len(data) > settings.max_upload_bytes:
-                raise ApiError(413, "too_large", f"upload larger than the {settings.max_upload_bytes} byte limit")
+        webhook = webhook_of(settings, callback_url)
+        with parse_slot(parse_slots, settings):
+            data = read_upload(file, settings)
             filename = safe_filename(file.filename)
-            idem = Idempotency(store, who, idempotency_key, data, {**params, "filename": filename})
+            idem = Idempotency(store, who, idempotency_key, data,
+                               {**params, "filename": filename, **({"callback_url": callback_url} if webhook else {})})
             existing = idem.existing()
             if existing is not None:
                 return job_response(store, existing, 200)
@@ -116,14 +116,13 @@ def jobs_router(settings: Settings, parses: CappedPool) -> APIRouter:
             info, blob = parse(parses, settings, data, filename)
             del data
             load_seconds = time.perf_counter() - t0
-        finally:
-            parse_slots.release()
         job_id = store.new_id()
         existing = idem.claim(job_id)
         if existing is not None:
             return job_response(store, existing, 200)
         try:
-            store.create(who, params, info, blob, load_seconds, max_queued=settings.max_queue_depth, job_id=job_id)
+            store.create(who, params, info, blob, load_seconds, max_queued=settings.max_queue_depth, job_id=job_id,
+                         webhook=webhook)
         except BaseException as e:
             idem.release()
             if isinstance(e, QueueFull):  # the early check raced with concurrent submissions: the queue filled
@@ -131,6 +130,15 @@ def jobs_router(settings: Settings, parses: CappedPool) -> APIRouter:
             raise
         idem.confirm(job_id)
         return job_response(store, store.get(job_id), 202)
+
+    @router.get("", response_model=JobPage, summary="The key's jobs, newest first, a page at a time",
+                responses=error_responses(401, 422, 429, 503))
+    def get_jobs(who: Owner, store: StoreDep,
+                 status: Literal[STATUSES] | None = Query(None, description="Only jobs in this status."),
+                 limit: int = Query(20, ge=1, le=MAX_LIMIT, description="Most jobs on the page."),
+                 cursor: str | None = Query(None, max_length=200, description="next_cursor of the page before.")
+                 ) -> JSONResponse:
+        return JSONResponse(list_jobs(store, who, status, limit, cursor))
 
     @router.get("/{job_id}", response_model=Job, summary="A job's status, progress, timings",
                 responses={**error_responses(401, 404, 422, 429, 503),

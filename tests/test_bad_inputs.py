@@ -390,8 +390,9 @@ def test_openapi_schema_fuzz(idle, mode):
             ctype = response.headers.get("content-type") or [""]  # schemathesis: header -> list of values
             if response.status_code >= 400 and ctype[0].startswith("application/json"):
                 assert set(response.json()) == {"error"}, response.text[:300]
-            if case.method == "POST" and response.status_code == 202:
-                httpx.delete(f"{idle.url}/v1/jobs/{response.json()['id']}")
+            if case.method == "POST" and response.status_code == 202:  # a job, or a batch's jobs
+                for job_id in response.json().get("job_ids") or [response.json()["id"]]:
+                    httpx.delete(f"{idle.url}/v1/jobs/{job_id}")
 
         try:
             check()

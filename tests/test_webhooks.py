@@ -21,7 +21,7 @@ from stack import assert_error, make_settings, post, sphere_points, wait_final, 
 
 from service.processes import ServedApp, wait_for
 from service.store import Store
-from service.webhooks import UnsafeUrl, attempt, is_public, sign, vet
+from service.webhooks import _CLAIM, UnsafeUrl, attempt, is_public, sign, vet
 
 SECRET = "test-webhook-secret"
 BALL = xyz_bytes(sphere_points())
@@ -211,6 +211,32 @@ def test_failure_is_posted_and_given_up_after_max_attempts(idle):
         assert len(receiver.calls) == 3 and verified(receiver.calls[0])["status"] == "failed"
         assert store.redis.zscore(store.k_webhooks, job["id"]) is None  # nothing left queued
     finally:
+        receiver.close()
+
+
+def test_a_delivery_outlives_the_api_process(redis_url):
+    """A job that ends while no API process runs (a worker finished it) is delivered by the next one to start,
+    and an entry claimed by a dispatcher that died comes due again when its lease runs out."""
+    s = hooks_settings(redis_url, "hooks-restart")
+    receiver = Receiver()
+    first = ServedApp(s)
+    try:
+        job = post(first.url, "ball.xyz", BALL, callback_url=receiver.url).json()
+    finally:
+        first.stop()
+    store = Store(s)
+    assert store.start(job["id"], 1, "test-worker")
+    assert store.finish(job["id"], 1, "succeeded", result={"vertices": 3, "faces": 1})
+    # A dispatcher claimed it and died: due again only when the lease ends.
+    lease_end = time.time() + 2.0
+    assert store.redis.eval(_CLAIM, 1, store.k_webhooks, job["id"], time.time(), lease_end)
+    second = ServedApp(s)
+    try:
+        hook = settled(second.url, job["id"])["webhook"]
+        assert hook["state"] == "delivered" and datetime.fromisoformat(hook["last_attempt_at"]).timestamp() >= lease_end
+        assert len(receiver.calls) == 1 and verified(receiver.calls[0])["status"] == "succeeded"
+    finally:
+        second.stop()
         receiver.close()
 
 

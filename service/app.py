@@ -1,8 +1,9 @@
 """The HTTP API: upload a shape, poll the job, download the artist mesh.
 
 ``create_app(settings)`` builds the app; ``uvicorn service.app:create_app --factory`` serves it with
-settings from the environment.  The routes are in :mod:`service.routes` (jobs, ops), :mod:`service.preview`
-and :mod:`service.web`; what they depend on (settings, store, the caller) in :mod:`service.deps`.
+settings from the environment.  The routes are in :mod:`service.routes` (jobs, batches, ops), :mod:`service.preview`
+and :mod:`service.web`; what they depend on (settings, store, the caller) in :mod:`service.deps`; webhooks
+are delivered by a thread :func:`service.webhooks.dispatch_loop` beside the reaper.
 """
 
 from __future__ import annotations

@@ -1,1 +1,2 @@
-"""The API's routers, one per resource: :mod:`.jobs` (``/v1/jobs``) and :mod:`.ops` (health, readiness, metrics)."""
+"""The API's routers, one per resource: :mod:`.jobs` (``/v1/jobs``), :mod:`.batches` (``/v1/batches``) and
+:mod:`.ops` (health, readiness, metrics)."""

@@ -19,8 +19,10 @@ import httpx
 import pytest
 from stack import assert_error, make_settings, post, sphere_points, wait_final, wp, xyz_bytes
 
+from service.errors import ApiError
 from service.processes import ServedApp, wait_for
 from service.store import Store
+from service.submission import webhook_of
 from service.webhooks import _CLAIM, UnsafeUrl, attempt, is_public, sign, vet
 
 SECRET = "test-webhook-secret"
@@ -136,18 +138,16 @@ def test_public_https_url_passes_and_real_names_are_resolved():
 
 def test_submission_refuses_a_bad_callback_url(idle, redis_url):
     r = post(idle.url, "ball.xyz", BALL, callback_url="ftp://example.com/x")
-    assert "callback_url" in assert_error(r, 422, "invalid_parameter")["message"]
-    strict = ServedApp(make_settings(redis_url, "hooks-strict", webhook_secret=SECRET))
-    off = ServedApp(make_settings(redis_url, "hooks-off"))
-    try:
-        for url in ("http://127.0.0.1:9/x", "https://127.0.0.1/x", "https://localhost/x", "https://10.0.0.1/x"):
-            r = post(strict.url, "ball.xyz", BALL, callback_url=url)
-            assert "callback_url" in assert_error(r, 422, "invalid_parameter")["message"], url
-        r = post(off.url, "ball.xyz", BALL, callback_url="https://example.com/x")
-        assert "FASTMESH_WEBHOOK_SECRET" in assert_error(r, 422, "webhooks_disabled")["message"]
-    finally:
-        strict.stop()
-        off.stop()
+    assert assert_error(r, 422, "invalid_parameter")["message"].startswith("callback_url: must be an https")
+    assert Store(idle.settings).redis.zcard(f"{idle.settings.redis_prefix}:queued") == 0  # no job made
+    strict = make_settings(redis_url, "hooks-strict", webhook_secret=SECRET)  # what the route asks (submission)
+    for url in ("http://127.0.0.1:9/x", "https://127.0.0.1/x", "https://localhost/x", "https://10.0.0.1/x"):
+        with pytest.raises(ApiError) as e:
+            webhook_of(strict, url)
+        assert e.value.status == 422 and e.value.message.startswith("callback_url: "), url
+    with pytest.raises(ApiError) as e:
+        webhook_of(make_settings(redis_url, "hooks-off"), "https://example.com/x")
+    assert e.value.code == "webhooks_disabled" and "FASTMESH_WEBHOOK_SECRET" in e.value.message
 
 
 # ---------------------------------------------------------------- delivery
@@ -219,12 +219,9 @@ def test_a_delivery_outlives_the_api_process(redis_url):
     and an entry claimed by a dispatcher that died comes due again when its lease runs out."""
     s = hooks_settings(redis_url, "hooks-restart")
     receiver = Receiver()
-    first = ServedApp(s)
-    try:
-        job = post(first.url, "ball.xyz", BALL, callback_url=receiver.url).json()
-    finally:
-        first.stop()
     store = Store(s)
+    job = {"id": store.create("anonymous", {}, {"filename": "x.xyz"}, b"", 0.0,
+                              webhook=webhook_of(s, receiver.url))}  # the job POST /v1/jobs makes
     assert store.start(job["id"], 1, "test-worker")
     assert store.finish(job["id"], 1, "succeeded", result={"vertices": 3, "faces": 1})
     # A dispatcher claimed it and died: due again only when the lease ends.

@@ -102,3 +102,28 @@ def test_one_file_field_per_job_and_files_for_a_batch(idle):
     assert "did you mean 'file'?" in assert_error(r, 422, "unknown_field")["message"]
     assert post(idle.url, "a.xyz", BALLS[0], target_faces=500).json()["params"]["target_faces"] == 500
     empty_queue(idle)
+
+
+def test_a_failure_while_creating_deletes_the_jobs_made(idle, monkeypatch):
+    """The queue filling between the check and the second job (other submissions racing): the first job is
+    deleted, and the batch is answered 429 as a whole."""
+    from service.store import QueueFull
+
+    store = idle.app.state.store
+    real, calls = store.create, []
+
+    def create(*args, **kw):
+        calls.append(kw["job_id"])
+        if len(calls) == 2:
+            raise QueueFull(kw["job_id"])
+        return real(*args, **kw)
+
+    monkeypatch.setattr(store, "create", create)
+    before = queued_ids(idle)
+    r = batch(idle, [("a.xyz", BALLS[0]), ("b.xyz", BALLS[1]), ("c.xyz", BALLS[2])])
+    assert_error(r, 429, "queue_full")
+    assert len(calls) == 2 and queued_ids(idle) == before
+    assert store.get(calls[0]) is None and store.get_input(calls[0]) is None
+    assert httpx.get(f"{idle.url}/v1/jobs/{calls[0]}").status_code == 404
+    listed = httpx.get(f"{idle.url}/v1/jobs", params={"limit": 100}).json()["jobs"]
+    assert calls[0] not in {j["id"] for j in listed}

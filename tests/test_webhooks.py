@@ -10,11 +10,13 @@ from __future__ import annotations
 import hashlib
 import hmac
 import json
+import socket
 import threading
 import time
 from datetime import datetime
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
+import httpcore
 import httpx
 import pytest
 from stack import assert_error, make_settings, post, sphere_points, wait_final, wp, xyz_bytes
@@ -24,6 +26,7 @@ from service.processes import ServedApp, wait_for
 from service.store import Store
 from service.submission import webhook_of
 from service.webhooks import _CLAIM, UnsafeUrl, attempt, is_public, sign, vet
+from service.webhooks import post as post_hook
 
 SECRET = "test-webhook-secret"
 BALL = xyz_bytes(sphere_points())
@@ -264,3 +267,55 @@ def test_delivery_rechecks_the_address_against_dns_rebinding(redis_url):
 def test_signature_is_hmac_sha256_of_the_raw_body():
     body = b'{"id":"x"}'
     assert sign("k", body) == "sha256=" + hmac.new(b"k", body, hashlib.sha256).hexdigest()
+
+
+class RawReceiver:
+    """A TCP server on 127.0.0.1 that reads a request's head and then runs ``answer(connection)``."""
+
+    def __init__(self, answer):
+        self.sock = socket.create_server(("127.0.0.1", 0))
+        self.url = f"http://127.0.0.1:{self.sock.getsockname()[1]}/hook"
+
+        def serve():
+            conn, _ = self.sock.accept()
+            with conn:
+                conn.recv(65536)
+                try:
+                    answer(conn)
+                except OSError:  # the client hung up, as it should
+                    pass
+        threading.Thread(target=serve, daemon=True).start()
+
+    def close(self):
+        self.sock.close()
+
+
+def test_a_receiver_answering_a_byte_at_a_time_is_cut_off_at_the_timeout(redis_url):
+    def drip(conn):
+        for b in b"HTTP/1.1 200 OK\r\nContent-Length: 0\r\n\r\n":
+            conn.sendall(bytes([b]))
+            time.sleep(0.2)  # each byte well within the timeout; the whole answer 7 s
+
+    receiver = RawReceiver(drip)
+    s = hooks_settings(redis_url, "hooks-drip", webhook_timeout_seconds=1.0)
+    t0 = time.monotonic()
+    try:
+        with pytest.raises(httpcore.TimeoutException):
+            post_hook(receiver.url, b"{}", {}, s)
+        assert time.monotonic() - t0 < 2.5
+    finally:
+        receiver.close()
+
+
+def test_a_large_answer_is_not_read(redis_url):
+    def flood(conn):
+        conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Length: 10000000000\r\n\r\n")
+        chunk = b"x" * 65536
+        while True:
+            conn.sendall(chunk)
+
+    receiver = RawReceiver(flood)
+    try:
+        assert post_hook(receiver.url, b"{}", {}, hooks_settings(redis_url, "hooks-flood")) == 200
+    finally:
+        receiver.close()

@@ -10,7 +10,10 @@ from __future__ import annotations
 import hashlib
 import hmac
 import json
+import shutil
 import socket
+import ssl
+import subprocess
 import threading
 import time
 from datetime import datetime
@@ -270,19 +273,21 @@ def test_signature_is_hmac_sha256_of_the_raw_body():
 
 
 class RawReceiver:
-    """A TCP server on 127.0.0.1 that reads a request's head and then runs ``answer(connection)``."""
+    """A TCP server on 127.0.0.1 that takes one connection, reads the request's head (unless not
+    ``read_first``: a TLS server reads it itself) and then runs ``answer(connection)``."""
 
-    def __init__(self, answer):
+    def __init__(self, answer, read_first: bool = True):
         self.sock = socket.create_server(("127.0.0.1", 0))
         self.url = f"http://127.0.0.1:{self.sock.getsockname()[1]}/hook"
 
         def serve():
             conn, _ = self.sock.accept()
             with conn:
-                conn.recv(65536)
                 try:
+                    if read_first:
+                        conn.recv(65536)
                     answer(conn)
-                except OSError:  # the client hung up, as it should
+                except OSError:  # the client hung up, as it should (ssl.SSLError included)
                     pass
         threading.Thread(target=serve, daemon=True).start()
 
@@ -319,3 +324,53 @@ def test_a_large_answer_is_not_read(redis_url):
         assert post_hook(receiver.url, b"{}", {}, hooks_settings(redis_url, "hooks-flood")) == 200
     finally:
         receiver.close()
+
+
+def test_delivery_connects_to_the_checked_address(redis_url, receiver):
+    """The name is resolved once per attempt, by the check: the connection goes to the address checked, with the
+    name in Host (a name the system resolver does not know reaches the receiver through the checked address)."""
+    port = receiver.server.server_port
+    status = post_hook(f"http://hooks.invalid:{port}/hook", b"{}", {}, hooks_settings(redis_url, "hooks-pin"),
+                       fixed("127.0.0.1"))
+    assert status == 200 and receiver.calls[0][0]["host"] == f"hooks.invalid:{port}"
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command to make a certificate")
+def test_tls_to_the_checked_address_verifies_the_name(redis_url, tmp_path, monkeypatch):
+    """Over https the checked address is called with the URL's name in SNI, and the certificate is verified
+    against that name: a certificate for it passes, an untrusted one fails."""
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj",
+                    "/CN=hooks.invalid", "-addext", "subjectAltName=DNS:hooks.invalid", "-keyout",
+                    str(tmp_path / "key.pem"), "-out", str(tmp_path / "cert.pem")], check=True, capture_output=True)
+    server_ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    server_ctx.load_cert_chain(tmp_path / "cert.pem", tmp_path / "key.pem")
+    names = []
+    server_ctx.sni_callback = lambda sock, name, ctx: names.append(name)
+
+    def answer(conn):
+        with server_ctx.wrap_socket(conn, server_side=True) as tls:
+            request = b""
+            while not request.endswith(b"\r\n\r\n{}"):  # the whole request (the body is b"{}")
+                chunk = tls.recv(65536)
+                if not chunk:
+                    return
+                request += chunk
+            tls.sendall(b"HTTP/1.1 204 No Content\r\n\r\n")
+
+    s = hooks_settings(redis_url, "hooks-tls")
+    untrusted = RawReceiver(answer, read_first=False)
+    try:
+        with pytest.raises(httpcore.ConnectError, match="CERTIFICATE_VERIFY_FAILED"):
+            post_hook(untrusted.url.replace("http://127.0.0.1", "https://hooks.invalid"), b"{}", {}, s,
+                      fixed("127.0.0.1"))
+    finally:
+        untrusted.close()
+    assert names == ["hooks.invalid"]
+    trusting = ssl.create_default_context(cafile=str(tmp_path / "cert.pem"))
+    monkeypatch.setattr("service.webhooks.httpx.create_ssl_context", lambda: trusting)
+    trusted = RawReceiver(answer, read_first=False)
+    try:
+        url = trusted.url.replace("http://127.0.0.1", "https://hooks.invalid")
+        assert post_hook(url, b"{}", {}, s, fixed("127.0.0.1")) == 204
+    finally:
+        trusted.close()

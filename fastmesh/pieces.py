@@ -108,12 +108,39 @@ def pull_in(vertices: np.ndarray, surface: np.ndarray, limit: float) -> tuple[np
     (N, 3) float64 vertices, the connectivity unchanged, and how many moved
     """
     v = np.asarray(vertices, dtype=np.float64).copy()
+    surface = np.asarray(surface, dtype=np.float64)
     if len(v) == 0 or len(surface) == 0:
         return v, 0
-    dist, nearest = cKDTree(surface).query(v)
-    far = dist > limit
-    v[far] = np.asarray(surface, dtype=np.float64)[nearest[far]]
+    # Measured in the surface's unit cube: squared distances of coordinates near 1e155 would overflow to inf,
+    # and the tree answers "no neighbour" (index len(surface)) for an infinite distance.
+    norm = Normalization.fit(surface)
+    dist, nearest = cKDTree(norm.apply(surface)).query(norm.apply(v))
+    far = (dist > limit * norm.scale) & (nearest < len(surface))
+    v[far] = surface[nearest[far]]
     return v, int(far.sum())
+
+
+def weld_coincident(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices at exactly the same position made one, and the faces that collapse with them dropped.
+
+    Two vertices pulled onto the same surface sample (``pull_in``) coincide; their faces would have no area.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float
+    faces : (F, 3) int
+
+    Returns
+    -------
+    (M, 3) vertices (first occurrences, in order) and (G, 3) faces with three distinct corners each
+    """
+    _, first, inverse = np.unique(vertices, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)  # keep the vertices in their first-seen order
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    f = rank[inverse.reshape(-1)][np.asarray(faces, dtype=np.int64)]
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    return np.asarray(vertices)[np.sort(first)], f[keep]
 
 
 def far_limit(shape_vertices: np.ndarray) -> float:

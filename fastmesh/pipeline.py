@@ -48,14 +48,14 @@ from .models.encoder import EncoderConfig
 from .models.generate import Cancelled, StackedEvidence, generate
 from .models.onnx_decode import choose_decoder
 from .params import GenerateParams
-from .pieces import drop_strays, far_limit, pull_in, split_pinches
+from .pieces import drop_strays, far_limit, pull_in, split_pinches, weld_coincident
 from .planar import polyhedron
 from .quality import edge_face_counts, input_pieces, mesh_quality, weld
 from .support import surface_fit
 from .tokenizer import dequantize
 from .tokenizer import vertex as vt
 from .tokenizer.grid import CELL
-from .triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced
+from .triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced, triangle_areas
 
 __all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "Pipeline", "default_weights_dir"]
 
@@ -132,6 +132,11 @@ def _whole(shape: Shape, vertices: np.ndarray, faces: np.ndarray, params: Genera
     vertices, faces = split_pinches(vertices, faces)
     vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, pieces_in))[:2]
     vertices, pulled = pull_in(vertices, _surface_samples(shape), far_limit(shape.vertices))
+    if pulled:
+        vertices, faces = remove_unreferenced(*weld_coincident(vertices, faces))[:2]
+    # In the unit cube: the areas of a shape 1e-200 across underflow to 0 in its own units.
+    if not len(faces) or not triangle_areas(Normalization.fit(shape.vertices).apply(vertices), faces).any():
+        raise GenerationError("no_faces", "every face of the result collapsed onto the input surface")
     low = _low_poly(shape, len(faces)) if params.target_faces is None else None
     return (vertices, faces, "model", pulled) if low is None else (*low, "input", 0)
 

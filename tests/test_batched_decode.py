@@ -129,11 +129,16 @@ def test_onnx_batch_rows_are_computed_as_alone_before_and_after_finished_rows_le
         assert torch.equal(got, want)
 
 
-def test_pipeline_candidates_are_each_seed_alone():
+def test_pipeline_candidates_are_each_seed_alone(monkeypatch):
     """Every candidate (not only the chosen one) is the mesh its seed gives alone, scored as before."""
+    import fastmesh.pipeline as fp
+
+    # Candidates are scored before the whole step; the random networks' strays would be pulled in after it.
+    monkeypatch.setattr(fp, "pull_in", lambda vertices, surface, limit: (vertices, 0))
     pipe = Pipeline.random(seed=0)
     shape = point_cloud(primitive("l_block"), 4000)  # its points: the block's own 20 faces would come back
-    params = dict(max_vertices=24, temperature=1.0)
+    # Open: a closed block's points are rebuilt from its planes, with no candidates decoded.
+    params = dict(max_vertices=24, temperature=1.0, closed="false")
     both = pipe.generate(shape, GenerateParams(seed=11, candidates=2, **params))
     norm = Normalization.fit(shape.vertices)
     reference = input_surface(shape, norm.apply(shape.vertices), pipe.triangle_config.support_points, 11)

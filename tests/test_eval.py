@@ -15,19 +15,28 @@ from fastmesh.pipeline import Pipeline
 torch.set_num_threads(1)
 
 
+def _eval_set(folder, mesh: trimesh.Trimesh):
+    """``mesh`` as a mesh input, a point-cloud input and the reference of both, in ``folder``."""
+    (folder / "inputs").mkdir()
+    (folder / "reference").mkdir()
+    mesh.export(folder / "inputs" / "mesh.ply")
+    pts, nrm = sample_surface(load_shape(folder / "inputs" / "mesh.ply"), 2048, seed=0)
+    np.savez(folder / "inputs" / "cloud.npz", points=pts, normals=nrm)
+    for name in ("mesh", "cloud"):
+        mesh.export(folder / "reference" / f"{name}.ply")
+    return folder
+
+
 @pytest.fixture()
 def box_set(tmp_path):
     """A box (not at the origin, not a cube) as a mesh input, a point-cloud input and a reference."""
-    box = trimesh.creation.box(extents=(4.0, 2.0, 1.0))
-    box.apply_translation((10.0, -3.0, 5.0))
-    (tmp_path / "inputs").mkdir()
-    (tmp_path / "reference").mkdir()
-    box.export(tmp_path / "inputs" / "mesh.ply")
-    pts, nrm = sample_surface(load_shape(tmp_path / "inputs" / "mesh.ply"), 2048, seed=0)
-    np.savez(tmp_path / "inputs" / "cloud.npz", points=pts, normals=nrm)
-    for name in ("mesh", "cloud"):
-        box.export(tmp_path / "reference" / f"{name}.ply")
-    return tmp_path
+    return _eval_set(tmp_path, trimesh.creation.box(extents=(4.0, 2.0, 1.0)).apply_translation((10.0, -3.0, 5.0)))
+
+
+@pytest.fixture()
+def sphere_set(tmp_path):
+    """A sphere: a curved input, which the networks decode (a box is rebuilt from its planes without them)."""
+    return _eval_set(tmp_path, trimesh.creation.icosphere(2, radius=2.0).apply_translation((10.0, -3.0, 5.0)))
 
 
 def test_convex_hull_of_a_box_finds_every_artist_vertex(box_set):
@@ -102,7 +111,7 @@ def test_tuned_params_carry_sampling_overrides_and_refuse_unknown_or_bad_ones():
             TunedParams(bad)
 
 
-def test_eval_cli_measures_a_sampling_setting(box_set, capsys, monkeypatch):
+def test_eval_cli_measures_a_sampling_setting(sphere_set, capsys, monkeypatch):
     """``fastmesh eval --sampling``: the setting reaches the decoder (a bad one is a clear error, exit 2)."""
     import fastmesh.pipeline as fp
     from fastmesh.cli import main
@@ -110,7 +119,8 @@ def test_eval_cli_measures_a_sampling_setting(box_set, capsys, monkeypatch):
     seen, decode = [], fp.generate
     monkeypatch.setattr(fp, "generate",
                         lambda model, prefix, cfg, **kw: seen.append(cfg) or decode(model, prefix, cfg, **kw))
-    args = ["eval", "--inputs", str(box_set / "inputs"), "--reference", str(box_set / "reference"), "--limit", "1"]
+    args = ["eval", "--inputs", str(sphere_set / "inputs"), "--reference", str(sphere_set / "reference"),
+            "--limit", "1"]
     assert main([*args, "--sampling", '{"snap_margin": 1.0, "cell_weight": 2.0}']) == 0
     assert seen and (seen[0].snap_margin, seen[0].cell_weight) == (1.0, 2.0)
     assert main([*args, "--sampling", '{"cell_weight": 99}']) == 2

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 
 from fastmesh.pieces import drop_strays, split_pinches
@@ -71,3 +72,27 @@ def test_vertices_far_from_the_input_are_pulled_onto_it_and_only_those():
     moved, count = pull_in(vertices, surface, limit)
     assert count == 2 and np.array_equal(moved[0], vertices[0])
     assert (moved[1:, 2] == 0).all() and np.linalg.norm(moved[1:, :2] - vertices[1:, :2], axis=1).max() < 0.5
+
+
+@pytest.mark.parametrize("scale", [1e-6, 1.0, 1e155])
+def test_pulling_in_works_at_any_scale(scale):
+    """Distances are measured in the surface's unit cube: coordinates near 1e155 (squared: inf) still move."""
+    from fastmesh.pieces import far_limit, pull_in
+
+    rng = np.random.default_rng(1)
+    surface = np.c_[rng.uniform(0, 10, (200, 2)), np.zeros(200)] * scale
+    limit = far_limit(surface)
+    vertices = np.array([[5.0, 5.0, 0.0], [2.0, 3.0, 20.0]]) * scale
+    moved, count = pull_in(vertices, surface, limit)
+    assert count == 1 and np.array_equal(moved[0], vertices[0])
+    assert moved[1, 2] == 0 and any((moved[1] == s).all() for s in surface)
+
+
+def test_coincident_vertices_are_welded_and_collapsed_faces_dropped():
+    from fastmesh.pieces import weld_coincident
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0], [0, 0, 1.0]])
+    f = np.array([[0, 1, 2], [0, 3, 1], [0, 3, 4], [2, 1, 4]])  # the second face collapses: 1 and 3 coincide
+    wv, wf = weld_coincident(v, f)
+    assert np.array_equal(wv, v[[0, 1, 2, 4]])
+    assert np.array_equal(wf, [[0, 1, 2], [0, 1, 3], [2, 1, 3]])

@@ -224,8 +224,9 @@ def test_job_timeout(env):
 
 def test_hung_job_with_a_live_worker_is_failed_by_the_reaper(env, caplog):
     """A decoder stuck in one call (here: an 8 s sleep) never reaches its own timeout check; its heartbeat
-    thread keeps beating, so the job is not "lost" either: the reaper fails it as overdue."""
-    w = env.start("hung", FASTMESH_DEBUG_STEP_DELAY="8", FASTMESH_JOB_TIMEOUT="0.5")
+    thread keeps beating, so the job is not "lost" either: the reaper fails it as overdue.  The timeout leaves
+    the steps before the first progress report (the closed decision) time to reach the sleep under load."""
+    w = env.start("hung", FASTMESH_DEBUG_STEP_DELAY="12", FASTMESH_JOB_TIMEOUT="2")
     job_id = submit(env.app.url, max_vertices=20).json()["id"]
     final = wait_final(env.app.url, job_id, timeout=30)
     assert final["status"] == "failed" and final["error"]["code"] == "timeout", final

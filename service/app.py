@@ -62,8 +62,10 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
         threading.Thread(target=reap_loop, args=(store, stop), name="fastmesh-reaper", daemon=True).start()
         # Webhooks are delivered from here, never from a worker (service.webhooks).
         threading.Thread(target=dispatch_loop, args=(store, stop), name="fastmesh-webhooks", daemon=True).start()
-        # Parsing processes take a second or two to start: started now, the first uploads do not wait for that.
+        # Parsing and render processes take a second or two to start (longer at their lower priority on a busy
+        # machine): started now, the first uploads, previews and input points do not wait for that.
         threading.Thread(target=parses.warm, name="fastmesh-parse-warm", daemon=True).start()
+        threading.Thread(target=renders.warm, name="fastmesh-render-warm", daemon=True).start()
         yield
         stop.set()
         renders.close()
@@ -76,7 +78,7 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     app.state.settings, app.state.store, app.state.metrics, app.state.keys = settings, store, metrics, keys
     errors.install(app)
 
-    app.state.parses = parses  # tests and benchmarks read its children
+    app.state.parses, app.state.renders = parses, renders  # tests and benchmarks read their children
     slots = threading.BoundedSemaphore(settings.max_concurrent_parses)  # uploads read at once (service.submission)
     jobs = jobs_router(settings, parses, slots)
     app.include_router(jobs)

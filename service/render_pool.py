@@ -79,5 +79,9 @@ class RenderPool:
     def overlay(self, blob: bytes, n: int, timeout: float) -> bytes:
         return self.pool.call(overlay_blob, blob, n, timeout=timeout)
 
+    def warm(self) -> None:
+        """Start the render processes now, in the background (see :meth:`CappedPool.warm`)."""
+        self.pool.warm()
+
     def close(self) -> None:
         self.pool.close()

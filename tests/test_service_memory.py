@@ -28,7 +28,7 @@ import fastmesh.io
 import fastmesh.precheck
 from fastmesh.io import ShapeError, load_shape
 from service.children import CappedPool, ChildFailed
-from service.processes import ServedApp
+from service.processes import ServedApp, wait_for
 
 MIB = 1024 * 1024
 
@@ -236,3 +236,16 @@ def test_warm_starts_every_child_and_close_stops_them():
     finally:
         pool.close()
     assert pool.pids() == []
+
+
+def test_the_app_starts_its_parse_and_render_processes_with_it(redis_url):
+    """The first upload, preview or input.ply does not wait for a process to start and import its libraries."""
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+
+    app = create_app(make_settings(redis_url, "warmapp"))
+    with TestClient(app):
+        for pool in (app.state.parses, app.state.renders.pool):
+            wait_for(lambda pool=pool: len(pool.pids()) == pool.workers, 60, what=f"{pool.name} started")
+    assert app.state.parses.pids() == [] and app.state.renders.pool.pids() == []

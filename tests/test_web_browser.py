@@ -194,7 +194,9 @@ def test_from_a_point_cloud_to_a_downloaded_glb(stack, page, tmp_path, shots):
     assert page.get_attribute("#viewer", "data-faces") == str(job["result"]["faces"])
     assert page.locator("#viewer canvas").count() == 1  # one WebGL context, however many polls it took
 
-    # The canvas drew a shaded mesh with its wireframe and the input points over it.
+    # The canvas drew a shaded mesh with its wireframe and the input points over it (the points arrive on
+    # their own request, which a loaded machine can answer after the mesh's).
+    page.wait_for_function("fastmesh.viewer.points !== null", timeout=JOB_TIMEOUT_MS)
     with_all = page.evaluate(CANVAS_STATS)
     shots(page, "result")
     assert with_all["covered"] > 0.03 and with_all["colors"] >= 4, with_all

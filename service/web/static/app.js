@@ -396,6 +396,8 @@ async function startViewer() {
   return state.viewer;
 }
 
+const VIEW_RETRIES = 5;
+
 async function loadIntoViewer(job) {
   const id = job.id;
   const viewer = await ensureViewer();
@@ -430,6 +432,11 @@ async function loadIntoViewer(job) {
     if (shown.points === 'loading') shown.points = null;
     if (shown.mesh === 'loading') shown.mesh = null;
     setViewerNote(`Could not show the job in 3D: ${e.message}`);
+    // A finished job is polled no more: try again a few times (a busy server answers 503 for a while).
+    shown.retries = (shown.retries || 0) + 1;
+    if (FINAL.includes(job.status) && shown.retries <= VIEW_RETRIES) {
+      setTimeout(() => { if (state.shown === shown) loadIntoViewer(job); }, 1000 * shown.retries);
+    }
   }
 }
 

@@ -16,6 +16,7 @@ The stages as :meth:`Pipeline.generate` runs them (``STAGES`` names their timing
               ``surface_triangles``, ``simplify``)
           ──► the candidate nearest the input surface (``support.surface_fit``) filtering
           ──► back to the input's frame
+          ──► with target_faces: brought to that count (``facecount``)     faces
 
 This is the Python API the CLI, the worker and the evaluation call::
 
@@ -41,7 +42,9 @@ from .canonical import canonical_rotation, frame_normals, rotate_shape, turned_d
 from .closure import decide_closed
 from .filtering import FilterConfig, Predictor, predict_edges
 from .fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
-from .io import Normalization, Shape, export_mesh, input_surface, sample_surface
+from .facecount import TOLERANCE as COUNT_TOLERANCE
+from .facecount import hold_count
+from .io import Normalization, Shape, export_mesh, input_surface, sample_surface, with_normals
 from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model
 from .models.encoder import EncoderConfig
@@ -76,6 +79,7 @@ CPU_THREADS = 1
 # A low-poly mesh input of a polyhedron is given back as it is when it has at most this many times the faces
 # of the polyhedron rebuilt from its planes (which has no vertex inside a face, such as a cylinder cap's centre).
 LOW_POLY_SLACK = 1.25
+COUNT_SAMPLES = 32768  # input surface samples the vertices ``hold_count`` adds are moved onto
 PLANAR_SAMPLES = 8192  # surface samples of a mesh input read by ``planar.polyhedron`` (a point cloud's own points)
 
 
@@ -150,6 +154,18 @@ def _surface_samples(shape: Shape) -> np.ndarray:
     return norm.invert(sample_surface(shape, PLANAR_SAMPLES, seed=0, vertices=norm.apply(shape.vertices))[0])
 
 
+def _count_surface(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 3) points of the input surface with (M, 3) unit normals, in its own frame, for ``hold_count`` to
+    move new vertices onto: a point cloud's own (at most ``COUNT_SAMPLES`` of them), a mesh's samples (fixed
+    seed; drawn in the unit cube, where the areas of far-apart coordinates cannot overflow)."""
+    shape = with_normals(shape)
+    norm = Normalization.fit(shape.vertices)
+    if shape.faces is None and len(shape.vertices) <= COUNT_SAMPLES:
+        return np.asarray(shape.vertices, dtype=np.float64), np.asarray(shape.normals, dtype=np.float64)
+    points, normals = sample_surface(shape, COUNT_SAMPLES, seed=0, vertices=norm.apply(shape.vertices))
+    return norm.invert(points), normals.astype(np.float64)
+
+
 def _low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:
     """A mesh input, welded, when it has at most ``faces`` faces and is a surface (no edge in three faces):
     a result never has more faces than a low-poly input unless a count is asked for."""
@@ -180,7 +196,9 @@ class GenerateResult:
     tokens : int, vertex tokens generated (BOS/EOS included)
     timings : dict, seconds per stage: encode, vertices, enhancer, faces, filtering
     quality : dict, distance to the input and topology (:func:`fastmesh.quality.mesh_quality`): cd, hd (% of
-        the input's size), boundary_edges, non_manifold_edges, components, watertight
+        the input's size), boundary_edges, non_manifold_edges, components, watertight; and faces, target_faces,
+        target_met (faces within ``facecount.TOLERANCE`` of the target; None without one) and count_step
+        (``facecount.hold_count``'s: kept, simplified or split; None without a target)
     """
 
     vertices: np.ndarray
@@ -395,10 +413,16 @@ class Pipeline:
                 timings: dict, tokens: int, info: dict, pieces_in: int | None = None) -> GenerateResult:
         """The result with its quality report (``pieces_in``: the input's pieces, counted when None)."""
         pieces_in = input_pieces(shape) if pieces_in is None else pieces_in
+        step, met = None, None
+        if params.target_faces is not None:  # the count asked for holds (``facecount``)
+            info = {**info, "model_faces": int(len(faces))}
+            with stage("faces", timings):
+                vertices, faces, step = hold_count(vertices, faces, params.target_faces, *_count_surface(shape))
+            met = bool(abs(len(faces) - params.target_faces) <= COUNT_TOLERANCE * params.target_faces)
         why = decision["reason"]
         quality = {**mesh_quality(vertices, faces, shape, pieces_in=pieces_in), "faces": int(len(faces)),
                    "closed_decision": why if why == "asked" else ("closed" if decision["close"] else "open"),
-                   "target_faces": params.target_faces}
+                   "target_faces": params.target_faces, "target_met": met, "count_step": step}
         return GenerateResult(vertices=vertices, faces=faces, tokens=tokens, timings=timings,
                               info={**info, "closed_decision": decision}, quality=quality)
 

@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from .io import Normalization
+from .io import Normalization, Shape, sample_surface, with_normals
 from .simplify import _dot, _Mesh, _sub
 from .triangles import remove_unreferenced
 
@@ -32,6 +32,7 @@ BORDER_WEIGHT = 10.0  # of an open border's planes in the quadrics: a border kee
 SPLIT_BAND = 0.75  # a round splits edges at least this share of the longest: long edges go first
 MAX_MOVE = 0.3  # a new vertex moves at most this share of its edge's length onto the input (a chord's
 # middle lies 0.21 of it off a quarter circle; farther is another part of the input, or a gap the model spanned)
+SAMPLES = 32768  # input surface samples new vertices are moved onto (:func:`input_samples`)
 NEAREST = 4  # input samples whose tangent planes a new vertex is projected onto (averaged)
 
 
@@ -67,6 +68,18 @@ def hold_count(vertices: np.ndarray, faces: np.ndarray, target: int, points: np.
                                                               np.asarray(normals, dtype=np.float64))
     unit, f = split_longest(norm.apply(v), f, target, surface)
     return norm.invert(unit), f, "split"
+
+
+def input_samples(shape: Shape, n: int = SAMPLES) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 3) points of the input surface and (M, 3) unit normals, in its own frame, for :func:`hold_count`: a
+    point cloud's own (``n`` of them drawn where it has more), a mesh's ``n`` samples (fixed seed; drawn in the
+    unit cube, where the areas of far-apart coordinates cannot overflow)."""
+    shape = with_normals(shape)
+    if shape.faces is None and len(shape.vertices) <= n:
+        return np.asarray(shape.vertices, dtype=np.float64), np.asarray(shape.normals, dtype=np.float64)
+    norm = Normalization.fit(shape.vertices)
+    points, normals = sample_surface(shape, n, seed=0, vertices=norm.apply(shape.vertices))
+    return norm.invert(points), normals.astype(np.float64)
 
 
 # --------------------------------------------------------------------------- fewer faces

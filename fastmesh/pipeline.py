@@ -40,11 +40,11 @@ import torch
 
 from .canonical import canonical_rotation, frame_normals, rotate_shape, turned_degrees
 from .closure import decide_closed
+from .facecount import TOLERANCE as COUNT_TOLERANCE
+from .facecount import hold_count, input_samples
 from .filtering import FilterConfig, Predictor, predict_edges
 from .fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
-from .facecount import TOLERANCE as COUNT_TOLERANCE
-from .facecount import hold_count
-from .io import Normalization, Shape, export_mesh, input_surface, sample_surface, with_normals
+from .io import Normalization, Shape, export_mesh, input_surface, sample_surface
 from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model
 from .models.encoder import EncoderConfig
@@ -79,7 +79,6 @@ CPU_THREADS = 1
 # A low-poly mesh input of a polyhedron is given back as it is when it has at most this many times the faces
 # of the polyhedron rebuilt from its planes (which has no vertex inside a face, such as a cylinder cap's centre).
 LOW_POLY_SLACK = 1.25
-COUNT_SAMPLES = 32768  # input surface samples the vertices ``hold_count`` adds are moved onto
 PLANAR_SAMPLES = 8192  # surface samples of a mesh input read by ``planar.polyhedron`` (a point cloud's own points)
 
 
@@ -152,18 +151,6 @@ def _surface_samples(shape: Shape) -> np.ndarray:
         return np.asarray(shape.vertices, dtype=np.float64)
     norm = Normalization.fit(shape.vertices)
     return norm.invert(sample_surface(shape, PLANAR_SAMPLES, seed=0, vertices=norm.apply(shape.vertices))[0])
-
-
-def _count_surface(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
-    """(M, 3) points of the input surface with (M, 3) unit normals, in its own frame, for ``hold_count`` to
-    move new vertices onto: a point cloud's own (at most ``COUNT_SAMPLES`` of them), a mesh's samples (fixed
-    seed; drawn in the unit cube, where the areas of far-apart coordinates cannot overflow)."""
-    shape = with_normals(shape)
-    norm = Normalization.fit(shape.vertices)
-    if shape.faces is None and len(shape.vertices) <= COUNT_SAMPLES:
-        return np.asarray(shape.vertices, dtype=np.float64), np.asarray(shape.normals, dtype=np.float64)
-    points, normals = sample_surface(shape, COUNT_SAMPLES, seed=0, vertices=norm.apply(shape.vertices))
-    return norm.invert(points), normals.astype(np.float64)
 
 
 def _low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -417,7 +404,7 @@ class Pipeline:
         if params.target_faces is not None:  # the count asked for holds (``facecount``)
             info = {**info, "model_faces": int(len(faces))}
             with stage("faces", timings):
-                vertices, faces, step = hold_count(vertices, faces, params.target_faces, *_count_surface(shape))
+                vertices, faces, step = hold_count(vertices, faces, params.target_faces, *input_samples(shape))
             met = bool(abs(len(faces) - params.target_faces) <= COUNT_TOLERANCE * params.target_faces)
         why = decision["reason"]
         quality = {**mesh_quality(vertices, faces, shape, pieces_in=pieces_in), "faces": int(len(faces)),

@@ -250,3 +250,23 @@ def coarse_copy(mesh: Shape, faces: int, rng: np.random.Generator, jitter: float
         v, f = fast_simplification.simplify(v, f, target_count=int(faces))
     size = float(np.ptp(v, axis=0).max())
     return v + rng.uniform(-jitter, jitter, v.shape) * size, np.asarray(f, dtype=np.int64)
+
+
+def curved_input(kind: str, given: str, rng: np.random.Generator) -> tuple[Shape, Shape]:
+    """A :func:`curved_shape` turned at random, half the time in millimetres far from the origin, scaled by
+    10^-2 to 10^2, and given as its mesh (``given`` "mesh") or as 2,000-20,000 of its points with normals of
+    random sign (``given`` "points": as estimated normals may point).
+
+    Returns
+    -------
+    mesh : Shape, the posed mesh; input : Shape, what the pipeline is given
+    """
+    mesh = posed(curved_shape(kind, rng), rng, turn=True, millimetres=bool(rng.random() < 0.5))
+    mesh = Shape(vertices=mesh.vertices * 10 ** rng.uniform(-2, 2), faces=mesh.faces)
+    if given == "mesh":
+        return mesh, mesh
+    if given != "points":
+        raise ValueError(f"given must be mesh or points, got {given!r}")
+    points = point_cloud(mesh, int(rng.integers(2000, 20000)), seed=int(rng.integers(1 << 16)))
+    signs = rng.choice([-1.0, 1.0], (len(points.vertices), 1))
+    return mesh, Shape(vertices=points.vertices, normals=points.normals * signs)

@@ -8,11 +8,11 @@ import pytest
 import torch
 import trimesh
 
-from fastmesh.facecount import KEEP, TOLERANCE, decimate, hold_count, split_longest
+from fastmesh.facecount import KEEP, TOLERANCE, decimate, hold_count, input_samples, split_longest
 from fastmesh.io import Shape
 from fastmesh.params import GenerateParams
-from fastmesh.pipeline import Pipeline, _count_surface
-from fastmesh.primitives import CURVED_KINDS, coarse_copy, curved_shape, point_cloud, posed
+from fastmesh.pipeline import Pipeline
+from fastmesh.primitives import CURVED_KINDS, coarse_copy, curved_input, point_cloud
 from fastmesh.quality import mesh_quality, topology
 from fastmesh.triangles import TriangleConfig
 
@@ -118,18 +118,11 @@ def test_a_result_near_the_target_is_kept_as_it_is():
 
 
 def _case(rng: np.random.Generator) -> dict:
-    """One input of the random family (a kind, posed at random, in metres or millimetres, as its mesh or as
-    points with normals of either sign), a stand-in result of 40 to 2,000 faces (the shipped decoder's 1,000 vertices make at most about 2,000) and a target in [100, 8000]."""
+    """One input of the random family (``primitives.curved_input``), a stand-in result of 40 to 2,000 faces (the
+    shipped decoder's 1,000 vertices make at most about 2,000) and a target in [100, 8000]."""
     kind = CURVED_KINDS[int(rng.integers(len(CURVED_KINDS)))]
-    mesh = curved_shape(kind, rng)
-    mesh = posed(mesh, rng, turn=True, millimetres=bool(rng.random() < 0.5))
-    mesh = Shape(vertices=mesh.vertices * 10 ** rng.uniform(-2, 2), faces=mesh.faces)
     given = "mesh" if rng.random() < 0.5 else "points"
-    shape = mesh
-    if given == "points":
-        shape = point_cloud(mesh, int(rng.integers(2000, 20000)), seed=int(rng.integers(1 << 16)))
-        signs = rng.choice([-1.0, 1.0], (len(shape.vertices), 1))  # as estimated normals may point
-        shape = Shape(vertices=shape.vertices, normals=shape.normals * signs)
+    mesh, shape = curved_input(kind, given, rng)
     v, f = coarse_copy(mesh, int(np.exp(rng.uniform(np.log(40), np.log(2000)))), rng)
     return {"kind": kind, "given": given, "shape": shape, "vertices": v, "faces": f,
             "target": int(np.exp(rng.uniform(np.log(100), np.log(8000))))}
@@ -143,7 +136,7 @@ def test_the_count_holds_on_a_random_family_of_inputs():
     rows = []
     for _ in range(40):
         c = _case(rng)
-        v, f, step = hold_count(c["vertices"], c["faces"], c["target"], *_count_surface(c["shape"]))
+        v, f, step = hold_count(c["vertices"], c["faces"], c["target"], *input_samples(c["shape"]))
         rows.append({**c, "faces_out": len(f), "step": step,
                      "within": abs(len(f) - c["target"]) <= TOLERANCE * c["target"]})
         before, after = topology(c["faces"]), topology(f)

@@ -16,6 +16,7 @@ The stages as :meth:`Pipeline.generate` runs them (``STAGES`` names their timing
               ``surface_triangles``, ``simplify``)
           ──► the candidate nearest the input surface (``support.surface_fit``) filtering
           ──► back to the input's frame
+          ──► with target_faces: brought to that count (``facecount``)     faces
 
 This is the Python API the CLI, the worker and the evaluation call::
 
@@ -39,6 +40,8 @@ import torch
 
 from .canonical import canonical_rotation, frame_normals, rotate_shape, turned_degrees
 from .closure import decide_closed
+from .facecount import TOLERANCE as COUNT_TOLERANCE
+from .facecount import hold_count, input_samples
 from .filtering import FilterConfig, Predictor, predict_edges
 from .fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
 from .io import Normalization, Shape, export_mesh, input_surface, sample_surface
@@ -180,7 +183,9 @@ class GenerateResult:
     tokens : int, vertex tokens generated (BOS/EOS included)
     timings : dict, seconds per stage: encode, vertices, enhancer, faces, filtering
     quality : dict, distance to the input and topology (:func:`fastmesh.quality.mesh_quality`): cd, hd (% of
-        the input's size), boundary_edges, non_manifold_edges, components, watertight
+        the input's size), boundary_edges, non_manifold_edges, components, watertight; and faces, target_faces,
+        target_met (faces within ``facecount.TOLERANCE`` of the target; None without one) and count_step
+        (``facecount.hold_count``'s: kept, simplified or split; None without a target)
     """
 
     vertices: np.ndarray
@@ -395,10 +400,16 @@ class Pipeline:
                 timings: dict, tokens: int, info: dict, pieces_in: int | None = None) -> GenerateResult:
         """The result with its quality report (``pieces_in``: the input's pieces, counted when None)."""
         pieces_in = input_pieces(shape) if pieces_in is None else pieces_in
+        step, met = None, None
+        if params.target_faces is not None:  # the count asked for holds (``facecount``)
+            info = {**info, "model_faces": int(len(faces))}
+            with stage("faces", timings):
+                vertices, faces, step = hold_count(vertices, faces, params.target_faces, *input_samples(shape))
+            met = bool(abs(len(faces) - params.target_faces) <= COUNT_TOLERANCE * params.target_faces)
         why = decision["reason"]
         quality = {**mesh_quality(vertices, faces, shape, pieces_in=pieces_in), "faces": int(len(faces)),
                    "closed_decision": why if why == "asked" else ("closed" if decision["close"] else "open"),
-                   "target_faces": params.target_faces}
+                   "target_faces": params.target_faces, "target_met": met, "count_step": step}
         return GenerateResult(vertices=vertices, faces=faces, tokens=tokens, timings=timings,
                               info={**info, "closed_decision": decision}, quality=quality)
 

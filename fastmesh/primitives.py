@@ -188,3 +188,85 @@ def point_cloud(mesh: Shape, n: int = N_POINTS, seed: int = 0) -> Shape:
     """``n`` area-weighted samples of ``mesh`` with their face normals, as a point-cloud Shape."""
     pts, nrm = sample_surface(mesh, n, seed=seed)
     return Shape(vertices=pts.astype(np.float64), normals=nrm.astype(np.float64))
+
+
+# --------------------------------------------------------------------------- curved shapes, for face counts
+
+CURVED_KINDS = ("sphere", "torus", "box", "bumpy")
+
+
+def curved_shape(kind: str, rng: np.random.Generator) -> Shape:
+    """A fine closed mesh of a family drawn at random, for face-count checks (``facecount``).
+
+    Parameters
+    ----------
+    kind : one of ``CURVED_KINDS``: ``sphere`` (an ellipsoid of radii 0.2-0.5, 5,120 faces), ``torus`` (major
+        radius 0.35, minor 0.05-0.15, 64 x 32 sections), ``box`` (sides 0.2-1, each face split into 64),
+        ``bumpy`` (a sphere of 5,120 faces with up to three random lobes of +-20 % of its radius)
+    rng : numpy Generator
+
+    Returns
+    -------
+    Shape : about 1 across, at the origin.
+    """
+    import trimesh
+
+    if kind == "sphere":
+        m = trimesh.creation.icosphere(subdivisions=4)
+        return Shape(vertices=np.asarray(m.vertices) * rng.uniform(0.2, 0.5, 3), faces=np.asarray(m.faces))
+    if kind == "torus":
+        return _from_trimesh(trimesh.creation.torus(major_radius=0.35, minor_radius=rng.uniform(0.05, 0.15),
+                                                    major_sections=64, minor_sections=32))
+    if kind == "box":
+        m = trimesh.creation.box(extents=rng.uniform(0.2, 1.0, 3)).subdivide().subdivide().subdivide()
+        return _from_trimesh(m)
+    if kind == "bumpy":
+        m = trimesh.creation.icosphere(subdivisions=4)
+        v = np.asarray(m.vertices)
+        lobes = rng.normal(size=(int(rng.integers(1, 4)), 3))
+        lobes /= np.linalg.norm(lobes, axis=1, keepdims=True)
+        radius = 1.0 + (rng.uniform(-0.2, 0.2, len(lobes)) * np.exp(4.0 * (v @ lobes.T - 1.0))).sum(1)
+        return Shape(vertices=0.5 * v * radius[:, None], faces=np.asarray(m.faces))
+    raise ValueError(f"unknown kind {kind!r}; one of {', '.join(CURVED_KINDS)}")
+
+
+def coarse_copy(mesh: Shape, faces: int, rng: np.random.Generator, jitter: float = 0.005
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """``mesh`` remade with about ``faces`` faces, its vertices moved at random by up to ``jitter`` of its
+    size: a stand-in for a generated result, made by another decimator (``fast-simplification``'s) than
+    ``facecount``'s and subdivided first where the mesh has fewer faces.
+
+    Returns
+    -------
+    vertices : (V, 3) float64, faces : (F, 3) int64
+    """
+    import fast_simplification
+    import trimesh
+
+    v, f = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    while len(f) < faces:
+        v, f = trimesh.remesh.subdivide(v, f)
+    if len(f) > faces:
+        v, f = fast_simplification.simplify(v, f, target_count=int(faces))
+    size = float(np.ptp(v, axis=0).max())
+    return v + rng.uniform(-jitter, jitter, v.shape) * size, np.asarray(f, dtype=np.int64)
+
+
+def curved_input(kind: str, given: str, rng: np.random.Generator) -> tuple[Shape, Shape]:
+    """A :func:`curved_shape` turned at random, half the time in millimetres far from the origin, scaled by
+    10^-2 to 10^2, and given as its mesh (``given`` "mesh") or as 2,000-20,000 of its points with normals of
+    random sign (``given`` "points": as estimated normals may point).
+
+    Returns
+    -------
+    mesh : Shape, the posed mesh; input : Shape, what the pipeline is given
+    """
+    mesh = posed(curved_shape(kind, rng), rng, turn=True, millimetres=bool(rng.random() < 0.5))
+    mesh = Shape(vertices=mesh.vertices * 10 ** rng.uniform(-2, 2), faces=mesh.faces)
+    if given == "mesh":
+        return mesh, mesh
+    if given != "points":
+        raise ValueError(f"given must be mesh or points, got {given!r}")
+    points = point_cloud(mesh, int(rng.integers(2000, 20000)), seed=int(rng.integers(1 << 16)))
+    signs = rng.choice([-1.0, 1.0], (len(points.vertices), 1))
+    return mesh, Shape(vertices=points.vertices, normals=points.normals * signs)

@@ -22,7 +22,8 @@ JOB_EXAMPLE = {
     "result": {"vertices": 412, "faces": 806, "tokens": 412, "formats": ["glb"], "seed": 1,
                "quality": {"cd": 2.61, "hd": 11.4, "boundary_edges": 0, "non_manifold_edges": 0,
                            "non_manifold_vertices": 0, "components": 1, "pieces": 1, "input_pieces": 1,
-                           "watertight": True, "closed_decision": "closed", "faces": 806, "target_faces": None}},
+                           "watertight": True, "closed_decision": "closed", "faces": 806, "target_faces": None,
+                           "target_met": None, "count_step": None}},
     "timings": {"queue": 0.21, "load": 0.05, "encode": 0.12, "vertices": 3.1, "enhancer": 0.2, "faces": 0.9,
                 "filtering": 0.05, "export": 0.02, "total": 4.87},
     "error": None,
@@ -76,6 +77,11 @@ class Quality(BaseModel):
                                                           "asked (closed=true/false).")
     faces: int | None = Field(None, description="Faces of the result.")
     target_faces: int | None = Field(None, description="Faces asked for (null: the model chose).")
+    target_met: bool | None = Field(None, description="faces within 20 % of target_faces (null without a target).")
+    count_step: Literal["kept", "simplified", "split"] | None = Field(
+        None, description="How the count was held: kept (the model's mesh was within 10 % already), simplified "
+                          "(edges collapsed) or split (edges split, the new vertices on the input surface); null "
+                          "without a target.")
 
 
 class ResultInfo(BaseModel):

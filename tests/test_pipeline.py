@@ -54,7 +54,7 @@ def test_generate_returns_mesh_in_input_frame(pipe):
     # The Python API result carries the quality report of exactly this mesh against this input, and the
     # closure's decision: the sphere is a closed mesh.
     assert res.quality == {**mesh_quality(res.vertices, res.faces, shape), "closed_decision": "closed",
-                           "faces": len(res.faces), "target_faces": None}
+                           "faces": len(res.faces), "target_faces": None, "target_met": None, "count_step": None}
     assert res.quality["cd"] > 0 and res.quality["components"] >= 1
     assert res.info["closed_decision"] == {"close": True, "reason": "closed_mesh"}
 
@@ -364,7 +364,7 @@ def test_cli_generate_file_json(tmp_path, weights):
     assert set(rec) == {"input", "output", "vertices", "faces", "tokens", "timings", "quality"}
     assert set(rec["quality"]) == {"cd", "hd", "boundary_edges", "non_manifold_edges", "non_manifold_vertices",
                                    "components", "pieces", "input_pieces", "watertight", "closed_decision", "faces",
-                                   "target_faces"}
+                                   "target_faces", "target_met", "count_step"}
     assert set(rec["timings"]) == {"load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total"}
     mesh = trimesh.load(out, force="mesh")
     assert len(mesh.faces) == rec["faces"] > 0

@@ -175,6 +175,22 @@ def test_long_poll_result(served):
     assert r.status_code == 200 and r.content.startswith(b"#") or b"\nv " in r.content
 
 
+def test_target_faces_comes_back_with_target_and_achieved(served):
+    """target_faces through HTTP: the job's quality block says what was asked, what came (the faces of the file
+    served), whether that lies within 20 % and how the count was held.  (The tiny networks' triangles are not
+    kept a surface, and their doubled faces cannot be split: tests/test_facecount.py checks the count holds.)"""
+    app, _ = served
+    job = submit(app.url, max_vertices=12, seed=3, target_faces=300, formats="obj").json()
+    final = wait_final(app.url, job["id"])
+    assert final["status"] == "succeeded", final
+    res, q = final["result"], final["result"]["quality"]
+    assert final["params"]["target_faces"] == 300 and q["target_faces"] == 300 and q["faces"] == res["faces"]
+    assert q["target_met"] is (abs(res["faces"] - 300) <= 60) and q["count_step"] in ("kept", "simplified", "split")
+    obj = httpx.get(f"{app.url}/v1/jobs/{job['id']}/result", params={"format": "obj"})
+    mesh = trimesh.load(io.BytesIO(obj.content), file_type="obj", force="mesh", process=False)
+    assert len(mesh.faces) == res["faces"]
+
+
 def test_metrics_and_readyz(served):
     app, _ = served
     r = httpx.get(f"{app.url}/readyz")

@@ -29,7 +29,7 @@ def add_sampling_args(p) -> None:
     p.add_argument("--top-p", type=float, default=d.top_p)
     p.add_argument("--max-vertices", type=int, default=None, help="default: the model's limit")
     p.add_argument("--target-faces", type=int, default=None, metavar="N",
-                   help="faces to aim for (default: the model chooses the count from the shape)")
+                   help="faces to aim for, held within 20 %% (default: the model chooses the count from the shape)")
     p.add_argument("--closed", choices=CLOSED_CHOICES, default=d.closed,
                    help="close the result's holes: auto = when the input is closed (a closed mesh, or oriented points "
                         "that enclose a volume)")
@@ -126,7 +126,8 @@ def _run(args) -> int:
         if args.json:
             print(json.dumps(rec), flush=True)
         q = res.quality
-        print(f"[{i}/{len(jobs)}] {src} -> {dst}: {rec['vertices']} vertices, {rec['faces']} faces, "
+        target = f" (target {q['target_faces']})" if q.get("target_faces") is not None else ""
+        print(f"[{i}/{len(jobs)}] {src} -> {dst}: {rec['vertices']} vertices, {rec['faces']} faces{target}, "
               f"CD {q['cd']:.2f} % / HD {q['hd']:.2f} % of the input's size, {q['boundary_edges']} open edges, "
               f"{timings['total']:.2f} s", file=sys.stderr, flush=True)
     return 1 if failures else 0

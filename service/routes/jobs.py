@@ -79,8 +79,9 @@ def jobs_router(settings: Settings, parses: CappedPool,
                                                          f"({d('candidates')}).",
                                              examples=[defaults.get("candidates")]),
                target_faces: int | None = Form(None, **BOUNDS["target_faces"].form_range(),
-                                               description="Faces to aim for; unset = the model chooses the count "
-                                                           "from the shape.", examples=[300]),
+                                               description="Faces to aim for, held within 20 % (result.quality "
+                                                           "gives target_faces, faces and target_met); unset = the "
+                                                           "model chooses the count from the shape.", examples=[300]),
                closed: Literal["auto", "true", "false"] | None = Form(
                    None, description="Close the result's holes: auto = when the input is closed (a closed mesh, or "
                                      f"oriented points that enclose a volume); the decision is in result.quality "

@@ -82,8 +82,8 @@ class Client:
 
     def submit(self, path: str | os.PathLike, idempotency_key: str | None = None, **params) -> dict:
         """Upload a shape file; ``params``: seed, temperature, top_k, top_p, max_vertices, enhancer,
-        filtering, candidates, target_faces, closed, formats.  A retry after a lost answer returns the same job
-        (Idempotency-Key)."""
+        filtering, candidates, target_faces, closed, topology, uv, bake, origin, height, up, formats.  A retry
+        after a lost answer returns the same job (Idempotency-Key)."""
         path = Path(path)
         data = path.read_bytes()
         fields = {k: (str(v).lower() if isinstance(v, bool) else str(v)) for k, v in params.items() if v is not None}

@@ -12,8 +12,12 @@ import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .bake import SurfaceTexture
 
 MESH_FORMATS = ("obj", "glb", "gltf", "ply", "stl", "off")
 POINT_FORMATS = ("xyz", "txt", "npy", "npz")  # plus ply without faces
@@ -49,11 +53,14 @@ class Shape:
         Triangles for a mesh, None for a point cloud.
     normals : (N, 3) float64 or None
         Unit normals of a point cloud (given or estimated); None for a mesh.
+    texture : fastmesh.bake.SurfaceTexture or None
+        The base-colour texture of a textured glTF mesh, when loaded with ``texture=True``.
     """
 
     vertices: np.ndarray
     faces: np.ndarray | None = None
     normals: np.ndarray | None = None
+    texture: SurfaceTexture | None = None
 
     @property
     def kind(self) -> str:
@@ -110,7 +117,8 @@ def _ext(name: str) -> str:
 
 
 def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
-               max_points: int = MAX_POINTS, max_faces: int = MAX_FACES, normals: bool = True) -> Shape:
+               max_points: int = MAX_POINTS, max_faces: int = MAX_FACES, normals: bool = True,
+               texture: bool = False) -> Shape:
     """Read a mesh or point cloud from a path or from bytes.
 
     Parameters
@@ -125,6 +133,8 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
         Give a point cloud a unit normal at every point (estimating missing or unusable ones, the
         costly part of loading a large cloud).  False keeps the file's normals as they are (or None);
         :func:`with_normals` completes them later.
+    texture : bool
+        Read a glTF mesh's base-colour texture and UVs too (``Shape.texture``, for ``bake``).
 
     Raises
     ------
@@ -157,14 +167,16 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
             shape = load_numpy_points(data, ext, max_points)
         else:
             _precheck_mesh(data, ext, max_points, max_faces)
-            shape = _load_trimesh(data, ext)
+            shape = _load_trimesh(data, ext, texture)
     except ShapeError:
         raise
     except MemoryError:
         raise ShapeError("too_large", "file declares more data than can be loaded") from None
     except Exception as e:  # parsers raise anything from IndexError to struct.error: say what it means
         raise ShapeError("unreadable", plain_parse_error(e, ext, data)) from None
-    return validate_shape(shape, max_points=max_points, max_faces=max_faces, normals=normals)
+    out = validate_shape(shape, max_points=max_points, max_faces=max_faces, normals=normals)
+    out.texture = shape.texture if out.faces is not None else None
+    return out
 
 
 def too_many(n: int, limit: int, what: str = "points/vertices") -> ShapeError:
@@ -185,19 +197,28 @@ def _precheck_mesh(data: bytes, ext: str, max_points: int, max_faces: int) -> No
         check_ply(data, max_points, max_faces)
 
 
-def _load_trimesh(data: bytes, ext: str) -> Shape:
+def _load_trimesh(data: bytes, ext: str, texture: bool = False) -> Shape:
+    """The geometry of a mesh file; with ``texture``, a glTF's base-colour texture too (``bake.texture_of``)."""
     import trimesh
 
     # Geometry only: an OBJ's materials would make trimesh import an image library for textures that
     # this upload does not carry anyway.
     extra = {"skip_materials": True} if ext == "obj" else {}
     loaded = trimesh.load(io.BytesIO(data), file_type=ext, process=False, **extra)
+    found = None
+    texture = texture and ext in ("glb", "gltf")
     if isinstance(loaded, trimesh.Scene):
-        for g in loaded.geometry.values():  # dump() copies visuals; a textured one needs an image library
-            if isinstance(g, trimesh.Trimesh):
+        for g in loaded.geometry.values():  # dump() copies visuals: a textured one decodes its images
+            if isinstance(g, trimesh.Trimesh) and not texture:
                 g.visual = trimesh.visual.ColorVisuals()
         geoms = [g for g in loaded.dump() if hasattr(g, "vertices")] if loaded.geometry else []
         meshes = [g for g in geoms if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+        if meshes and texture:
+            from .bake import texture_of
+
+            found = texture_of(meshes)
+            for g in meshes:  # concatenating textured meshes would pack their images into one
+                g.visual = trimesh.visual.ColorVisuals()
         if meshes:
             loaded = trimesh.util.concatenate(meshes)
         elif geoms:
@@ -206,7 +227,7 @@ def _load_trimesh(data: bytes, ext: str) -> Shape:
             raise ShapeError("empty", "file holds no geometry")
     if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces) > 0:
         return Shape(vertices=np.asarray(loaded.vertices, dtype=np.float64),
-                     faces=np.asarray(loaded.faces, dtype=np.int64))
+                     faces=np.asarray(loaded.faces, dtype=np.int64), texture=found)
     if hasattr(loaded, "vertices"):
         verts = np.asarray(loaded.vertices, dtype=np.float64)
         normals = None

@@ -19,6 +19,12 @@ DEFAULT_VERTEX_LIMIT = 1000  # a vertex decoder's max_vertices unless its config
 LARGEST_VERTEX_LIMIT = 4000  # the largest max_vertices of a trained decoder: the limit while the model is unknown
 # ``closed``: close the result's holes when the input is closed (auto), always (true) or never (false).
 CLOSED_CHOICES = ("auto", "true", "false")
+# ``topology``: triangles, or quads where two triangles make a near-planar, well-shaped one (fastmesh.quads).
+TOPOLOGY_CHOICES = ("triangle", "quad")
+# ``origin``: the input's own frame, or the pivot at the result's bounding-box centre or bottom centre.
+ORIGIN_CHOICES = ("input", "center", "bottom")
+# ``up``: the up axis of the OBJ and PLY files (the input's Y is taken as up, glTF's convention; a GLB is Y-up).
+UP_CHOICES = ("y", "z")
 
 
 @dataclass(frozen=True)
@@ -76,7 +82,11 @@ BOUNDS = {
     "pace": Bound(0.1, 100.0, integer=False, zero=True, zero_means="off"),
     "cell_floor": Bound(-12.0, 12.0, integer=False, none=True),  # log-odds (None: off); -12 is models.cells.FLOOR
     "snap_margin": Bound(0.0, 24.0, integer=False, none=True),  # log-odds (None: off)
+    # Metres the result is scaled to stand (0.1 mm to 100 km): a scale that stays a sane size.
+    "height": Bound(1e-4, 1e5, integer=False),
 }
+# The string parameters and the values each takes.
+CHOICES = {"closed": CLOSED_CHOICES, "topology": TOPOLOGY_CHOICES, "origin": ORIGIN_CHOICES, "up": UP_CHOICES}
 
 
 @dataclass
@@ -101,6 +111,13 @@ class GenerateParams:
     target_faces: int | None = None
     # Whether the result is closed: "auto" closes it when the input is (``fastmesh.closure.decide_closed``).
     closed: str = "auto"
+    # The written result (fastmesh.output): quads, a UV layout, the input's texture baked onto it, placement.
+    topology: str = "triangle"
+    uv: bool = False
+    bake: bool = False  # needs uv; bakes the base-colour texture of a textured glTF input
+    origin: str = "input"
+    height: float | None = None  # metres the result stands along its up axis; None keeps the input's size
+    up: str = "y"
 
     def validate(self, limit: int = LARGEST_VERTEX_LIMIT) -> None:
         """Raise ValueError naming the first bad field; ``limit`` is the vertex decoder's ``max_vertices``."""
@@ -109,8 +126,11 @@ class GenerateParams:
             if value is None and getattr(GenerateParams, name) is None:  # unset: the pipeline decides
                 continue
             bound.check(name, value, hi=min(bound.hi, limit) if name == "max_vertices" else None)
-        if self.closed not in CLOSED_CHOICES:
-            raise ValueError(f"closed must be one of {', '.join(CLOSED_CHOICES)}")
+        for name, choices in CHOICES.items():
+            if getattr(self, name) not in choices:
+                raise ValueError(f"{name} must be one of {', '.join(choices)}")
+        if self.bake and not self.uv:
+            raise ValueError("bake needs uv=true: the texture is baked onto the result's UV layout")
 
     def sampling(self, limit: int) -> SamplingConfig:
         """The decoder's ``SamplingConfig`` with ``max_vertices`` resolved against ``limit``."""

@@ -44,12 +44,13 @@ from .facecount import TOLERANCE as COUNT_TOLERANCE
 from .facecount import hold_count, input_samples
 from .filtering import FilterConfig, Predictor, predict_edges
 from .fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
-from .io import Normalization, Shape, export_mesh, input_surface, sample_surface
+from .io import Normalization, Shape, input_surface, sample_surface
 from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model
 from .models.encoder import EncoderConfig
 from .models.generate import Cancelled, StackedEvidence, generate
 from .models.onnx_decode import choose_decoder
+from .output import MeshOut, finish
 from .params import GenerateParams
 from .pieces import drop_strays, far_limit, pull_in, split_pinches, weld_coincident
 from .planar import polyhedron
@@ -174,18 +175,21 @@ class GenerationError(RuntimeError):
 
 @dataclass
 class GenerateResult:
-    """A generated mesh in the input's original frame.
+    """A generated mesh in the input's original frame, or placed as ``origin`` and ``height`` ask.
 
     Attributes
     ----------
-    vertices : (V, 3) float64, input units
+    vertices : (V, 3) float64, input units (Y-up; ``up=z`` turns only the OBJ and PLY files)
     faces : (F, 3) int64
     tokens : int, vertex tokens generated (BOS/EOS included)
     timings : dict, seconds per stage: encode, vertices, enhancer, faces, filtering
     quality : dict, distance to the input and topology (:func:`fastmesh.quality.mesh_quality`): cd, hd (% of
         the input's size), boundary_edges, non_manifold_edges, components, watertight; and faces, target_faces,
         target_met (faces within ``facecount.TOLERANCE`` of the target; None without one) and count_step
-        (``facecount.hold_count``'s: kept, simplified or split; None without a target)
+        (``facecount.hold_count``'s: kept, simplified or split; None without a target); quads and quad_share
+        (of the polygons the OBJ and PLY files hold)
+    mesh : fastmesh.output.MeshOut, the result as written (quads, UV layout, baked texture, placement); the
+        vertices above are placed as it says
     """
 
     vertices: np.ndarray
@@ -194,9 +198,11 @@ class GenerateResult:
     timings: dict[str, float] = field(default_factory=dict)
     info: dict = field(default_factory=dict)
     quality: dict = field(default_factory=dict)
+    mesh: MeshOut | None = None
 
     def export(self, fmt: str) -> bytes:
-        return export_mesh(self.vertices, self.faces, fmt)
+        """The result as ``glb``, ``obj`` or ``ply`` bytes."""
+        return (self.mesh or MeshOut(self.vertices, self.faces)).export(fmt)
 
 
 def choose_threads(device: torch.device, threads: int | None = None) -> int | None:
@@ -410,8 +416,13 @@ class Pipeline:
         quality = {**mesh_quality(vertices, faces, shape, pieces_in=pieces_in), "faces": int(len(faces)),
                    "closed_decision": why if why == "asked" else ("closed" if decision["close"] else "open"),
                    "target_faces": params.target_faces, "target_met": met, "count_step": step}
-        return GenerateResult(vertices=vertices, faces=faces, tokens=tokens, timings=timings,
-                              info={**info, "closed_decision": decision}, quality=quality)
+        # Quads, UVs, baking and placement: timed with the faces they are made of.
+        with stage("faces", timings):
+            mesh, where, notes = finish(vertices, faces, params, source=shape)
+        return GenerateResult(vertices=mesh.vertices, faces=mesh.faces, tokens=tokens, timings=timings,
+                              info={**info, "closed_decision": decision, "placement": where.to_dict(),
+                                    "notes": notes},
+                              quality={**quality, **mesh.counts()}, mesh=mesh)
 
     def _planar(self, shape: Shape, params: GenerateParams, timings: dict
                 ) -> tuple[np.ndarray, np.ndarray, str] | None:

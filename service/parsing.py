@@ -17,14 +17,16 @@ def input_info(filename: str, shape: Shape) -> dict:
             "faces": int(len(shape.faces))}
 
 
-def parse_upload(data: bytes, filename: str, max_points: int, max_faces: int) -> tuple[dict, bytes]:
+def parse_upload(data: bytes, filename: str, max_points: int, max_faces: int, texture: bool = False
+                 ) -> tuple[dict, bytes]:
     """``(input facts, stored input bytes)`` of an upload; raises :class:`fastmesh.io.ShapeError`.
 
     A point cloud's normals are left as the file gives them: estimating them takes seconds for a large
-    cloud and is the worker's.
+    cloud and is the worker's.  ``texture``: keep a glTF's base-colour texture (``bake``).
     """
     from .store import shape_to_bytes
 
-    shape = load_shape(data, filename=filename, max_points=max_points, max_faces=max_faces, normals=False)
+    shape = load_shape(data, filename=filename, max_points=max_points, max_faces=max_faces, normals=False,
+                       texture=texture)
     del data
     return input_info(filename, shape), shape_to_bytes(shape)

@@ -17,13 +17,15 @@ JOB_EXAMPLE = {
     "finished_at": "2025-05-01T12:00:04.870000Z",
     "params": {"seed": 0, "temperature": 0.3, "top_k": 10, "top_p": 0.95, "max_vertices": 1000,
                "enhancer": True, "filtering": False, "candidates": 2, "target_faces": None, "closed": "auto",
+               "topology": "triangle", "uv": False, "bake": False, "origin": "input", "height": None, "up": "y",
                "formats": ["glb"]},
     "input": {"filename": "chair.ply", "kind": "points", "points": 20000, "vertices": None, "faces": None},
     "result": {"vertices": 412, "faces": 806, "tokens": 412, "formats": ["glb"], "seed": 1,
                "quality": {"cd": 2.61, "hd": 11.4, "boundary_edges": 0, "non_manifold_edges": 0,
                            "non_manifold_vertices": 0, "components": 1, "pieces": 1, "input_pieces": 1,
                            "watertight": True, "closed_decision": "closed", "faces": 806, "target_faces": None,
-                           "target_met": None, "count_step": None}},
+                           "target_met": None, "count_step": None, "quads": 0, "quad_share": 0.0},
+               "placement": {"scale": 1.0, "offset": [0.0, 0.0, 0.0], "up": "y"}, "notes": []},
     "timings": {"queue": 0.21, "load": 0.05, "encode": 0.12, "vertices": 3.1, "enhancer": 0.2, "faces": 0.9,
                 "filtering": 0.05, "export": 0.02, "total": 4.87},
     "error": None,
@@ -82,6 +84,18 @@ class Quality(BaseModel):
         None, description="How the count was held: kept (the model's mesh was within 10 % already), simplified "
                           "(edges collapsed) or split (edges split, the new vertices on the input surface); null "
                           "without a target.")
+    quads: int | None = Field(None, description="Quads in the OBJ and PLY files (topology=quad).")
+    quad_share: float | None = Field(None, description="The quads' share of the polygons of the OBJ and PLY files, "
+                                                       "0..1 (0 with topology=triangle).")
+
+
+class Placement(BaseModel):
+    """How the result was placed (origin, height, up): a point ``v`` of the input's frame is written at
+    ``v * scale + offset`` (Y-up), then turned (x, y, z) -> (x, -z, y) in the OBJ and PLY files for up=z."""
+
+    scale: float
+    offset: list[float]
+    up: Literal["y", "z"]
 
 
 class ResultInfo(BaseModel):
@@ -92,6 +106,10 @@ class ResultInfo(BaseModel):
     seed: int | None = Field(None, description="Seed of the returned mesh, one of the candidates' seed, "
                                                "seed+1, ...: that seed with candidates=1 gives this mesh alone.")
     quality: Quality | None = None
+    placement: Placement | None = None
+    notes: list[str] = Field(default_factory=list, description="What a format leaves out, for people: GLB holds "
+                                                               "triangles and is Y-up; PLY holds no UVs; a bake "
+                                                               "without a texture to read.")
 
 
 class Timings(BaseModel):

@@ -42,6 +42,7 @@ import numpy as np
 import redis
 from rq import Queue
 
+from fastmesh.bake import SurfaceTexture
 from fastmesh.io import EXPORT_FORMATS, Normalization, Shape
 
 from .settings import Settings
@@ -146,6 +147,8 @@ def shape_to_bytes(shape: Shape) -> bytes:
         arrays["faces"] = np.asarray(shape.faces, np.int32 if len(shape.vertices) < 2**31 else np.int64)
     if shape.normals is not None:
         arrays["normals"] = np.asarray(shape.normals, np.float32)
+    if shape.texture is not None:
+        arrays.update(shape.texture.to_arrays())
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     return buf.getvalue()
@@ -160,7 +163,8 @@ def shape_from_bytes(data: bytes) -> Shape:
         else:
             vertices = z["vertices"]
         return Shape(vertices=vertices, faces=z["faces"].astype(np.int64) if "faces" in z else None,
-                     normals=z["normals"].astype(np.float64) if "normals" in z else None)
+                     normals=z["normals"].astype(np.float64) if "normals" in z else None,
+                     texture=SurfaceTexture.from_arrays(z))
 
 
 def mesh_to_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:

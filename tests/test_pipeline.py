@@ -361,10 +361,12 @@ def test_cli_generate_file_json(tmp_path, weights):
     out = tmp_path / "out.glb"
     r = _cli("generate", str(src), "-o", str(out), "--weights", weights, "--max-vertices", "20", "--json")
     rec = json.loads(r.stdout.strip().splitlines()[-1])
-    assert set(rec) == {"input", "output", "vertices", "faces", "tokens", "timings", "quality"}
+    assert set(rec) == {"input", "output", "vertices", "faces", "tokens", "timings", "quality", "placement", "notes"}
     assert set(rec["quality"]) == {"cd", "hd", "boundary_edges", "non_manifold_edges", "non_manifold_vertices",
                                    "components", "pieces", "input_pieces", "watertight", "closed_decision", "faces",
-                                   "target_faces", "target_met", "count_step"}
+                                   "target_faces", "target_met", "count_step", "quads", "quad_share"}
+    assert rec["quality"]["quad_share"] == 0.0 and rec["notes"] == []  # triangles, in the input's frame
+    assert rec["placement"] == {"scale": 1.0, "offset": [0.0, 0.0, 0.0], "up": "y"}
     assert set(rec["timings"]) == {"load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total"}
     mesh = trimesh.load(out, force="mesh")
     assert len(mesh.faces) == rec["faces"] > 0

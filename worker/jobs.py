@@ -215,7 +215,8 @@ def _run(store: Store, job_id: str, attempt: int) -> None:
         ctl.progress("export", 1.0)  # the pipeline reports overall fractions; it ended at 1
         t0 = time.perf_counter()
         files = {fmt: result.export(fmt) for fmt in formats}
-        files["npz"] = mesh_to_bytes(result.vertices, result.faces)
+        files["npz"] = result.mesh.to_npz() if result.mesh is not None else mesh_to_bytes(result.vertices,
+                                                                                           result.faces)
         timings["export"] = time.perf_counter() - t0
     except Cancelled:
         if ctl.timed_out:
@@ -246,7 +247,8 @@ def _run(store: Store, job_id: str, attempt: int) -> None:
         store.put_result(job_id, fmt, data)
     timings.update({k: float(v) for k, v in result.timings.items()})
     info = {"vertices": int(len(result.vertices)), "faces": int(len(result.faces)), "tokens": int(result.tokens),
-            "formats": list(formats), "seed": result.info.get("chosen_seed"), "quality": result.quality}
+            "formats": list(formats), "seed": result.info.get("chosen_seed"), "quality": result.quality,
+            "placement": result.info.get("placement"), "notes": result.info.get("notes") or []}
     if not store.finish(job_id, attempt, "succeeded", result=info, timings=timings):
         # Cancelled (or taken over) during export: drop what we wrote unless another attempt owns it now.
         if (store.get(job_id) or {}).get("status") in (None, "cancelled", "failed"):

@@ -46,13 +46,44 @@ def add_sampling_args(p) -> None:
                         "at a time)")
 
 
+def add_output_args(p, defaults: bool = True) -> None:
+    """Flags of the written result (``fastmesh.output``), shared by ``generate`` and ``submit``; without
+    ``defaults`` an unset flag is None (the server's default)."""
+    from fastmesh.params import ORIGIN_CHOICES, TOPOLOGY_CHOICES, UP_CHOICES, GenerateParams
+
+    d = GenerateParams()
+
+    def default(value):
+        return value if defaults else None
+
+    p.add_argument("--topology", choices=TOPOLOGY_CHOICES, default=default(d.topology),
+                   help="quad: pairs of triangles that make a near-planar, well-shaped quad become one (OBJ and PLY; "
+                        "GLB holds triangles)")
+    p.add_argument("--uv", action=argparse.BooleanOptionalAction, default=default(d.uv),
+                   help="a UV layout (xatlas) in the GLB (TEXCOORD_0) and OBJ (vt) files")
+    p.add_argument("--bake", action=argparse.BooleanOptionalAction, default=default(d.bake),
+                   help="with --uv: bake a textured glTF input's base colour onto the layout (GLB texture)")
+    p.add_argument("--origin", choices=ORIGIN_CHOICES, default=default(d.origin),
+                   help="the result's origin: the input's frame, its bounding-box centre, or its bottom centre (Y up)")
+    p.add_argument("--height", type=float, default=None, metavar="METRES",
+                   help="scale the result to stand this tall along Y (default: the input's size)")
+    p.add_argument("--up", choices=UP_CHOICES, default=default(d.up),
+                   help="up axis of OBJ and PLY files (GLB is always Y-up)")
+
+
+def output_params(args) -> dict:
+    """The output flags of ``args`` as GenerateParams fields."""
+    return {k: getattr(args, k) for k in ("topology", "uv", "bake", "origin", "height", "up")}
+
+
 def params_from_args(args):
     from fastmesh.params import GenerateParams
 
+    extra = output_params(args) if hasattr(args, "topology") else {}
     return GenerateParams(seed=args.seed, temperature=args.temperature, top_k=args.top_k, top_p=args.top_p,
                           max_vertices=args.max_vertices, enhancer=not args.no_enhancer,
                           filtering=args.filtering, candidates=args.candidates,
-                          target_faces=args.target_faces, closed=args.closed)
+                          target_faces=args.target_faces, closed=args.closed, **extra)
 
 
 def load_pipeline(args):
@@ -67,6 +98,7 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", required=True, metavar="OUTPUT")
     p.add_argument("--format", choices=EXPORT_FORMATS, default=None, help="default: OUTPUT's extension, else glb")
     add_sampling_args(p)
+    add_output_args(p)
     p.add_argument("--json", action="store_true", help="one JSON object per input on stdout")
     p.set_defaults(func=_run)
 
@@ -106,7 +138,7 @@ def _run(args) -> int:
     for i, (src, dst, fmt) in enumerate(jobs, 1):
         t0 = time.perf_counter()
         try:
-            shape = load_shape(src)
+            shape = load_shape(src, texture=params.bake)
             t_load = time.perf_counter() - t0
             res = pipe.generate(shape, params)
             t = time.perf_counter()
@@ -122,7 +154,8 @@ def _run(args) -> int:
         timings["total"] = time.perf_counter() - t0
         rec = {"input": str(src), "output": str(dst), "vertices": int(len(res.vertices)),
                "faces": int(len(res.faces)), "tokens": res.tokens,
-               "timings": {k: round(timings.get(k, 0.0), 4) for k in TIMING_KEYS}, "quality": res.quality}
+               "timings": {k: round(timings.get(k, 0.0), 4) for k in TIMING_KEYS}, "quality": res.quality,
+               "placement": res.info.get("placement"), "notes": res.info.get("notes") or []}
         if args.json:
             print(json.dumps(rec), flush=True)
         q = res.quality
@@ -130,4 +163,8 @@ def _run(args) -> int:
         print(f"[{i}/{len(jobs)}] {src} -> {dst}: {rec['vertices']} vertices, {rec['faces']} faces{target}, "
               f"CD {q['cd']:.2f} % / HD {q['hd']:.2f} % of the input's size, {q['boundary_edges']} open edges, "
               f"{timings['total']:.2f} s", file=sys.stderr, flush=True)
+        if params.topology == "quad":
+            print(f"  {q['quads']} quads ({100 * q['quad_share']:.0f} % of the polygons)", file=sys.stderr)
+        for note in rec["notes"]:
+            print(f"  note: {note}", file=sys.stderr)
     return 1 if failures else 0

@@ -10,6 +10,8 @@ from pathlib import Path
 
 
 def register(sub) -> None:
+    from .generate import add_output_args
+
     p = sub.add_parser("submit", help="send a shape to a FastMesh service and download the mesh")
     p.add_argument("file", help="mesh or point cloud (obj, glb, gltf, ply, stl, off, xyz, txt, npy, npz)")
     p.add_argument("--url", required=True, help="service address, e.g. http://127.0.0.1:8000")
@@ -29,6 +31,7 @@ def register(sub) -> None:
     p.add_argument("--no-enhancer", action="store_true", help="skip the fidelity enhancer")
     p.add_argument("--filtering", action=argparse.BooleanOptionalAction, default=None,
                    help="prediction filtering on or off (default: the server's, off)")
+    add_output_args(p, defaults=False)
     p.add_argument("--timeout", type=float, default=None, help="give up after this many seconds")
     p.add_argument("--json", action="store_true", help="print the finished job as JSON on stdout")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
@@ -37,6 +40,8 @@ def register(sub) -> None:
 
 def _submit(args) -> int:
     from fastmesh.client import Client, ServiceError
+
+    from .generate import output_params
 
     src = Path(args.file)
     if not src.is_file():
@@ -61,7 +66,7 @@ def _submit(args) -> int:
                                 top_p=args.top_p, max_vertices=args.max_vertices, candidates=args.candidates,
                                 target_faces=args.target_faces, closed=args.closed,
                                 enhancer=False if args.no_enhancer else None,
-                                filtering=args.filtering, formats=fmt)
+                                filtering=args.filtering, formats=fmt, **output_params(args))
             job = client.wait(job["id"], progress=show, timeout=args.timeout)
             client.download(job["id"], out)
     except (ServiceError, TimeoutError) as e:

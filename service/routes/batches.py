@@ -65,7 +65,7 @@ def batches_router(settings: Settings, parses: CappedPool, slots: threading.Boun
                 idem = Idempotency(store, who, f"{key}#{index}" if key else None, data,
                                    {**fingerprinted, "filename": filename})
                 t0 = time.perf_counter()
-                info, blob = parse(parses, settings, data, filename)
+                info, blob = parse(parses, settings, data, filename, texture=fingerprinted["bake"])
                 return idem, info, blob, time.perf_counter() - t0
         except ApiError as e:
             raise ApiError(e.status, e.code, f"files[{index}] '{filename}': {e.message}", e.headers) from None

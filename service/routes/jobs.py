@@ -16,7 +16,8 @@ import anyio
 from fastapi import APIRouter, Depends, File, Form, Header, Query, Request, Response, UploadFile
 from fastapi.responses import JSONResponse
 
-from fastmesh.io import EXPORT_FORMATS, export_mesh
+from fastmesh.io import EXPORT_FORMATS
+from fastmesh.output import MeshOut
 from fastmesh.params import BOUNDS
 
 from ..children import CappedPool, ChildFailed, ChildShapeError
@@ -28,7 +29,7 @@ from ..listing import MAX_LIMIT, list_jobs
 from ..parsing import parse_upload
 from ..schemas import Job, JobPage, error_responses
 from ..settings import Settings
-from ..store import FINAL, STATUSES, QueueFull, Store, mesh_from_bytes
+from ..store import FINAL, STATUSES, QueueFull, Store
 from ..submission import charge, parse_slot, read_upload, webhook_of
 
 MEDIA = {"glb": "model/gltf-binary", "obj": "model/obj", "ply": "application/ply"}
@@ -86,6 +87,23 @@ def jobs_router(settings: Settings, parses: CappedPool,
                    None, description="Close the result's holes: auto = when the input is closed (a closed mesh, or "
                                      f"oriented points that enclose a volume); the decision is in result.quality "
                                      f"({d('closed')}).", examples=["auto"]),
+               topology: Literal["triangle", "quad"] | None = Form(
+                   None, description="quad: pairs of triangles that make a near-planar, well-shaped quad become one, "
+                                     "in the OBJ and PLY files (GLB holds triangles); result.quality.quad_share says "
+                                     f"how many ({d('topology')}).", examples=["quad"]),
+               uv: bool | None = Form(None, description="Give the result a UV layout (xatlas), in the GLB "
+                                                        f"(TEXCOORD_0) and OBJ (vt) files ({d('uv')})."),
+               bake: bool | None = Form(None, description="With uv: bake a textured glTF input's base colour onto "
+                                                          f"the layout, into the GLB's texture ({d('bake')})."),
+               origin: Literal["input", "center", "bottom"] | None = Form(
+                   None, description="Where the result's origin lies: the input's own frame, its bounding box's "
+                                     f"centre or its bottom centre (Y up) ({d('origin')}).", examples=["bottom"]),
+               height: float | None = Form(None, allow_inf_nan=False, **BOUNDS["height"].form_range(),
+                                           description="Scale the result to stand this many metres tall along Y "
+                                                       "(unset: the input's size).", examples=[1.8]),
+               up: Literal["y", "z"] | None = Form(None, description="Up axis of the OBJ and PLY files; GLB is always "
+                                                                     f"Y-up, as glTF requires ({d('up')}).",
+                                                   examples=["z"]),
                formats: str | None = Form(None, description="Comma list of glb, obj, ply exported with the job "
                                                             f"(default {','.join(settings.default_formats)}).",
                                           examples=["glb,obj"]),
@@ -99,7 +117,9 @@ def jobs_router(settings: Settings, parses: CappedPool,
         charge(store, settings, request.state.bucket)
         params = build_params({"seed": seed, "temperature": temperature, "top_k": top_k, "top_p": top_p,
                                "max_vertices": max_vertices, "enhancer": enhancer, "filtering": filtering,
-                               "candidates": candidates, "target_faces": target_faces, "closed": closed},
+                               "candidates": candidates, "target_faces": target_faces, "closed": closed,
+                               "topology": topology, "uv": uv, "bake": bake, "origin": origin, "height": height,
+                               "up": up},
                               formats, settings.default_formats, store.vertex_limit())
         webhook = webhook_of(settings, callback_url)
         with parse_slot(parse_slots, settings):
@@ -114,7 +134,7 @@ def jobs_router(settings: Settings, parses: CappedPool,
             if depth >= settings.max_queue_depth:
                 raise queue_full(store, settings, depth)
             t0 = time.perf_counter()
-            info, blob = parse(parses, settings, data, filename)
+            info, blob = parse(parses, settings, data, filename, texture=params["bake"])
             del data
             load_seconds = time.perf_counter() - t0
         job_id = store.new_id()
@@ -191,8 +211,10 @@ def jobs_router(settings: Settings, parses: CappedPool,
     return router
 
 
-def parse(parses: CappedPool, settings: Settings, data: bytes, filename: str) -> tuple[dict, bytes]:
-    """``(input facts, stored input)`` of an upload, parsed in a capped child process.
+def parse(parses: CappedPool, settings: Settings, data: bytes, filename: str, texture: bool = False
+          ) -> tuple[dict, bytes]:
+    """``(input facts, stored input)`` of an upload, parsed in a capped child process (``texture``: with a glTF's
+    base-colour texture, for ``bake``).
 
     Raises
     ------
@@ -202,7 +224,7 @@ def parse(parses: CappedPool, settings: Settings, data: bytes, filename: str) ->
         when the parser's process died on it.
     """
     try:
-        return parses.call(parse_upload, data, filename, settings.max_points, settings.max_faces,
+        return parses.call(parse_upload, data, filename, settings.max_points, settings.max_faces, texture,
                            timeout=settings.parse_timeout_seconds)
     except ChildShapeError as e:
         raise ApiError(SHAPE_STATUS.get(e.code, 422), e.code, e.message) from None
@@ -249,7 +271,7 @@ def result_bytes(store: Store, job_id: str, fmt: str) -> bytes:
     mesh = store.get_result(job_id, "npz")
     if mesh is None:
         raise ApiError(404, "not_found", "the result is no longer stored (retention expired or deleted)")
-    data = export_mesh(*mesh_from_bytes(mesh), fmt)
+    data = MeshOut.from_npz(mesh).export(fmt)
     store.put_result(job_id, fmt, data, ttl=store.ttl_of(job_id))
     return data
 

@@ -7,8 +7,9 @@ const KEY_STORE = 'fastmesh.apiKey';
 const JOBS_STORE = 'fastmesh.jobs';
 const MAX_RECENT = 20;
 const POLL_MS = 400;
-const PARAMS = ['seed', 'temperature', 'top_k', 'top_p', 'max_vertices', 'candidates', 'target_faces', 'closed'];
-const FLAGS = ['enhancer', 'filtering'];
+const PARAMS = ['seed', 'temperature', 'top_k', 'top_p', 'max_vertices', 'candidates', 'target_faces', 'closed',
+  'topology', 'origin', 'height', 'up'];
+const FLAGS = ['enhancer', 'filtering', 'uv', 'bake'];
 const TIMINGS = ['queue', 'load', 'encode', 'vertices', 'enhancer', 'faces', 'filtering', 'export', 'total'];
 const FINAL = ['succeeded', 'failed', 'cancelled'];
 const COUNTS = ['c-vertices', 'c-faces', 'c-tokens', 'c-boundary', 'c-non-manifold', 'c-components', 'c-watertight'];
@@ -296,7 +297,7 @@ function closeJob(note) {
 function resetJobPanel() {
   setStatus('idle', '');
   $('#progress-bar').style.width = '0';
-  for (const id of [...COUNTS, 'c-input', 'c-distance']) $(`#${id}`).textContent = '-';
+  for (const id of [...COUNTS, 'c-input', 'c-distance', 'c-quads', 'c-notes']) $(`#${id}`).textContent = '-';
   $('#timings tbody').replaceChildren();
   for (const id of ['dl-glb', 'dl-obj', 'dl-png']) $(`#${id}`).disabled = true;
   $('#delete').disabled = false;
@@ -358,6 +359,8 @@ function showResultFacts(result) {
     'c-watertight': q.watertight == null ? null : q.watertight ? 'yes' : 'no',
     'c-pieces': q.pieces == null ? null : `${q.pieces} / ${q.input_pieces ?? '-'}`,
     'c-closed': q.closed_decision,
+    'c-quads': q.quads == null ? null : `${q.quads} (${(100 * (q.quad_share ?? 0)).toFixed(0)} % of the polygons)`,
+    'c-notes': (result.notes || []).join('; ') || null,
   };
   for (const [id, v] of Object.entries(facts)) $(`#${id}`).textContent = v ?? '-';
   $('#c-distance').textContent = q.cd == null ? '-' : `${q.cd.toFixed(2)} % / ${q.hd.toFixed(2)} %`;

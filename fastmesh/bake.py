@@ -1,0 +1,235 @@
+"""The base-colour texture of a textured input, and its transfer onto a result's UV layout (``bake=true``).
+
+Each texel of the result's atlas lies on one of its triangles; its colour is the input's at the nearest point
+of the input's surface (the input's UVs there, its texture sampled bilinearly, times the material's base
+colour factor).  Texels between charts take their nearest chart's colour, so filtering does not bleed the
+background into the seams.
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass
+
+import numpy as np
+
+from .layout import UVLayout, rasterize
+
+MAX_SOURCE_SIDE = 2048  # an input texture is read at most this many texels a side (a baked one has 1024)
+MAX_SAMPLES = 500_000  # samples of the input surface that locate each texel's nearest input triangle
+
+
+@dataclass
+class SurfaceTexture:
+    """The base-colour textures of a mesh input.
+
+    Attributes
+    ----------
+    uv : (N, 2) float64
+        UV coordinates of the input's vertices (OBJ's convention: v up); NaN where a vertex has none.
+    image_of : (N,) int64
+        Which of ``images`` the vertex's triangles are textured with; -1 for none.
+    images : list of (H, W, 4) uint8
+        RGBA images, the first row the top.
+    factors : (K, 4) float64
+        Each image's material base colour factor (RGBA, 0..1).
+    """
+
+    uv: np.ndarray
+    image_of: np.ndarray
+    images: list
+    factors: np.ndarray
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Arrays to store in an npz (the images as PNG bytes)."""
+        from PIL import Image
+
+        out = {"tex_uv": self.uv.astype(np.float32), "tex_image_of": self.image_of.astype(np.int32),
+               "tex_factors": self.factors}
+        for k, img in enumerate(self.images):
+            buf = io.BytesIO()
+            Image.fromarray(img, "RGBA").save(buf, format="PNG")
+            out[f"tex_png_{k}"] = np.frombuffer(buf.getvalue(), dtype=np.uint8)
+        return out
+
+    @classmethod
+    def from_arrays(cls, z) -> SurfaceTexture | None:
+        """The texture :meth:`to_arrays` stored in the npz ``z`` (None when it holds none)."""
+        if "tex_uv" not in z:
+            return None
+        factors = np.asarray(z["tex_factors"], dtype=np.float64).reshape(-1, 4)
+        images = [_rgba(np.asarray(z[f"tex_png_{k}"]).tobytes()) for k in range(len(factors))]
+        return cls(uv=z["tex_uv"].astype(np.float64), image_of=z["tex_image_of"].astype(np.int64), images=images,
+                   factors=factors)
+
+
+def _rgba(data: bytes) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(io.BytesIO(data)) as img:
+        return np.asarray(img.convert("RGBA"))
+
+
+def _image_of_material(material) -> tuple[object | None, np.ndarray]:
+    """(PIL image or None, RGBA factor) of a trimesh material: a glTF PBR one or a simple one."""
+    image = getattr(material, "baseColorTexture", None)
+    if image is None:
+        image = getattr(material, "image", None)
+    factor = getattr(material, "baseColorFactor", None)
+    factor = np.ones(4) if factor is None else np.asarray(factor, dtype=np.float64).reshape(-1)
+    if factor.max(initial=0) > 1.0:  # trimesh keeps some factors as 0..255 bytes
+        factor = factor / 255.0
+    return image, np.pad(factor, (0, 4 - len(factor)), constant_values=1.0)[:4]
+
+
+def texture_of(meshes: list) -> SurfaceTexture | None:
+    """The base-colour textures of trimesh ``meshes`` in the order their vertices are concatenated, or None
+    when none has UVs and a texture image.  Images larger than :data:`MAX_SOURCE_SIDE` are read smaller."""
+    uvs, owners, images, factors, keys = [], [], [], [], {}
+    for mesh in meshes:
+        n = len(mesh.vertices)
+        uv = getattr(mesh.visual, "uv", None)
+        image, factor = _image_of_material(getattr(mesh.visual, "material", None))
+        if uv is None or image is None or len(uv) != n:
+            uvs.append(np.full((n, 2), np.nan))
+            owners.append(np.full(n, -1))
+            continue
+        rgba = image.convert("RGBA")
+        rgba.thumbnail((MAX_SOURCE_SIDE, MAX_SOURCE_SIDE))
+        pixels = np.asarray(rgba)
+        key = (pixels.shape, hash(pixels.tobytes()), tuple(factor))  # meshes that share a material share it here
+        if key not in keys:
+            keys[key] = len(images)
+            images.append(pixels)
+            factors.append(factor)
+        uvs.append(np.asarray(uv, dtype=np.float64))
+        owners.append(np.full(n, keys[key]))
+    if not images:
+        return None
+    return SurfaceTexture(uv=np.concatenate(uvs), image_of=np.concatenate(owners), images=images,
+                          factors=np.asarray(factors))
+
+
+def closest_on_triangles(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """(N, 3) barycentric coordinates of the point of each triangle ``tri`` (N, 3, 3) nearest ``points``
+    (N, 3): the projection onto its plane where that lies inside, else the nearest point of its edges."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    n = np.cross(b - a, c - a)
+    nn = np.maximum(np.sum(n * n, axis=1), 1e-300)
+    bary = np.stack([np.sum(np.cross(c - b, points - b) * n, axis=1), np.sum(np.cross(a - c, points - c) * n, axis=1),
+                     np.sum(np.cross(b - a, points - a) * n, axis=1)], axis=1) / nn[:, None]
+    out = np.flatnonzero(np.any(bary < 0, axis=1))
+    if len(out):
+        p, best, best_d = points[out], None, None
+        for k in range(3):  # the edge from corner k to corner k + 1
+            s, e = tri[out, k], tri[out, (k + 1) % 3]
+            d = e - s
+            t = np.clip(np.sum((p - s) * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-300), 0.0, 1.0)
+            dist = np.sum((s + t[:, None] * d - p) ** 2, axis=1)
+            cand = np.zeros((len(out), 3))
+            cand[:, k], cand[:, (k + 1) % 3] = 1.0 - t, t
+            if best is None:
+                best, best_d = cand, dist
+            else:
+                closer = dist < best_d
+                best[closer], best_d[closer] = cand[closer], dist[closer]
+        bary[out] = best
+    return bary
+
+
+def nearest_points(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, spacing: float,
+                   seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The nearest point of a triangle mesh to each of ``points``: on the triangle of the nearest of the mesh's
+    surface samples (its triangles' centres and area-weighted samples ``spacing`` apart, at most
+    :data:`MAX_SAMPLES`), the point of that triangle nearest.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+    vertices : (V, 3) float
+    faces : (F, 3) int
+    spacing : float
+        Distance between the samples (the result's texel size serves).
+
+    Returns
+    -------
+    face : (N,) int64, the triangle of each nearest point
+    bary : (N, 3) float64, its barycentric coordinates there
+    """
+    from scipy.spatial import cKDTree
+
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    n = int(min(MAX_SAMPLES, area.sum() / max(spacing, 1e-300) ** 2))
+    rng = np.random.default_rng(seed)
+    drawn = rng.choice(len(tri), size=n, p=area / area.sum()) if n > 0 and area.sum() > 0 else np.zeros(0, np.int64)
+    r1, r2 = np.sqrt(rng.random(n))[:, None], rng.random(n)[:, None]
+    samples = np.concatenate([tri.mean(axis=1), (1 - r1) * tri[drawn, 0] + r1 * (1 - r2) * tri[drawn, 1]
+                              + r1 * r2 * tri[drawn, 2]])
+    owner = np.concatenate([np.arange(len(tri)), drawn])
+    face = owner[cKDTree(samples).query(np.asarray(points, dtype=np.float64))[1]]
+    return face, closest_on_triangles(np.asarray(points, dtype=np.float64), tri[face])
+
+
+def sample(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(N, 4) float colours (0..255) of an RGBA ``image`` (H, W, 4) at ``uv`` (N, 2), bilinear, the texture
+    repeating outside [0, 1] (glTF's default wrap)."""
+    h, w = image.shape[:2]
+    x = (np.asarray(uv[:, 0]) % 1.0) * w - 0.5
+    y = (1.0 - np.asarray(uv[:, 1]) % 1.0) * h - 0.5
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    tx, ty = (x - x0)[:, None], (y - y0)[:, None]
+    img = image.astype(np.float64)
+
+    def at(r, c):
+        return img[r % h, c % w]
+
+    return ((1 - ty) * ((1 - tx) * at(y0, x0) + tx * at(y0, x0 + 1))
+            + ty * ((1 - tx) * at(y0 + 1, x0) + tx * at(y0 + 1, x0 + 1)))
+
+
+def bake(vertices: np.ndarray, faces: np.ndarray, layout: UVLayout, source_vertices: np.ndarray,
+         source_faces: np.ndarray, texture: SurfaceTexture) -> np.ndarray:
+    """The input's base colour on the result's UV layout.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float, faces : (F, 3) int
+        The result, in the input's frame.
+    layout : UVLayout
+        The result's layout; the texture has ``layout.size`` texels a side.
+    source_vertices : (N, 3) float, source_faces : (M, 3) int
+        The input mesh, with ``texture`` at its vertices.
+
+    Returns
+    -------
+    (S, S, 4) uint8 RGBA image, the first row the top (S = ``layout.size``).
+    """
+    from scipy.ndimage import distance_transform_edt
+
+    size = layout.size
+    face, texel, bary = rasterize(layout.uv, layout.faces, size)
+    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)[face]]  # (N, 3, 3)
+    points = np.einsum("nk,nkd->nd", bary, corners)
+    src_faces = np.asarray(source_faces, dtype=np.int64)
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+    texel_size = np.sqrt(area / max(len(texel), 1))  # metres a texel covers
+    hit, hit_bary = nearest_points(points, source_vertices, src_faces, spacing=2 * texel_size)
+    corner_uv = texture.uv[src_faces[hit]]  # (N, 3, 2)
+    uv = np.einsum("nk,nkd->nd", hit_bary, corner_uv)
+    owner = texture.image_of[src_faces[hit, 0]]
+    colour = np.full((len(points), 4), 255.0)  # untextured input: glTF's default white
+    for k, image in enumerate(texture.images):
+        sel = (owner == k) & np.all(np.isfinite(uv), axis=1)
+        colour[sel] = sample(image, uv[sel]) * texture.factors[k]
+    out = np.zeros((size * size, 4))
+    out[texel] = colour
+    filled = np.zeros(size * size, dtype=bool)
+    filled[texel] = True
+    if not filled.any():
+        return np.full((size, size, 4), 255, dtype=np.uint8)
+    # Every other texel takes its nearest filled texel's colour.
+    idx = distance_transform_edt(~filled.reshape(size, size), return_distances=False, return_indices=True)
+    out = out.reshape(size, size, 4)[idx[0], idx[1]]
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)

@@ -1,0 +1,140 @@
+"""Quad-dominant topology from a triangle mesh: pairs of triangles that share an edge become one quad where
+together they are near-planar and well shaped.
+
+Each interior edge between two consistently oriented triangles is a candidate; its quad's score is its shape
+(how near its four corners are to right angles) lowered by how far it bends along the removed diagonal.  The
+candidates are taken greedily, best first, each triangle joining at most one quad: a maximum-weight matching
+would find a few more, but the greedy one keeps the best-shaped quads, which is what a modeller looks at.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class QuadConfig:
+    """When two triangles make a quad.
+
+    ``max_bend``: largest angle between the two triangles' normals, degrees (near-planar).  ``min_angle`` and
+    ``max_angle``: the range every corner of the quad must lie in, degrees (convex and not a sliver).
+    ``min_score``: the lowest score a quad is kept at (1 is a flat square).
+    """
+
+    max_bend: float = 30.0
+    min_angle: float = 35.0
+    max_angle: float = 150.0
+    min_score: float = 0.25
+
+
+def interior_pairs(faces: np.ndarray) -> np.ndarray:
+    """(P, 4) int64 rows ``(f, g, i, j)``: triangles ``f`` and ``g`` share the edge that runs from corner ``i`` to
+    corner ``i + 1`` of ``f`` and the other way round from corner ``j`` to ``j + 1`` of ``g``; only edges in
+    exactly two faces, consistently oriented.
+
+    Parameters
+    ----------
+    faces : (F, 3) int
+    """
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    n = len(faces)
+    if n == 0:
+        return np.zeros((0, 4), np.int64)
+    a = faces.reshape(-1)  # corner k of face f at 3 f + k; the edge from it runs to the next corner
+    b = faces[:, [1, 2, 0]].reshape(-1)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    order = np.lexsort((hi, lo))
+    key = np.stack([lo[order], hi[order]], axis=1)
+    same = np.all(key[1:] == key[:-1], axis=1)
+    run_start = np.concatenate([[True], ~same])
+    run_id = np.cumsum(run_start) - 1
+    run_len = np.bincount(run_id)
+    first = np.flatnonzero(same & (run_len[run_id[:-1]] == 2))  # the first of an edge's two half-edges
+    h1, h2 = order[first], order[first + 1]
+    opposite = a[h1] == b[h2]  # the two faces walk the edge in opposite directions: consistently oriented
+    h1, h2 = h1[opposite], h2[opposite]
+    return np.stack([h1 // 3, h2 // 3, h1 % 3, h2 % 3], axis=1)
+
+
+def quad_corners(faces: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """(P, 4) int64 corners, in the faces' winding, of the quads that :func:`interior_pairs` rows make.
+
+    Face ``f`` = (p, q, r) with the shared edge p -> q and face ``g`` with q -> p and opposite corner s give the
+    quad (p, s, q, r): the diagonal p-q is removed.
+    """
+    f, g, i, j = (pairs[:, k] for k in range(4))
+    faces = np.asarray(faces, dtype=np.int64)
+    p, q, r = faces[f, i], faces[f, (i + 1) % 3], faces[f, (i + 2) % 3]
+    s = faces[g, (j + 2) % 3]
+    return np.stack([p, s, q, r], axis=1)
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(x, axis=-1, keepdims=True)
+    return x / np.where(n > 0, n, 1.0)
+
+
+def quad_scores(vertices: np.ndarray, quads: np.ndarray, normals_f: np.ndarray, normals_g: np.ndarray,
+                config: QuadConfig) -> np.ndarray:
+    """(P,) score of each candidate quad, -inf where it fails ``config``'s limits.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+    quads : (P, 4) int, corners in order
+    normals_f, normals_g : (P, 3) float, unit normals of the two triangles
+    """
+    c = np.asarray(vertices, dtype=np.float64)[quads]  # (P, 4, 3)
+    into = _unit(np.roll(c, -1, axis=1) - c)  # corner k -> k + 1
+    back = _unit(np.roll(c, 1, axis=1) - c)   # corner k -> k - 1
+    angles = np.degrees(np.arccos(np.clip(np.sum(into * back, axis=2), -1.0, 1.0)))  # (P, 4)
+    bend = np.degrees(np.arccos(np.clip(np.sum(normals_f * normals_g, axis=1), -1.0, 1.0)))
+    # Convex: the normals of the triangles across the other diagonal agree with the quad's own.
+    n1 = np.cross(c[:, 1] - c[:, 0], c[:, 3] - c[:, 0])
+    n2 = np.cross(c[:, 3] - c[:, 2], c[:, 1] - c[:, 2])
+    mean = normals_f + normals_g
+    convex = (np.sum(n1 * mean, axis=1) > 0) & (np.sum(n2 * mean, axis=1) > 0)
+    shape = 1.0 - np.max(np.abs(angles - 90.0), axis=1) / 90.0
+    score = shape * (1.0 - 0.5 * bend / config.max_bend)
+    ok = (convex & (bend <= config.max_bend) & (angles.min(axis=1) >= config.min_angle)
+          & (angles.max(axis=1) <= config.max_angle) & (score >= config.min_score))
+    return np.where(ok, score, -np.inf)
+
+
+def pair_triangles(vertices: np.ndarray, faces: np.ndarray, config: QuadConfig | None = None) -> np.ndarray:
+    """Triangles merged into quads, greedily by score: (Q, 4) int64 rows ``(f, g, i, j)`` as
+    :func:`interior_pairs` gives them, no triangle in two rows.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+    faces : (F, 3) int
+    config : QuadConfig, optional
+    """
+    config = config or QuadConfig()
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    cand = interior_pairs(faces)
+    if len(cand) == 0:
+        return cand
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = v[faces]
+    normals = _unit(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+    score = quad_scores(v, quad_corners(faces, cand), normals[cand[:, 0]], normals[cand[:, 1]], config)
+    keep = np.isfinite(score)
+    cand, score = cand[keep], score[keep]
+    used = np.zeros(len(faces), dtype=bool)
+    chosen = []
+    for k in np.argsort(-score, kind="stable"):  # a Python loop over candidates only: ~1 s per million
+        f, g = cand[k, 0], cand[k, 1]
+        if not (used[f] or used[g]):
+            used[f] = used[g] = True
+            chosen.append(k)
+    return cand[np.asarray(chosen, dtype=np.int64)]
+
+
+def quad_share(n_quads: int, n_triangles: int) -> float:
+    """The quads' share of the polygons (quads and the triangles left), 0 for none."""
+    total = n_quads + n_triangles
+    return round(n_quads / total, 4) if total else 0.0

@@ -113,11 +113,16 @@ def texture_of(meshes: list) -> SurfaceTexture | None:
 def closest_on_triangles(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """(N, 3) barycentric coordinates of the point of each triangle ``tri`` (N, 3, 3) nearest ``points``
     (N, 3): the projection onto its plane where that lies inside, else the nearest point of its edges."""
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    n = np.cross(b - a, c - a)
-    nn = np.maximum(np.sum(n * n, axis=1), 1e-300)
-    bary = np.stack([np.sum(np.cross(c - b, points - b) * n, axis=1), np.sum(np.cross(a - c, points - c) * n, axis=1),
-                     np.sum(np.cross(b - a, points - a) * n, axis=1)], axis=1) / nn[:, None]
+    e1, e2, w = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], points - tri[:, 0]
+
+    def dot(x, y):
+        return np.einsum("nd,nd->n", x, y)
+
+    d00, d01, d11, d20, d21 = dot(e1, e1), dot(e1, e2), dot(e2, e2), dot(w, e1), dot(w, e2)
+    denom = d00 * d11 - d01 * d01
+    denom = np.where(denom > 0, denom, 1e-300)
+    b1, b2 = (d11 * d20 - d01 * d21) / denom, (d00 * d21 - d01 * d20) / denom
+    bary = np.stack([1.0 - b1 - b2, b1, b2], axis=1)  # of the projection onto the plane
     out = np.flatnonzero(np.any(bary < 0, axis=1))
     if len(out):
         p, best, best_d = points[out], None, None
@@ -179,10 +184,9 @@ def sample(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     y = (1.0 - np.asarray(uv[:, 1]) % 1.0) * h - 0.5
     x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
     tx, ty = (x - x0)[:, None], (y - y0)[:, None]
-    img = image.astype(np.float64)
 
-    def at(r, c):
-        return img[r % h, c % w]
+    def at(r, c):  # gathered before converting: the whole image in float64 would be 32 bytes a texel
+        return image[r % h, c % w].astype(np.float64)
 
     return ((1 - ty) * ((1 - tx) * at(y0, x0) + tx * at(y0, x0 + 1))
             + ty * ((1 - tx) * at(y0 + 1, x0) + tx * at(y0 + 1, x0 + 1)))

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import layout as uvs
 from .layout import UVLayout, uv_layout
 from .meshfiles import glb_bytes, obj_bytes, ply_bytes
 from .placement import Placement, placement, turn_up
@@ -132,7 +133,7 @@ def finish(vertices: np.ndarray, faces: np.ndarray, params, source=None) -> tupl
         notes.append("GLB holds triangles only (glTF has no quads): the quads are in the OBJ and PLY files")
     layout = texture = None
     if params.uv:
-        layout = uv_layout(vertices, faces)
+        layout = uv_layout(vertices, faces, size=uvs.TEXTURE_SIZE)  # read now: a test may make it smaller
         notes.append("the UV layout is in the GLB (TEXCOORD_0) and OBJ (vt) files; PLY holds none")
     if params.bake:
         found = getattr(source, "texture", None)

@@ -325,3 +325,29 @@ def test_keys_queue_position_queue_full_and_drop(redis_url, page, tmp_path, shot
         page.wait_for_selector("#status.cancelled")
         assert page.is_hidden("#cancel")
         assert "cancelled" in page.text_content("#recent li")
+
+
+def test_quads_uv_and_pivot_from_the_form(stack, page, tmp_path, shots):
+    """topology, uv, origin, height and up are fields of the form; the page shows the quad share and the notes."""
+    open_page(page, stack.url)
+    assert page.input_value("select[name=topology]") == "triangle" and not page.is_checked("input[name=uv]")
+    box = trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+    box.apply_translation([4.0, 1.0, -2.0])
+    choose(page, tmp_path, "crate.obj", box.export(file_type="obj").encode())
+    page.select_option("select[name=topology]", "quad")
+    page.select_option("select[name=origin]", "bottom")
+    page.select_option("select[name=up]", "z")
+    page.fill("input[name=height]", "2")
+    page.check("input[name=uv]")
+    page.click("#submit")
+    page.wait_for_selector("#status.succeeded", timeout=JOB_TIMEOUT_MS)
+    job_id = page.evaluate("location.hash").removeprefix("#job=")
+    job = httpx.get(f"{stack.url}/v1/jobs/{job_id}").json()
+    assert {k: job["params"][k] for k in ("topology", "uv", "bake", "origin", "height", "up")} == {
+        "topology": "quad", "uv": True, "bake": False, "origin": "bottom", "height": 2.0, "up": "z"}
+    assert page.text_content("#c-quads") == "6 (100 % of the polygons)"
+    assert "GLB holds triangles" in page.text_content("#c-notes")
+    glb = httpx.get(f"{stack.url}/v1/jobs/{job_id}/result", params={"format": "glb"}).content
+    mesh = trimesh.load(io.BytesIO(glb), file_type="glb", force="mesh", process=False)
+    assert np.allclose(mesh.bounds, [[-0.5, 0, -1.5], [0.5, 2, 1.5]]) and mesh.visual.uv is not None
+    shots(page, "quads")

@@ -54,7 +54,8 @@ def test_generate_returns_mesh_in_input_frame(pipe):
     # The Python API result carries the quality report of exactly this mesh against this input, and the
     # closure's decision: the sphere is a closed mesh.
     assert res.quality == {**mesh_quality(res.vertices, res.faces, shape), "closed_decision": "closed",
-                           "faces": len(res.faces), "target_faces": None, "target_met": None, "count_step": None}
+                           "faces": len(res.faces), "target_faces": None, "target_met": None, "count_step": None,
+                           "quads": 0, "quad_share": 0.0}
     assert res.quality["cd"] > 0 and res.quality["components"] >= 1
     assert res.info["closed_decision"] == {"close": True, "reason": "closed_mesh"}
 

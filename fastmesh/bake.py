@@ -82,21 +82,40 @@ def _image_of_material(material) -> tuple[object | None, np.ndarray]:
     return image, np.pad(factor, (0, 4 - len(factor)), constant_values=1.0)[:4]
 
 
+def _pixels(image) -> np.ndarray | None:
+    """(H, W, 4) uint8 of a PIL image, at most :data:`MAX_SOURCE_SIDE` a side; None where it does not decode."""
+    from PIL import Image
+
+    try:
+        rgba = image.convert("RGBA")
+        rgba.thumbnail((MAX_SOURCE_SIDE, MAX_SOURCE_SIDE))
+        return np.asarray(rgba)
+    except (OSError, ValueError, Image.DecompressionBombError):
+        return None
+
+
+def drop_unreadable(mesh) -> None:
+    """Strip the visuals of a trimesh mesh whose base-colour image does not decode (copying it would fail)."""
+    import trimesh
+
+    image, _ = _image_of_material(getattr(mesh.visual, "material", None))
+    if image is not None and _pixels(image) is None:
+        mesh.visual = trimesh.visual.ColorVisuals()
+
+
 def texture_of(meshes: list) -> SurfaceTexture | None:
     """The base-colour textures of trimesh ``meshes`` in the order their vertices are concatenated, or None
-    when none has UVs and a texture image.  Images larger than :data:`MAX_SOURCE_SIDE` are read smaller."""
+    when none has UVs and a texture image that decodes."""
     uvs, owners, images, factors, keys = [], [], [], [], {}
     for mesh in meshes:
         n = len(mesh.vertices)
         uv = getattr(mesh.visual, "uv", None)
         image, factor = _image_of_material(getattr(mesh.visual, "material", None))
-        if uv is None or image is None or len(uv) != n:
+        pixels = None if uv is None or image is None or len(uv) != n else _pixels(image)
+        if pixels is None:
             uvs.append(np.full((n, 2), np.nan))
             owners.append(np.full(n, -1))
             continue
-        rgba = image.convert("RGBA")
-        rgba.thumbnail((MAX_SOURCE_SIDE, MAX_SOURCE_SIDE))
-        pixels = np.asarray(rgba)
         key = (pixels.shape, hash(pixels.tobytes()), tuple(factor))  # meshes that share a material share it here
         if key not in keys:
             keys[key] = len(images)

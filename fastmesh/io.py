@@ -208,14 +208,16 @@ def _load_trimesh(data: bytes, ext: str, texture: bool = False) -> Shape:
     found = None
     texture = texture and ext in ("glb", "gltf")
     if isinstance(loaded, trimesh.Scene):
+        from .bake import drop_unreadable, texture_of
+
         for g in loaded.geometry.values():  # dump() copies visuals: a textured one decodes its images
-            if isinstance(g, trimesh.Trimesh) and not texture:
+            if isinstance(g, trimesh.Trimesh) and texture:
+                drop_unreadable(g)
+            elif isinstance(g, trimesh.Trimesh):
                 g.visual = trimesh.visual.ColorVisuals()
         geoms = [g for g in loaded.dump() if hasattr(g, "vertices")] if loaded.geometry else []
         meshes = [g for g in geoms if isinstance(g, trimesh.Trimesh) and len(g.faces)]
         if meshes and texture:
-            from .bake import texture_of
-
             found = texture_of(meshes)
             for g in meshes:  # concatenating textured meshes would pack their images into one
                 g.visual = trimesh.visual.ColorVisuals()

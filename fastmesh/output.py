@@ -96,7 +96,7 @@ class MeshOut:
         if self.texture is not None:
             arrays["texture"] = self.texture
         buf = io.BytesIO()
-        np.savez(buf, **arrays)
+        np.savez_compressed(buf, **arrays)  # a baked texture is mostly flat colour: it shrinks several times
         return buf.getvalue()
 
     @classmethod
@@ -138,7 +138,8 @@ def finish(vertices: np.ndarray, faces: np.ndarray, params, source=None) -> tupl
     if params.bake:
         found = getattr(source, "texture", None)
         if found is None or source.faces is None:
-            notes.append("bake: the input has no base-colour texture (a textured GLB or glTF), so none was baked")
+            notes.append("bake: the input has no base-colour texture that could be read (a textured GLB or glTF), "
+                         "so none was baked")
         else:
             texture = bake(vertices, faces, layout, source.vertices, source.faces, found)
             notes.append("the baked texture is in the GLB file (OBJ holds the UVs, without a material)")

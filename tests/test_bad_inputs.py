@@ -332,7 +332,8 @@ def test_filename_without_extension_or_empty(served):
     {"temperature": 0}, {"temperature": 5}, {"top_k": 0}, {"top_k": 1}, {"top_k": 1_000_000}, {"top_p": 1e-9},
     {"top_p": 1}, {"max_vertices": 3}, {"max_vertices": 64}, {"seed": 2**32 - 1}, {"enhancer": "false"},
     {"filtering": "false"}, {"formats": "ply,obj,glb"}, {"formats": " GLB , .obj "}, {"candidates": 1},
-    {"candidates": 16},
+    {"candidates": 16}, {"topology": "quad", "uv": "true", "origin": "center", "height": "0.0001", "up": "z"},
+    {"height": "100000", "origin": "bottom", "uv": "true", "bake": "true"},
 ])
 def test_boundary_parameters_run(served, fields):
     """Accepted extremes must run to a result (or a clear failure), not crash the worker."""
@@ -345,7 +346,8 @@ def test_boundary_parameters_run(served, fields):
 FIELD = st.one_of(st.none(), st.text(max_size=12), st.integers(-(2**70), 2**70).map(str),
                   st.floats(allow_nan=True, allow_infinity=True).map(repr), st.sampled_from(["", " ", "1e999", "-0",
                   "true", "false", "0x10", "1_000", "glb,", ",", "glb,glb", "\x00", "\u2603"]))
-NAMES = ("seed", "temperature", "top_k", "top_p", "max_vertices", "enhancer", "filtering", "formats", "candidates")
+NAMES = ("seed", "temperature", "top_k", "top_p", "max_vertices", "enhancer", "filtering", "formats", "candidates",
+         "topology", "uv", "bake", "origin", "height", "up")
 
 
 @settings(max_examples=120, deadline=None, suppress_health_check=list(HealthCheck))

@@ -185,3 +185,37 @@ def test_closest_point_on_triangles():
     near = np.einsum("nk,nkd->nd", bary, tri)
     assert np.allclose(near, [[0.2, 0.2, 0], [1, 0, 0], [0, 0.5, 0]])
     assert np.allclose(near, trimesh.triangles.closest_point(tri, p))
+
+
+def test_two_textures_each_bake_onto_their_own_triangles():
+    """A scene of two textured cubes with different images: each triangle takes its own cube's image."""
+    from fastmesh.bake import bake
+    from fastmesh.quality import weld
+
+    a = trimesh.load(io.BytesIO(textured_box_glb(center=(-2.0, 0, 0))), file_type="glb", force="mesh")
+    b = trimesh.load(io.BytesIO(textured_box_glb(center=(2.0, 0, 0))), file_type="glb", force="mesh")
+    flipped = np.asarray(b.visual.material.baseColorTexture.convert("RGBA"))[:, :, [2, 1, 0, 3]]  # red <-> blue
+    b.visual.material = PBRMaterial(baseColorTexture=Image.fromarray(np.ascontiguousarray(flipped), "RGBA"))
+    scene = trimesh.Scene([a, b])
+    shape = load_shape(scene.export(file_type="glb"), "two.glb", texture=True)
+    tex = shape.texture
+    assert len(tex.images) == 2 and set(tex.image_of.tolist()) == {0, 1}
+    v, f = weld(shape.vertices, shape.faces)
+    lay = uv_layout(v, f, size=256)
+    baked = bake(v, f, lay, shape.vertices, shape.faces, tex)
+    for face, uv_rows in zip(f, lay.faces, strict=True):
+        tri = v[face]
+        n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+        want = COLOURS[side_of(n)][[2, 1, 0]] if tri[:, 0].mean() > 0 else COLOURS[side_of(n)]
+        got = sample(baked, lay.uv[uv_rows].mean(axis=0, keepdims=True))[0, :3]
+        assert np.abs(got - want).max() <= 2, (got, want)
+
+
+def test_an_image_that_does_not_decode_is_no_texture(pipe):
+    data = bytearray(textured_box_glb())
+    start = data.index(b"IDAT") + 8
+    data[start:start + 40] = b"\xff" * 40  # the compressed pixels: the header still reads
+    shape = load_shape(bytes(data), "box.glb", texture=True)
+    assert shape.texture is None and len(shape.faces) == 12
+    res = pipe.generate(shape, GenerateParams(uv=True, bake=True))
+    assert any("no base-colour texture that could be read" in n for n in res.info["notes"])

@@ -4,6 +4,7 @@ with the tiny random model (closed, flat-sided inputs take the planar path, so t
 from __future__ import annotations
 
 import io
+import json
 
 import httpx
 import numpy as np
@@ -102,3 +103,23 @@ def test_a_batch_takes_the_same_fields(served):
         job = wait_final(served.url, job_id)
         assert job["result"]["quality"]["quad_share"] == 1.0
         assert [len(f) for f in read_ply(result(served, job_id, "ply"))[1]] == [4] * 6
+
+
+def test_cli_submit_and_the_python_client(served, tmp_path, capsys):
+    from fastmesh.cli import main
+    from fastmesh.client import Client
+
+    src = tmp_path / "crate.obj"
+    src.write_bytes(trimesh.creation.box(extents=(1, 2, 3)).export(file_type="obj").encode())
+    out = tmp_path / "crate_quads.obj"
+    code = main(["submit", str(src), "--url", served.url, "-o", str(out), "--topology", "quad", "--uv",
+                 "--origin", "bottom", "--height", "1", "--up", "z", "-q", "--json"])
+    assert code == 0, capsys.readouterr().err
+    job = json.loads(capsys.readouterr().out)
+    assert job["params"]["topology"] == "quad" and job["params"]["height"] == 1.0 and job["params"]["uv"] is True
+    v, faces, vt, _ = read_obj(out.read_bytes())
+    assert [len(f) for f in faces] == [4] * 6 and len(vt)
+    assert np.allclose([v.min(0), v.max(0)], [[-0.25, -0.75, 0], [0.25, 0.75, 1]], atol=1e-6)
+    with Client(served.url) as client:
+        job = client.wait(client.submit(src, topology="quad", origin="center", uv=False, formats="ply")["id"])
+    assert job["result"]["quality"]["quad_share"] == 1.0 and job["result"]["placement"]["offset"] == [0, 0, 0]

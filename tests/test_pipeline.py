@@ -403,15 +403,6 @@ def test_cli_generate_directory_same_stem_two_outputs(tmp_path, weights):
     assert sizes[0] > 3 * sizes[1]  # each result in its own input's frame: the radius-5 sphere and the unit box
 
 
-def test_cli_generate_directory_refuses_to_overwrite_an_input(tmp_path, weights):
-    src = tmp_path / "in"
-    src.mkdir()
-    trimesh.creation.box().export(src / "a.glb")
-    trimesh.creation.box().export(src / "a.glb.glb")
-    r = _cli("generate", str(src), "-o", str(src), "--weights", weights, check=False)
-    assert r.returncode == 2 and "would overwrite an input" in r.stderr and "Traceback" not in r.stderr
-
-
 def test_cli_generate_missing_input_is_clear(tmp_path):
     r = _cli("generate", str(tmp_path / "nope.ply"), "-o", str(tmp_path / "x.glb"), check=False)
     assert r.returncode == 2 and "no such file" in r.stderr and "Traceback" not in r.stderr

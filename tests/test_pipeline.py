@@ -79,13 +79,13 @@ def test_a_turned_shape_is_also_made_in_its_canonical_frame(pipe, monkeypatch):
     from fastmesh.canonical import canonical_rotation, frame_normals
 
     calls = []
-    made = pipe._in_frame
+    made = pipe._frame
 
     def spy(shape, rotation, *args):
         calls.append(rotation)
         return made(shape, rotation, *args)
 
-    monkeypatch.setattr(pipe, "_in_frame", spy)
+    monkeypatch.setattr(pipe, "_frame", spy)
     box = trimesh.creation.box(extents=(3.0, 2.0, 1.0)).subdivide().subdivide()  # 192 faces: no low-poly input
     turn = trimesh.transformations.rotation_matrix(0.6, [1.0, 2.0, 3.0])
     turned = box.copy()

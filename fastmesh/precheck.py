@@ -45,8 +45,6 @@ def check_obj(data: bytes, max_points: int, max_faces: int) -> None:
     n_v = data.count(b"\nv ") + data.startswith(b"v ")
     if n_v > max_points:
         raise too_many(n_v, max_points)
-    if n_v == 0 and (why := not_obj(data)):  # a text of another kind renamed .obj: unreadable, not empty
-        raise ShapeError("unreadable", why)
     n_f = data.count(b"\nf") + data.startswith(b"f")
     if n_f > max_faces:
         raise too_many(n_f, max_faces, "faces")
@@ -55,6 +53,8 @@ def check_obj(data: bytes, max_points: int, max_faces: int) -> None:
         if triangles > max_faces:
             raise ShapeError("too_large", f"the OBJ file's {n_f} faces are {triangles} triangles, over the limit "
                                           f"of {max_faces} faces")
+    if n_v == 0 and (why := not_obj(data)):  # a text of another kind renamed .obj: unreadable, not empty
+        raise ShapeError("unreadable", why)
 
 
 # --------------------------------------------------------------------------- STL

@@ -124,7 +124,8 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
     Parameters
     ----------
     source : path or bytes
-        The file, or its content (then ``filename`` gives the format by extension).
+        The file, or its content (then ``filename`` gives the format by extension; without it the content
+        does, where it can: :func:`fastmesh.sniff.sniff_format`).
     filename : str, optional
         Name used for the format when ``source`` is bytes.
     max_points, max_faces : int
@@ -144,6 +145,7 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
     """
     from .pointfiles import load_numpy_points, load_text_points
     from .precheck import plain_parse_error
+    from .sniff import file_format
 
     if isinstance(source, (bytes, bytearray, memoryview)):
         data = bytes(source)
@@ -154,10 +156,9 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
             data = Path(source).read_bytes()
         except OSError as e:
             raise ShapeError("unreadable", f"cannot read {source}: {e.strerror}") from None
-    ext = _ext(name)
-    if ext not in SUPPORTED_FORMATS:
-        raise ShapeError("unsupported_format",
-                         f"unsupported file type '.{ext}'; use one of {', '.join(SUPPORTED_FORMATS)}")
+    if not name and len(data) == 0:
+        raise ShapeError("empty", "file is empty")
+    ext = file_format(data, name)
     if len(data) == 0:
         raise ShapeError("empty", "file is empty")
     try:
@@ -185,10 +186,12 @@ def too_many(n: int, limit: int, what: str = "points/vertices") -> ShapeError:
 
 def _precheck_mesh(data: bytes, ext: str, max_points: int, max_faces: int) -> None:
     """Refuse what the parser would choke on, before parsing (see :mod:`fastmesh.precheck`)."""
-    from .precheck import check_gltf, check_obj, check_off, check_ply
+    from .precheck import check_gltf, check_obj, check_off, check_ply, check_stl
 
     if ext == "obj":
         check_obj(data, max_points, max_faces)
+    elif ext == "stl":
+        check_stl(data, max_faces)
     elif ext == "off":
         check_off(data, max_points, max_faces)
     elif ext in ("gltf", "glb"):

@@ -4,7 +4,7 @@ The stages as :meth:`Pipeline.generate` runs them (``STAGES`` names their timing
 
     shape ──normalise──► surface samples                                      encode
           ──► vertex decoder: tokens → 7-bit cells, K candidates in one batch vertices
-          then, per candidate:
+          then, per candidate (every candidate's enhancer before any face model):
           ──► fidelity enhancer: continuous positions inside each cell,       enhancer
               then fitted to the input's planes, those fitted onto one
               point merged (``fitting``)
@@ -54,6 +54,7 @@ from .output import MeshOut, finish
 from .params import GenerateParams
 from .pieces import drop_strays, far_limit, pull_in, split_pinches, weld_coincident
 from .planar import polyhedron
+from .progress import STAGES, Progress
 from .quality import edge_face_counts, input_pieces, mesh_quality, weld
 from .support import surface_fit
 from .tokenizer import dequantize
@@ -66,11 +67,6 @@ __all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "
 NETWORKS = ("vertex", "enhancer", "face")
 CELLS = "cells"  # the cell evidence network (models.cells), needed by a decoder trained with it
 CELL_SEED = 0  # of the input sample the cell evidence reads
-# The stages in the order they run, with the share of the progress bar each covers (decoding dominates).
-# The candidates are encoded and decoded together; each then has its share of the stages from the enhancer on.
-STAGES = (("encode", 0.0, 0.03), ("vertices", 0.03, 0.80), ("enhancer", 0.80, 0.83), ("faces", 0.83, 0.90),
-          ("filtering", 0.90, 1.0))
-_STAGE_SPAN = {name: (lo, hi) for name, lo, hi in STAGES}
 # A result made in the canonical frame (``canonical``) is kept unless its surface_fit exceeds the input frame's
 # by more than this factor.
 FRAME_MARGIN = 1.1
@@ -90,11 +86,8 @@ def default_weights_dir() -> Path:
 
 
 @contextmanager
-def stage(name: str, timings: dict[str, float], report: Callable[[str, float], None] | None = None) -> Iterator[None]:
-    """Time the block into ``timings[name]`` (seconds add up over candidates); with ``report``, announce the
-    stage's start on the progress bar first."""
-    if report is not None:
-        report(name, _STAGE_SPAN[name][0])
+def stage(name: str, timings: dict[str, float]) -> Iterator[None]:
+    """Time the block into ``timings[name]`` (seconds add up over candidates and frames)."""
     t = time.perf_counter()
     try:
         yield
@@ -107,12 +100,12 @@ def _check(should_cancel: Callable[[], bool] | None) -> None:
         raise Cancelled("generation cancelled")
 
 
-def _timed(predict: Predictor, timings: dict[str, float], report: Callable[[str, float], None], should_cancel,
+def _timed(predict: Predictor, timings: dict[str, float], report: Callable[[float], None], should_cancel,
            n_passes: int) -> Predictor:
     """``predict`` timed as the stages count it: its first (unmasked) pass is the face stage, each masked
-    re-prediction is filtering, whose progress it reports; cancellation is checked before each pass."""
+    re-prediction is filtering, whose progress (the share of its passes done) it reports; cancellation is
+    checked before each pass."""
     calls = 0
-    lo, hi = _STAGE_SPAN["filtering"]
 
     def timed(order: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
         nonlocal calls
@@ -121,7 +114,7 @@ def _timed(predict: Predictor, timings: dict[str, float], report: Callable[[str,
             out = predict(order, mask)
         calls += 1
         if calls > 1:
-            report("filtering", lo + (hi - lo) * (calls - 1) / max(1, n_passes - 1))
+            report((calls - 1) / max(1, n_passes - 1))
         return out
 
     return timed
@@ -349,8 +342,9 @@ class Pipeline:
             Mesh or point cloud, as from ``io.load_shape``.
         params : GenerateParams
         progress : callable, optional
-            ``progress(stage, fraction)``: the stage running and the overall fraction done (0..1,
-            non-decreasing), called often while the decoder runs.
+            ``progress(stage, fraction)``: the stage running and the overall fraction done (0..1), called
+            often while the decoder runs.  Both go one way (:mod:`fastmesh.progress`): the fraction never
+            decreases, the stage never returns to one passed, and filtering is named only when it runs.
         should_cancel : callable, optional
             Polled during decoding and between stages; returning True raises :class:`Cancelled`.
 
@@ -362,7 +356,7 @@ class Pipeline:
         params = params or GenerateParams()
         params.validate(limit=self.max_vertices)
         self._target(params)  # refuses a target_faces this decoder cannot read, before any work
-        report = progress or (lambda stage, fraction: None)
+        report = Progress(progress, params.filtering)
 
         timings = {name: 0.0 for name, _, _ in STAGES}
         # A point cloud that bounds a polyhedron is closed: the winding numbers are read only where it does not.
@@ -370,7 +364,7 @@ class Pipeline:
         close, why = decide_closed(shape, params.closed) if cheap else (True, "closed_points")
         flat = self._planar(shape, params, timings) if close else None
         if flat is not None:
-            report("faces", 1.0)
+            report.done("faces")
             return self._result(shape, *flat[:2], params, {"close": close, "reason": why}, timings, tokens=0,
                                 info={"turned_degrees": 0.0, "result_from": flat[2]})
         if not cheap:
@@ -382,24 +376,17 @@ class Pipeline:
         turn = canonical_rotation(shape.vertices, frame_normals(shape))
         if not np.array_equal(turn, frames[0]):
             frames.append(turn)
-        made, errors = [], []
-        for i, rotation in enumerate(frames):
-            def part(stage, fraction, i=i):
-                report(stage, (i + fraction) / len(frames))
-
-            try:
-                made.append({**self._in_frame(shape, rotation, params, close, part, should_cancel, timings),
-                             "rotation": rotation})
-            except GenerationError as err:
-                errors.append(err)
+        made, errors = self._in_frames(shape, frames, params, close, report, should_cancel, timings)
         if not made:
             raise errors[0]
         best = self._nearest_frame(shape, made, params, timings)
         pieces_in = input_pieces(shape)  # read by the whole step and the report
         vertices, faces, result_from, pulled = _whole(shape, best["vertices"], best["faces"], params, pieces_in)
-        return self._result(shape, vertices, faces, params, decision, timings, tokens=best["tokens"],
-                            info={**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3),
-                                  "result_from": result_from, "pulled_in": pulled}, pieces_in=pieces_in)
+        result = self._result(shape, vertices, faces, params, decision, timings, tokens=best["tokens"],
+                              info={**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3),
+                                    "result_from": result_from, "pulled_in": pulled}, pieces_in=pieces_in)
+        report.done()
+        return result
 
     @staticmethod
     def _result(shape: Shape, vertices: np.ndarray, faces: np.ndarray, params: GenerateParams, decision: dict,
@@ -460,48 +447,81 @@ class Pipeline:
             fits = [surface_fit(norm.apply(m["vertices"]), m["faces"], reference, params.seed) for m in made]
         return made[-1] if fits[-1] <= FRAME_MARGIN * fits[0] else made[0]
 
-    def _in_frame(self, shape: Shape, rotation: np.ndarray, params: GenerateParams, close: bool, report,
-                  should_cancel, timings: dict) -> dict:
-        """The best of the candidates made with ``shape`` turned by ``rotation`` (3, 3), turned back: a dict of
-        vertices (input frame), faces, tokens and info."""
+    def _in_frames(self, shape: Shape, rotations: list[np.ndarray], params: GenerateParams, close: bool,
+                   report: Progress, should_cancel, timings: dict) -> tuple[list[dict], list[GenerationError]]:
+        """The best of the candidates made with ``shape`` turned by each of ``rotations`` ((3, 3) each), turned
+        back: per frame that made a mesh a dict of vertices (input frame), faces, tokens, info and rotation;
+        and the errors of the frames that made none.
+
+        Stage by stage over every frame and candidate (all encoded, all decoded, every enhancer, then the face
+        stage), so that the progress passes each stage once; each frame's candidate k is still exactly what
+        seed + k gives alone in that frame.
+        """
+        n_cand = params.candidates if params.temperature > 0 else 1  # greedy decoding: one answer
+        frames = []
+        for i, rotation in enumerate(rotations):
+            report("encode", 0.0, i, len(rotations))
+            frames.append(self._frame(shape, rotation, params, n_cand, timings))
+        for i, frame in enumerate(frames):
+            frame["decoded"] = self._decode(frame, params, report.part("vertices", i, len(frames)), should_cancel,
+                                            timings)
+        work = [(frame, k) for frame in frames for k in range(len(frame["decoded"]))]
+        for j, (frame, k) in enumerate(work):
+            report("enhancer", 0.0, j, len(work))
+            frame.setdefault("positions", []).append(self._positions(frame, params, k, should_cancel, timings))
+        for j, (frame, k) in enumerate(work):
+            report("faces", 0.0, j, len(work))
+            parts = (report.part("filtering", j, len(work)) if params.filtering else None)
+            frame.setdefault("meshes", []).append(self._faces(frame, params, k, close, parts, should_cancel, timings))
+            report("faces", 1.0, j, len(work))
+        made, errors = [], []
+        for frame in frames:
+            try:
+                made.append(self._choose(frame, params, n_cand, timings))
+            except GenerationError as err:
+                errors.append(err)
+        return made, errors
+
+    def _frame(self, shape: Shape, rotation: np.ndarray, params: GenerateParams, n_cand: int, timings: dict
+               ) -> dict:
+        """What every stage reads of ``shape`` turned by ``rotation``: the turned shape, its normalisation and
+        unit-cube vertices, the reference the candidates are scored against (None for one candidate), and the
+        cell evidence and candidates' encodings (``_encode``), timed as the encode stage."""
         if not np.array_equal(rotation, np.eye(3)):
             shape = rotate_shape(shape, rotation)
         norm = Normalization.fit(shape.vertices)
         unit = norm.apply(shape.vertices)
-        n_cand = params.candidates if params.temperature > 0 else 1  # greedy decoding: one answer
         # Candidate k is exactly what seed + k gives alone; all are scored against one sample of the input.
         reference = input_surface(shape, unit, self.triangle_config.support_points, params.seed) if n_cand > 1 else None
         with stage("encode", timings):
             cells = self._cell_grid(shape, unit)
-        best, fits, errors = None, [], []
-        decoded = self._decode(shape, unit, params, n_cand, report, should_cancel, timings, cells)
-        rest = _STAGE_SPAN["enhancer"][0]
-        for k, (pts, nrm, tokens) in enumerate(decoded):
-            def share(stage, fraction, k=k):
-                """Candidate k reports its stages after decoding inside the k-th of n_cand equal shares."""
-                report(stage, rest + (1.0 - rest) * (k + (fraction - rest) / (1.0 - rest)) / n_cand)
+            encoded = [self._encode(shape, unit, params.seed + k, params, cells) for k in range(n_cand)]
+        return {"shape": shape, "rotation": rotation, "norm": norm, "unit": unit, "reference": reference,
+                "cells": cells, "encoded": encoded}
 
-            try:
-                cand = self._candidate(shape, unit, params, params.seed + k, pts, nrm, tokens, share,
-                                       should_cancel, timings, cells, close)
-            except GenerationError as err:
-                errors.append(err)
+    def _choose(self, frame: dict, params: GenerateParams, n_cand: int, timings: dict) -> dict:
+        """The frame's candidate nearest its input surface (``support.surface_fit``), turned back to the input's
+        frame; raises the first candidate's GenerationError when none made a mesh."""
+        best, fits, errors = None, [], []
+        for k, cand in enumerate(frame["meshes"]):
+            if isinstance(cand, GenerationError):
+                errors.append(cand)
                 fits.append(None)
                 continue
             with stage("filtering", timings):  # choosing among candidates: a filtering step
-                fit = surface_fit(cand["vertices"], cand["faces"], reference, params.seed) if n_cand > 1 else 0.0
+                fit = (surface_fit(cand["vertices"], cand["faces"], frame["reference"], params.seed)
+                       if n_cand > 1 else 0.0)
             fits.append(round(float(fit), 6))
             if best is None or fit < best["fit"]:
                 best = {**cand, "fit": fit, "seed": params.seed + k}
         if best is None:
             raise errors[0]
-        report("filtering", 1.0)
         info = {"generated_vertices": best["generated_vertices"], "edges": best["edges"], "candidates": n_cand,
                 "chosen_seed": best["seed"]}
         if n_cand > 1:
             info["fits"] = fits  # per candidate: its surface_fit in the unit cube, None if it made no mesh
-        return {"vertices": norm.invert(best["vertices"]) @ rotation, "faces": best["faces"],
-                "tokens": best["tokens"], "info": info}
+        return {"vertices": frame["norm"].invert(best["vertices"]) @ frame["rotation"], "faces": best["faces"],
+                "tokens": best["tokens"], "info": info, "rotation": frame["rotation"]}
 
     def _target(self, params: GenerateParams) -> torch.Tensor | None:
         """(1,) faces asked for, as the decoder's count token reads them (None: the model's choice)."""
@@ -537,36 +557,28 @@ class Pipeline:
             evidence = self.vertex.point_evidence(pts_t, nrm_t, cells, target)
         return pts, nrm, prefix, evidence
 
-    def _decode(self, shape: Shape, unit: np.ndarray, params: GenerateParams, n_cand: int,
-                report: Callable[[str, float], None], should_cancel, timings: dict,
-                cells: torch.Tensor | None = None) -> list[tuple]:
-        """Vertex tokens of candidates ``params.seed`` ... ``params.seed + n_cand - 1``, decoded as one batch.
+    def _decode(self, frame: dict, params: GenerateParams, report: Callable[[float], None], should_cancel,
+                timings: dict) -> list[tuple]:
+        """Vertex tokens of the frame's candidates ``params.seed`` ... ``params.seed + n_cand - 1`` (its
+        ``encoded`` conditions, from :meth:`_frame`), decoded as one batch.
 
         Candidate k reads its own surface sample (seed + k) and samples with seed + k: it is what that
-        seed gives alone.  Returns per candidate its (points, normals, tokens); adds the stage times
-        to ``timings``.
+        seed gives alone.  Returns per candidate its (points, normals, tokens); adds the decoding time to
+        ``timings``; ``report(share)`` follows the vertices decoded.
         """
         _check(should_cancel)
-        # Encode: sample the surface; each network reads its share.
-        samples, prefixes, evidence = [], [], []
-        with stage("encode", timings, report):
-            for k in range(n_cand):
-                pts, nrm, prefix, ev = self._encode(shape, unit, params.seed + k, params, cells)
-                samples.append((pts, nrm))
-                prefixes.append(prefix)
-                evidence.append(ev)
-        _check(should_cancel)
-
-        # Stage I: vertex tokens.
-        lo, hi = _STAGE_SPAN["vertices"]
+        samples = [(pts, nrm) for pts, nrm, _, _ in frame["encoded"]]
+        prefixes = [prefix for _, _, prefix, _ in frame["encoded"]]
+        evidence = [ev for _, _, _, ev in frame["encoded"]]
         sampling = params.sampling(self.max_vertices)
         max_v = sampling.max_vertices
 
         def on_step(step: int, n_vert: int) -> None:
-            report("vertices", lo + (hi - lo) * min(1.0, n_vert / max_v))
+            report(min(1.0, n_vert / max_v))
 
-        with stage("vertices", timings, report):
-            ev = None if evidence[0] is None else evidence[0] if n_cand == 1 else StackedEvidence(evidence)
+        report(0.0)
+        with stage("vertices", timings):
+            ev = None if evidence[0] is None else evidence[0] if len(evidence) == 1 else StackedEvidence(evidence)
             seqs = generate(self.decoder, torch.cat(prefixes), sampling, progress=on_step,
                             should_cancel=should_cancel, evidence=ev)
         return [(pts, nrm, seq.cpu().numpy()) for (pts, nrm), seq in zip(samples, seqs, strict=True)]
@@ -590,41 +602,49 @@ class Pipeline:
         cfg = self.fit_config
         return fit_to_planes(positions, pts, nrm, fit_radius(cfg, pts, tree), cfg.rel, tree, cfg.reach)
 
-    def _candidate(self, shape: Shape, unit: np.ndarray, params: GenerateParams, seed: int, pts: np.ndarray,
-                   nrm: np.ndarray, tokens: np.ndarray, report: Callable[[str, float], None], should_cancel,
-                   timings: dict, cells: torch.Tensor | None = None, close: bool = False) -> dict:
-        """One mesh from the vertex ``tokens`` decoded for ``seed`` on the surface sample ``pts``/``nrm``,
-        in the normalised frame (``unit``: the shape's vertices there), its holes closed with ``close``; adds
-        its stage times to ``timings``."""
-        q = self.vertex_cells(tokens, cells, params)
+    def _positions(self, frame: dict, params: GenerateParams, k: int, should_cancel, timings: dict
+                   ) -> tuple | GenerationError:
+        """Candidate ``k`` of the frame as vertex cells and positions in its unit cube: ``(cells (N, 3) int64,
+        positions (N, 3), vertices decoded)``, or the GenerationError that stops it; timed as the enhancer."""
+        pts, nrm, tokens = frame["decoded"][k]
+        q = self.vertex_cells(tokens, frame["cells"], params)
         if len(q) < 3:
-            raise GenerationError("no_vertices", f"the vertex decoder produced {len(q)} vertices; try another seed")
+            return GenerationError("no_vertices", f"the vertex decoder produced {len(q)} vertices; try another seed")
         decoded = len(q)
         _check(should_cancel)
-
         # Fidelity enhancer: continuous positions inside each cell.
-        with stage("enhancer", timings, report):
+        with stage("enhancer", timings):
             if params.enhancer:
                 n_ep = self.enhancer.cfg.encoder.n_points
                 positions = self.enhancer.refine(q, pts[:n_ep], nrm[:n_ep])
             else:
                 positions = dequantize(q)
             if self.fit_config.radius is not None:
-                positions = self._fit(shape, unit, positions, seed)
+                positions = self._fit(frame["shape"], frame["unit"], positions, params.seed + k)
                 if self.fit_config.merge is not None:  # vertices fitted onto one point become one
                     keep = distinct(positions, self.fit_config.merge * CELL)
                     q, positions = q[keep], positions[keep]
                     if len(q) < 3:
-                        raise GenerationError("no_vertices", f"the vertex decoder's {decoded} vertices lie on "
-                                              f"{len(q)} points of the surface; try another seed")
-        _check(should_cancel)
+                        return GenerationError("no_vertices", f"the vertex decoder's {decoded} vertices lie on "
+                                               f"{len(q)} points of the surface; try another seed")
+        return q, positions, decoded
 
+    def _faces(self, frame: dict, params: GenerateParams, k: int, close: bool, report: Callable[[float], None] | None,
+               should_cancel, timings: dict) -> dict | GenerationError:
+        """Candidate ``k``'s mesh in the frame's unit cube from its :meth:`_positions`, its holes closed with
+        ``close``, or the GenerationError that stopped it; ``report(share)`` follows the filtering passes (None
+        without filtering).  Adds its stage times to ``timings``."""
+        placed = frame["positions"][k]
+        if isinstance(placed, GenerationError):
+            return placed
+        q, positions, decoded = placed
+        pts, nrm, tokens = frame["decoded"][k]
+        _check(should_cancel)
         # Stage II: edges in one bidirectional pass, then (optionally) filtered re-predictions.
-        report("faces", _STAGE_SPAN["faces"][0])
         n_fp = self.face.cfg.encoder.n_points
         with stage("faces", timings):
             predict = self.face.predictor(q, pts[:n_fp], nrm[:n_fp])  # encodes the condition once
-        predict = _timed(predict, timings, report, should_cancel, self.filter_config.n_passes)
+        predict = _timed(predict, timings, report or (lambda share: None), should_cancel, self.filter_config.n_passes)
         edges, logits = predict_edges(predict, len(q), self.filter_config, params.filtering)
 
         # Triangles on the input surface, scored by the edge logits, kept a surface, holes closed, flat vertices
@@ -635,10 +655,9 @@ class Pipeline:
                 tc = replace(tc, flat_tol=None)
             surface = None
             if tc.support_tol is not None or tc.max_faces_per_edge is not None or tc.selection == "surface":
-                surface = input_surface(shape, unit, tc.support_points, seed)
+                surface = input_surface(frame["shape"], frame["unit"], tc.support_points, params.seed + k)
             verts, faces = mesh_from_adjacency(positions, edges, tc, points=surface, logits=logits)
         if len(faces) == 0:
-            raise GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")
-        report("filtering", 1.0)
+            return GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")
         return {"vertices": verts, "faces": faces, "tokens": int(len(tokens)), "generated_vertices": decoded,
                 "edges": int(len(edges))}

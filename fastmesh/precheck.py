@@ -14,6 +14,7 @@ import re
 import struct
 
 from .io import ShapeError, too_many
+from .sniff import STL_HEADER, STL_TRIANGLE, not_obj
 
 FORMAT_NAMES = {"obj": "Wavefront OBJ", "glb": "binary glTF (GLB)", "gltf": "glTF JSON", "ply": "PLY",
                 "stl": "STL", "off": "OFF", "xyz": "text point", "txt": "text point", "npy": "NumPy .npy",
@@ -52,6 +53,28 @@ def check_obj(data: bytes, max_points: int, max_faces: int) -> None:
         if triangles > max_faces:
             raise ShapeError("too_large", f"the OBJ file's {n_f} faces are {triangles} triangles, over the limit "
                                           f"of {max_faces} faces")
+    if n_v == 0 and (why := not_obj(data)):  # a text of another kind renamed .obj: unreadable, not empty
+        raise ShapeError("unreadable", why)
+
+
+# --------------------------------------------------------------------------- STL
+
+
+def check_stl(data: bytes, max_faces: int) -> None:
+    """A binary STL is exactly its 84-byte header and 50 bytes per triangle it declares (its parser takes any
+    other file for ASCII STL, which starts with ``solid``): refuse more triangles than ``max_faces``, and a
+    file that is neither, such as a text of another kind renamed .stl."""
+    count = struct.unpack("<I", data[80:STL_HEADER])[0] if len(data) >= STL_HEADER else None
+    if count is not None and len(data) == STL_HEADER + STL_TRIANGLE * count:
+        if count > max_faces:
+            raise too_many(count, max_faces, "faces")
+        return
+    if data.lstrip()[:5].lower() == b"solid":
+        return
+    size = (f"is {len(data)} bytes, shorter than the 84-byte header of a binary STL" if count is None else
+            f"does not have the length its binary header declares ({count} triangles, "
+            f"{STL_HEADER + STL_TRIANGLE * count} bytes; the file has {len(data)})")
+    raise ShapeError("unreadable", f"not an STL file: it does not start with 'solid' (ASCII STL) and {size}")
 
 
 # --------------------------------------------------------------------------- OFF

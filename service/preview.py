@@ -9,7 +9,8 @@ waiting for one holds no input in memory.  Concurrent requests for the same over
 
 Each (job, what, size, wireframe) is rendered once: concurrent requests for it wait for the one
 render (single flight), whose PNG is cached in Redis for ``cache_seconds`` (at most the job's
-retention).  Sizes are snapped up to a few steps, so a job has at most a few dozen cached variants.
+retention).  Only a few sizes are rendered (another is refused with 422, never answered with an image of
+another size), so a job has at most a few dozen cached variants.
 The stored input is read only once a render slot is free, and when more distinct renders are
 pending than ``max_pending``, a request is answered 503 + Retry-After at once.  Access is that of
 the other ``/v1`` routes: the same :data:`service.deps.Owner` dependency (API key, rate limit) and
@@ -50,7 +51,8 @@ class PreviewConfig:
     min_size: int = 64  # pixels; smaller is useless, and the renderer frames poorly below ~32
     max_size: int = 1024  # pixels; a 1024 px render of a dense input mesh takes a few seconds
     default_size: int = 512
-    sizes: tuple[int, ...] = (64, 128, 256, 512, 1024)  # rendered sizes: a request gets the first >= its size
+    # The sizes served: each one a render of its own and a cache entry, so few of them.
+    sizes: tuple[int, ...] = (64, 128, 256, 512, 1024)
     # Renders are CPU-bound numpy: more at once only slow each other down (and the API with them).
     max_concurrent_renders: int = 2
     max_pending: int = 8  # distinct renders running or waiting for a slot; beyond it 503 at once
@@ -72,9 +74,20 @@ def cache_field(of: str, size: int, wireframe: bool) -> str:
     return f"{of}:{size}:{int(wireframe)}"
 
 
-def snap_size(size: int, sizes: tuple[int, ...]) -> int:
-    """The rendered size serving a request for ``size`` pixels: the smallest step at or above it."""
-    return next((s for s in sorted(sizes) if s >= size), max(sizes))
+def check_size(size: int, sizes: tuple[int, ...]) -> int:
+    """``size`` when it is one of the rendered ``sizes``.
+
+    Raises
+    ------
+    ApiError
+        422 ``invalid_parameter`` naming the sizes (an image of another size than asked would break a layout
+        that relies on it).
+    """
+    if size not in sizes:
+        raise ApiError(422, "invalid_parameter", f"size: {size} px is not one of the rendered sizes "
+                                                 f"{', '.join(map(str, sizes))}; ask for one of them and scale "
+                                                 "the image where you need another")
+    return size
 
 
 def preview_blob(store: Store, job: dict) -> tuple[str, bytes]:
@@ -195,8 +208,8 @@ def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAU
 
     @router.get("/v1/jobs/{job_id}/preview.png", response_class=Response,
                 summary="PNG preview: the result mesh, or the input before the result exists",
-                description=f"The image is rendered at the first of {', '.join(map(str, config.sizes))} px at or "
-                            "above `size` (a few sizes keep the cache small; scale it down where needed).",
+                description=f"The image is `size` px square, one of {', '.join(map(str, config.sizes))} (a few "
+                            "sizes keep the cache small; another is refused with 422).",
                 responses={**error_responses(401, 404, 422, 429, 503),
                            200: {"description": "The preview; `X-Preview-Of` says whether it shows the `result` "
                                                 "or the `input`",
@@ -205,12 +218,13 @@ def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAU
                                                                          "enum": ["result", "input"]}}}}})
     async def preview(job_id: JobId, who: Owner,
                       size: int = Query(config.default_size, ge=config.min_size, le=config.max_size,
-                                        description="Image side in pixels (snapped up to a rendered size).",
+                                        description="Image side in pixels: "
+                                                    f"{', '.join(map(str, config.sizes))}.",
                                         examples=[512]),
                       wireframe: bool = Query(False, description="Overlay the edges of the visible faces.",
                                               examples=[True])) -> Response:
+        size = check_size(size, config.sizes)
         job = await anyio.to_thread.run_sync(owned_job, store, job_id, who)
-        size = snap_size(size, config.sizes)
         of = "result" if job["status"] == "succeeded" else "input"
         field = cache_field(of, size, wireframe)
         png = await anyio.to_thread.run_sync(store.redis.hget, cache_key(store, job_id), field)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -43,6 +44,37 @@ def wait_for(pred: Callable[[], object], timeout: float = 20.0, interval: float 
         time.sleep(interval)
 
 
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def die_with_parent() -> Callable[[], None] | None:
+    """A ``preexec_fn`` that makes the child receive SIGTERM when its parent dies (Linux's ``PR_SET_PDEATHSIG``),
+    or None where there is no ``prctl``.
+
+    Our children run in sessions of their own, so a signal to the parent's process group does not reach them:
+    without this a parent killed outright (SIGKILL, a crash, a supervisor's last resort) would leave Redis,
+    the worker and the API running.  Linux sends the signal when the *thread* that started the child ends:
+    start children from a thread that lives as long as they should (the main thread).
+    """
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        import ctypes
+
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
+    parent, term = os.getpid(), int(signal.SIGTERM)
+
+    def preexec() -> None:  # runs in the forked child: nothing here may import or take a lock
+        prctl(PR_SET_PDEATHSIG, term, 0, 0, 0)
+        if os.getppid() != parent:  # the parent died before the request took effect
+            os.kill(os.getpid(), term)
+
+    return preexec
+
+
 class RedisServer:
     """A throw-away ``redis-server`` (no persistence unless ``appendonly``), stopped by :meth:`stop`.
 
@@ -73,7 +105,7 @@ class RedisServer:
         if self.maxmemory:
             args += ["--maxmemory", self.maxmemory, "--maxmemory-policy", "noeviction"]
         self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                     start_new_session=True)
+                                     start_new_session=True, preexec_fn=die_with_parent())
         client = redis.Redis(port=self.port)
 
         def up():
@@ -146,7 +178,7 @@ class WorkerProcess:
         # Own session: a Ctrl-C meant for the parent does not reach the worker; the parent stops it in order.
         self.proc = subprocess.Popen([*worker_command(), "--name", name, *args], env=settings_env(settings, **env),
                                      stdout=self._log, stderr=subprocess.STDOUT if self._log else None,
-                                     start_new_session=True)
+                                     start_new_session=True, preexec_fn=die_with_parent())
 
     @property
     def pid(self) -> int:
@@ -208,7 +240,7 @@ class ApiProcess:
             [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory", "--host", self.host,
              "--port", str(self.port), "--http", "service.http:Protocol", *self.args],
             env=settings_env(self.settings), stdout=log, stderr=subprocess.STDOUT if log else None,
-            start_new_session=True)
+            start_new_session=True, preexec_fn=die_with_parent())
         if log:
             log.close()  # the child holds its own descriptor
         return self

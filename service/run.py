@@ -3,7 +3,9 @@
     python -m service.run            # FASTMESH_PORT, FASTMESH_REDIS_URL, FASTMESH_WEIGHTS, ... apply
 
 Prints a curl example that works as printed.  Ctrl-C (or SIGTERM) stops the API, then the worker
-(a job it was running goes back to the queue), then the Redis it started.
+(a job it was running goes back to the queue), then the Redis it started; a second one while it stops
+changes nothing.  Its children end with it even if it is killed outright
+(:func:`service.processes.die_with_parent`).
 """
 
 from __future__ import annotations
@@ -105,7 +107,16 @@ def main() -> int:
     worker: WorkerProcess | None = None
     api: ApiProcess | None = None
 
+    stopping = False
+
     def stop(*_):
+        # Once: a second Ctrl-C or SIGTERM (a supervisor sending TERM twice) must not break off the shutdown
+        # the first one began, which would leave the worker and Redis running.
+        nonlocal stopping
+        if stopping:
+            os.write(1, b"[fastmesh run] already stopping\n")  # print() is not safe inside a signal handler
+            return
+        stopping = True
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, stop)
@@ -167,7 +178,7 @@ def main() -> int:
         _say(str(e))
         return 1
     finally:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not leave orphans behind
+        stopping = True  # however we got here (an error, the API exiting): a signal now must not interrupt this
         if api is not None:
             api.stop()
         if worker is not None:

@@ -134,19 +134,25 @@ def iso(t: float | None) -> str | None:
     return datetime.fromtimestamp(t, timezone.utc).isoformat().replace("+00:00", "Z")
 
 
+def _exact(values: np.ndarray) -> np.ndarray:
+    """``values`` as float32 where that holds every value exactly (most mesh files store float32), else float64."""
+    values = np.asarray(values, np.float64)
+    small = values.astype(np.float32)
+    return small if np.array_equal(small.astype(np.float64), values) else values
+
+
 def shape_to_bytes(shape: Shape) -> bytes:
     """The parsed input, as it travels to the worker and sits in Redis for the job's retention (npz, no pickle).
 
-    Compact: positions are float32 in the unit cube plus the float64 map back (so a shape far from
-    the origin keeps its resolution), faces int32, normals float32; about 12 bytes a point instead of 24.
+    Lossless, so a job gives the result the CLI and the Python API give for the same file and parameters
+    (a change of 1e-8 in a coordinate can change which vertices the decoder samples): positions and normals
+    are float32 where the file's numbers are float32 (12 bytes a point), float64 otherwise; faces int32.
     """
-    norm = Normalization.fit(shape.vertices)
-    arrays = {"unit": norm.apply(shape.vertices).astype(np.float32), "center": norm.center,
-              "scale": np.float64(norm.scale)}
+    arrays = {"vertices": _exact(shape.vertices)}
     if shape.faces is not None:
         arrays["faces"] = np.asarray(shape.faces, np.int32 if len(shape.vertices) < 2**31 else np.int64)
     if shape.normals is not None:
-        arrays["normals"] = np.asarray(shape.normals, np.float32)
+        arrays["normals"] = _exact(shape.normals)
     if shape.texture is not None:
         arrays.update(shape.texture.to_arrays())
     buf = io.BytesIO()
@@ -155,13 +161,13 @@ def shape_to_bytes(shape: Shape) -> bytes:
 
 
 def shape_from_bytes(data: bytes) -> Shape:
-    """The shape :func:`shape_to_bytes` stored (float64 positions, int64 faces); also reads the older
-    float64 layout (``vertices``) of jobs queued before it."""
+    """The shape :func:`shape_to_bytes` stored (float64 positions and normals, int64 faces); also reads the
+    unit-cube layout (``unit``, ``center``, ``scale``) of inputs stored by earlier versions."""
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
         if "unit" in z:
             vertices = Normalization(center=z["center"], scale=float(z["scale"])).invert(z["unit"])
         else:
-            vertices = z["vertices"]
+            vertices = z["vertices"].astype(np.float64)
         return Shape(vertices=vertices, faces=z["faces"].astype(np.int64) if "faces" in z else None,
                      normals=z["normals"].astype(np.float64) if "normals" in z else None,
                      texture=SurfaceTexture.from_arrays(z))

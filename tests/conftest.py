@@ -35,8 +35,8 @@ def redis_url():
 # Modules that talk to Redis (through ``redis_url``, a stack of their own, or `make run`): marked ``redis``, so
 # ``pytest -m "not redis and not browser"`` runs the method suite alone (README, Tests).
 REDIS_MODULES = {"test_assimp_corpus", "test_bad_inputs", "test_faults", "test_loadtest", "test_preview",
-                 "test_service_api", "test_service_attacks", "test_service_client", "test_service_run", "test_web",
-                 "test_web_browser", "test_worker"}
+                 "test_same_result", "test_service_api", "test_service_attacks", "test_service_client",
+                 "test_service_run", "test_web", "test_web_browser", "test_worker"}
 
 
 def pytest_collection_modifyitems(config, items):

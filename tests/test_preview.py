@@ -115,9 +115,9 @@ def png(r: httpx.Response) -> np.ndarray:
 def test_input_point_cloud_is_previewed_before_the_result_exists(open_app):
     _, _, c = open_app
     job_id = submit(c)
-    r = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 96})
+    r = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 128})
     img = png(r)
-    assert img.shape == (128, 128, 3)  # 96 px is served by the 128 px rendering
+    assert img.shape == (128, 128, 3)
     assert r.headers["x-preview-of"] == "input"
     assert r.headers["cache-control"] == "no-cache"  # the same URL shows the result later
     frac = covered(img).mean()
@@ -127,10 +127,10 @@ def test_input_point_cloud_is_previewed_before_the_result_exists(open_app):
 def test_result_preview_replaces_the_input_and_is_shaded(open_app):
     _, store, c = open_app
     job_id = submit(c)
-    before = png(c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 80}))
+    before = png(c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 128}))
     box = trimesh.creation.box(extents=(2.0, 1.0, 1.5))
     finish(store, job_id, box.vertices + 7.0, box.faces)
-    r = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 80})
+    r = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 128})
     img = png(r)
     assert r.headers["x-preview-of"] == "result"
     assert "max-age" in r.headers["cache-control"]
@@ -146,12 +146,12 @@ def test_wireframe_draws_dark_edges_and_is_cached_separately(open_app):
     job_id = submit(c)
     sphere = trimesh.creation.icosphere(subdivisions=1)
     finish(store, job_id, sphere.vertices, sphere.faces)
-    plain = png(c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 96}))
-    wired = png(c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 96, "wireframe": 1}))
+    plain = png(c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 128}))
+    wired = png(c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 128, "wireframe": 1}))
     dark = lambda im: int((im[..., :3].max(-1) < 90).sum())  # noqa: E731
     assert dark(wired) > dark(plain) + 100
     for wire in (False, True):
-        assert store.redis.hexists(cache_key(store, job_id), cache_field("result", 128, wire))  # 96 snapped up
+        assert store.redis.hexists(cache_key(store, job_id), cache_field("result", 128, wire))
 
 
 def test_preview_is_rendered_once_then_served_from_the_cache(open_app):
@@ -168,7 +168,7 @@ def test_preview_is_rendered_once_then_served_from_the_cache(open_app):
     again = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 64})
     assert again.status_code == 200 and again.content == first.content
     # Another size is a different rendering; with nothing left to render it is a clear 404.
-    gone = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 65})
+    gone = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": 128})
     assert gone.status_code == 404 and gone.json()["error"]["code"] == "not_found"
 
 
@@ -183,7 +183,7 @@ def test_deleting_a_job_deletes_its_cached_previews(open_app):
     assert not store.redis.exists(cache_key(store, job_id))
 
 
-@pytest.mark.parametrize("query", [{"size": 63}, {"size": 1025}, {"size": "big"}, {"size": 2.5},
+@pytest.mark.parametrize("query", [{"size": 63}, {"size": 1025}, {"size": "big"}, {"size": 2.5}, {"size": 384},
                                    {"wireframe": "maybe"}])
 def test_bad_preview_parameters_are_422_json(open_app, query):
     _, _, c = open_app
@@ -309,21 +309,26 @@ def test_concurrent_requests_for_one_preview_render_it_once(open_app):
     app, store, c = open_app
     job_id = big_result(store, c)
     before = app.app.state.previews.renders
-    got = get_all(c, [f"/v1/jobs/{job_id}/preview.png?size={300 + i}" for i in range(16)])
+    got = get_all(c, [f"/v1/jobs/{job_id}/preview.png?size=512" for _ in range(16)])
     assert {r.status_code for r in got} == {200}
     assert len({r.content for r in got}) == 1
     assert app.app.state.previews.renders - before == 1
     assert store.redis.hkeys(cache_key(store, job_id)) == [cache_field("result", 512, False).encode()]
 
 
-def test_sizes_snap_to_a_few_steps_so_the_cache_stays_small(open_app):
+def test_the_size_asked_is_the_size_served_or_refused(open_app):
+    """Every rendered size comes back as asked; any other is a 422 that names the sizes, never an image of
+    another size (a 384 px request once got 512 px)."""
     _, store, c = open_app
     job_id = submit(c, sphere_xyz(50))
-    for size in range(64, 1025, 41):
+    for size in (64, 128, 256, 512, 1024):
         r = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": size})
-        side = int.from_bytes(r.content[16:20], "big")
-        assert r.status_code == 200 and side >= size and side in (64, 128, 256, 512, 1024), (size, side)
-    assert store.redis.hlen(cache_key(store, job_id)) <= 5
+        assert r.status_code == 200 and r.content[16:24] == size.to_bytes(4, "big") * 2, size
+    for size in (65, 100, 384, 1000):
+        err = c.get(f"/v1/jobs/{job_id}/preview.png", params={"size": size}).json()["error"]
+        assert err == {"code": "invalid_parameter", "message": f"size: {size} px is not one of the rendered sizes "
+                       "64, 128, 256, 512, 1024; ask for one of them and scale the image where you need another"}
+    assert store.redis.hlen(cache_key(store, job_id)) == 5
     assert 0 < store.redis.ttl(cache_key(store, job_id)) <= 3600  # previews live an hour, not the job's 24 h
 
 

@@ -188,14 +188,18 @@ def test_point_cloud_normals_are_left_to_the_worker(open_api):
     store = Store(open_api.settings)
     shape = shape_from_bytes(store.get_input(r.json()["id"]))
     assert shape.normals is None
-    assert np.allclose(shape.vertices, sphere_points(2000), atol=1e-6)
+    assert np.array_equal(shape.vertices, np.loadtxt(io.BytesIO(xyz_bytes(sphere_points(2000)))))
 
 
-def test_inputs_are_stored_compactly(open_api):
+def test_inputs_are_stored_compactly_and_exactly(open_api):
+    """float32 numbers (what most mesh files hold) take 4 bytes each; other numbers are kept as they are."""
     n = 20_000
-    r = post(open_api.url, "p.npy", _npy(sphere_points(n)))
-    blob = Store(open_api.settings).get_input(r.json()["id"])
-    assert len(blob) < n * 3 * 4 + 2000, len(blob)  # float32 positions, not float64
+    store = Store(open_api.settings)
+    for dtype, size in ((np.float32, 4), (np.float64, 8)):
+        points = sphere_points(n).astype(dtype)
+        blob = store.get_input(post(open_api.url, "p.npy", _npy(points)).json()["id"])
+        assert len(blob) < n * 3 * size + 2000, (dtype, len(blob))
+        assert np.array_equal(shape_from_bytes(blob).vertices, points.astype(np.float64))
 
 
 def test_uploads_beyond_the_parsing_slots_get_429(redis_url):

@@ -140,3 +140,58 @@ def test_make_run_stops_on_ctrl_c_even_when_started_with_sigint_ignored(weights)
             proc.communicate()
             raise
     assert proc.returncode == 0 and "stopping" in rest
+
+
+def _started(weights) -> tuple[subprocess.Popen, list[int], list[str]]:
+    """`make run` on a free port, ready, with its three children (redis-server, the worker, uvicorn)."""
+    proc = subprocess.Popen([sys.executable, "-m", "service.run"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, env=run_env(FASTMESH_PORT=str(free_port()), FASTMESH_WEIGHTS=weights))
+    lines: list[str] = []
+    try:
+        wait_for(printed(proc, lines, "Ctrl-C stops everything"), 120, 0, what="the service to be ready")
+    except BaseException:
+        proc.kill()
+        raise
+    kids = children(proc.pid)
+    assert len(kids) == 3, kids
+    return proc, kids, lines
+
+
+def _gone(kids: list[int], timeout: float = 20.0) -> list[int]:
+    """The children still alive after ``timeout`` s (killed, so that a failing test leaves none behind)."""
+    try:
+        wait_for(lambda: not any(alive(k) for k in kids), timeout, 0.1, what="the children to exit")
+    except TimeoutError:
+        pass
+    left = [k for k in kids if alive(k)]
+    for k in left:
+        os.kill(k, signal.SIGKILL)
+    return left
+
+
+def test_a_second_sigterm_while_stopping_changes_nothing(weights):
+    """A supervisor that sends TERM twice: the first shutdown runs to its end, and no child outlives it."""
+    proc, kids, lines = _started(weights)
+    try:
+        proc.send_signal(signal.SIGTERM)
+        time.sleep(0.3)  # inside the shutdown: the API or the worker is being stopped
+        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=60)
+    finally:
+        left = _gone(kids)
+        if proc.poll() is None:
+            proc.kill()
+    assert left == [], f"children left running: {left}"
+    assert proc.returncode == 0 and "Traceback" not in rest and "KeyboardInterrupt" not in rest, rest
+    assert "stopping ..." in rest and "already stopping" in rest
+
+
+def test_children_end_with_a_parent_that_is_killed(weights):
+    """kill -9 of `make run` (no shutdown at all): Redis, the worker and the API still go."""
+    proc, kids, _ = _started(weights)
+    proc.kill()
+    proc.wait(10)
+    left = _gone(kids)  # they hold its stdout: read it only once they are gone
+    proc.communicate(timeout=10)
+    assert left == [], f"children left running: {left}"

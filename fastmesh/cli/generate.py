@@ -1,7 +1,7 @@
 """``fastmesh generate INPUT -o OUTPUT``: point cloud or mesh in, artist mesh out.
 
-INPUT may be a folder: then OUTPUT is a folder and every readable shape in INPUT is
-done, one line of progress per file on stderr; ``IN/a/chair.off`` becomes ``OUT/a/chair.off.glb``.
+INPUT may be a folder: then OUTPUT is a folder and every shape in INPUT (:mod:`fastmesh.cli.inputs` says which
+files are) is done, one line of progress per file on stderr; ``IN/a/chair.off`` becomes ``OUT/a/chair.off.glb``.
 ``--json`` prints one JSON object per input on stdout.
 """
 
@@ -11,9 +11,8 @@ import argparse
 import json
 import sys
 import time
-from pathlib import Path
 
-from fastmesh.io import EXPORT_FORMATS, SUPPORTED_FORMATS
+from fastmesh.io import EXPORT_FORMATS
 
 TIMING_KEYS = ("load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total")
 
@@ -96,40 +95,26 @@ def register(sub) -> None:
     p = sub.add_parser("generate", help="generate an artist mesh from a point cloud or mesh (file or folder)")
     p.add_argument("input", metavar="INPUT")
     p.add_argument("-o", "--output", required=True, metavar="OUTPUT")
-    p.add_argument("--format", choices=EXPORT_FORMATS, default=None, help="default: OUTPUT's extension, else glb")
+    p.add_argument("--format", choices=EXPORT_FORMATS, default=None,
+                   help="default: OUTPUT's extension, else glb (a file OUTPUT's extension must match it)")
+    p.add_argument("--glob", metavar="PATTERN", default=None,
+                   help="with a folder INPUT: the files to do, relative to it ('*.ply', '**/*.obj'; default: every "
+                        "shape below it)")
     add_sampling_args(p)
     add_output_args(p)
     p.add_argument("--json", action="store_true", help="one JSON object per input on stdout")
     p.set_defaults(func=_run)
 
 
-def _jobs(args) -> list[tuple[Path, Path, str]]:
-    src, out = Path(args.input), Path(args.output)
-    if src.is_dir():
-        fmt = args.format or "glb"
-        files = sorted(f for f in src.rglob("*") if f.is_file() and f.suffix.lower().lstrip(".") in SUPPORTED_FORMATS)
-        if not files:
-            raise ValueError(f"no readable shapes in {src} (extensions: {', '.join(SUPPORTED_FORMATS)})")
-        # The source extension stays in the name (chair.off -> chair.off.glb): chair.off and chair.ply give
-        # two results, never one overwriting the other.
-        jobs = [(f, out / f.relative_to(src).with_name(f"{f.name}.{fmt}"), fmt) for f in files]
-        inputs = {f.resolve() for f in files}
-        clash = next((dst for _, dst, _ in jobs if dst.resolve() in inputs), None)
-        if clash is not None:
-            raise ValueError(f"output {clash} would overwrite an input; choose another output folder")
-        return jobs
-    if not src.exists():
-        raise FileNotFoundError(f"no such file: {src}")
-    fmt = args.format or (out.suffix.lower().lstrip(".") if out.suffix.lower().lstrip(".") in EXPORT_FORMATS
-                          else "glb")
-    return [(src, out, fmt)]
-
-
 def _run(args) -> int:
     from fastmesh.io import ShapeError, load_shape
 
+    from .inputs import generate_jobs
+
     params = params_from_args(args)
-    jobs = _jobs(args)  # input errors before the (slow) torch import
+    jobs, skipped = generate_jobs(args.input, args.output, args.format, args.glob)  # before the slow torch import
+    for path, reason in skipped:
+        print(f"skipped {path}: {reason}", file=sys.stderr)
     from fastmesh.pipeline import GenerationError
 
     pipe = load_pipeline(args)

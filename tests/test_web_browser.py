@@ -196,7 +196,8 @@ def test_from_a_point_cloud_to_a_downloaded_glb(stack, page, tmp_path, shots):
 
     # The canvas drew a shaded mesh with its wireframe and the input points over it (the points arrive on
     # their own request, which a loaded machine can answer after the mesh's).
-    page.wait_for_function("fastmesh.viewer.points !== null", timeout=JOB_TIMEOUT_MS)
+    page.wait_for_function("fastmesh.viewer.points !== null && !fastmesh.viewer.frameRequested",
+                           timeout=JOB_TIMEOUT_MS)
     with_all = page.evaluate(CANVAS_STATS)
     shots(page, "result")
     assert with_all["covered"] > 0.03 and with_all["colors"] >= 4, with_all

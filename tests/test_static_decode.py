@@ -155,6 +155,12 @@ def test_progress_and_cancel_at_the_checks_and_a_row_with_no_finite_logit_fails_
     with pytest.raises(Cancelled):
         generate(StaticDecoder(m), torch.cat(prefix), cfg, evidence=StackedEvidence(evidence),
                  should_cancel=lambda: True)
+    # A row the caller stops ends there (no EOS); the others go on as they would.
+    whole = StaticDecoder(m).generate(torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
+    cut = StaticDecoder(m).generate(torch.cat(prefix), cfg, evidence=StackedEvidence(evidence), progress_every=4,
+                                    rows=lambda step, n: [k == 1 for k in range(B)])
+    assert len(cut[1]) == 5 and cut[1].tolist() == whole[1][:5].tolist() and vt.EOS not in cut[1].tolist()
+    assert [r.tolist() for k, r in enumerate(cut) if k != 1] == [r.tolist() for k, r in enumerate(whole) if k != 1]
     with torch.no_grad():
         m.head.weight.fill_(float("nan"))
     with pytest.raises(FloatingPointError, match="no token"):
@@ -184,15 +190,39 @@ def _inputs_on(m, seed: int, device: str):
 @pytest.mark.skipif(not CUDA, reason="needs CUDA")
 @pytest.mark.parametrize("temperature", [0.0, 1.0])
 def test_cuda_graph_gives_the_eager_static_steps_tokens(temperature):
+    """Three rows: the graph's batch is padded to four (a finished copy of row 0), the eager one is not."""
     m = _model(6, True, True).cuda()
-    prefix, evidence = _inputs_on(m, 7, "cuda")
+    prefix, evidence = (x[:3] for x in _inputs_on(m, 7, "cuda"))
     cfg = _cfg(temperature=temperature, max_vertices=40)
     graph, eager = StaticDecoder(m, capture=True), StaticDecoder(m, capture=False)
     for _ in range(2):  # the first call captures, the second replays the kept graph
         got = generate(graph, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
         want = generate(eager, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
         assert [r.tolist() for r in got] == [r.tolist() for r in want]
-    assert next(iter(graph._batches.values())).graph is not None
+    batch = next(iter(graph._batches.values()))
+    assert batch.graph is not None and batch.state["out"].shape[0] == 4
     if temperature == 0:  # and greedy, the eager loop's tokens on the same device
         assert [r.tolist() for r in got] == [r.tolist() for r in generate(m, torch.cat(prefix), cfg,
                                                                           evidence=StackedEvidence(evidence))]
+
+
+def test_the_pipeline_decodes_with_static_shapes_when_asked_and_greedy_gives_the_eager_mesh(monkeypatch):
+    from fastmesh.models.onnx_decode import choose_decoder
+    from fastmesh.params import GenerateParams
+    from fastmesh.pipeline import Pipeline
+    from fastmesh.primitives import point_cloud, primitive
+
+    m = _model(0)
+    monkeypatch.setenv("FASTMESH_DECODER", "static")
+    assert isinstance(choose_decoder(m, "cpu"), StaticDecoder)
+    static = Pipeline.random(seed=0)
+    assert static.info()["decoder"] == "static"
+    monkeypatch.setenv("FASTMESH_DECODER", "torch")
+    eager = Pipeline.random(seed=0)
+    shape = point_cloud(primitive("torus"), 3000)
+    params = GenerateParams(seed=3, temperature=0, max_vertices=24, closed="false")
+    a, b = static.generate(shape, params), eager.generate(shape, params)
+    assert a.tokens == b.tokens > 10
+    assert (a.vertices == b.vertices).all() and (a.faces == b.faces).all()
+    sampled = static.generate(shape, GenerateParams(seed=3, max_vertices=24, closed="false", candidates=2))
+    assert sampled.info["candidates"] == 2 and len(sampled.faces) > 0

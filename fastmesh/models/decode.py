@@ -26,6 +26,7 @@ temperature 0 both loops take the same argmax.
 
 from __future__ import annotations
 
+import logging
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import astuple
@@ -42,8 +43,9 @@ from .layers import apply_rotary, rotary
 from .sampling import choose_static, seed_key
 from .vertex import VertexDecoder, add_count_bias, grammar_mask
 
+log = logging.getLogger(__name__)
 CHECK_EVERY = 16  # steps between two reads of the loop's state by the host
-MAX_GRAPHS = 4  # captured batch shapes kept per decoder
+MAX_GRAPHS = 8  # captured batch shapes kept per decoder (batch sizes 1, 2, 4, ... 128)
 # Evidence attributes with one row per shape (the others are shared tables and index helpers).
 _ROWS = ("levels", "occ_incl", "occ_excl", "spread", "cells", "given", "cell_expected", "cell_cum", "cell_incl",
          "cell_excl")
@@ -206,14 +208,16 @@ class _Batch:
         self.graph = None
 
     def reset(self, prefix: torch.Tensor, keys: Sequence[int], evidence: Evidence | None,
-              gate: CellGate | None) -> None:
-        """Start a new generation of ``prefix`` (B, M, dim): prefill, state at BOS, this job's evidence."""
+              gate: CellGate | None, live: int) -> None:
+        """Start a new generation of ``prefix`` (B, M, dim): prefill, state at BOS, this call's evidence; the rows
+        from ``live`` on are padding, finished from the start."""
         s = self.state
         if evidence is not None:
             _copy_evidence(self.evidence, evidence)
             if "bias" in s:
                 bias_table(evidence, s["bias"])
         if gate is not None:
+            self.gate.cells.copy_(gate.cells)
             self.gate.open_blocks.copy_(gate.open_blocks)
             self.gate.free.copy_(gate.free)
         s["logits"].copy_(prefill(self.model, prefix, self.cache))
@@ -226,6 +230,7 @@ class _Batch:
             s[name].fill_(-1)
         for name in ("n_vert", "n_in_block", "done", "stuck"):
             s[name].zero_()
+        s["done"][live:] = True
 
     def step(self, span: int | None = None) -> None:
         """Choose the token of ``step`` for every row, advance, and run it through the decoder (attending to the
@@ -234,6 +239,7 @@ class _Batch:
         logits, cell_bias = masked_logits(s["logits"], s, self.cfg, self.evidence, self.gate, self.counts)
         nxt, stuck = choose_static(logits, self.cfg, s["keys"], s["step"], cell_bias)
         s["stuck"] |= stuck & ~s["done"]
+        nxt = torch.where(s["done"], vt.PAD, nxt)  # a row ended (EOS) or stopped by the caller takes PAD
         advance(s, nxt)
         s["logits"].copy_(decode_one_token(self.model, self.cache, nxt[:, None], s["block"][:, None],
                                            self.m + s["step"], span))
@@ -306,40 +312,59 @@ class StaticDecoder:
     @torch.inference_mode()
     def generate(self, prefix: torch.Tensor, cfg: SamplingConfig, progress: Callable[[int, int], None] | None = None,
                  should_cancel: Callable[[], bool] | None = None, progress_every: int = CHECK_EVERY,
-                 evidence: Evidence | StackedEvidence | None = None, seeds: Sequence[int] | None = None
-                 ) -> list[torch.Tensor]:
-        """``generate.generate``'s contract (row k samples with seed ``cfg.seed + k``, or ``seeds[k]``), decoded
-        with static shapes.  The host reads the loop's state every ``progress_every`` steps: then ``progress`` and
-        ``should_cancel`` run, and the loop stops once every row has finished."""
+                 evidence: Evidence | StackedEvidence | None = None, seeds: Sequence[int] | None = None,
+                 rows: Callable[[int, list[int]], list[bool]] | None = None) -> list[torch.Tensor]:
+        """``generate.generate``'s contract, decoded with static shapes: row k samples with seed ``cfg.seed + k``
+        (or ``seeds[k]``).  The host reads the loop's state every ``progress_every`` steps: then ``progress``,
+        ``should_cancel`` and ``rows`` run (``rows(step, n_vert)`` returns a flag per row, True to stop it there:
+        its sequence ends without EOS), and the loop stops once every row has finished."""
         cfg.validate()
         b = prefix.shape[0]
         seeds = [cfg.seed + k for k in range(b)] if seeds is None else list(seeds)
         if len(seeds) != b:
             raise ValueError(f"{len(seeds)} seeds for {b} rows")
-        ev = None if evidence is None else stack_evidence(_rows_of(evidence))
-        gate = cell_gate(ev, cfg)
-        batch, new = self._batch(prefix, cfg, ev, gate)
-        keys = [seed_key(s) for s in seeds]
-        if batch.gate is not None:
-            batch.gate.cells.copy_(gate.cells)
-        batch.reset(prefix, keys, ev, gate)
-        if new and self.capture:
-            batch.capture()
-            batch.reset(prefix, keys, ev, gate)
+        batch = self._start(prefix, cfg, evidence, seeds)
         s = batch.state
         for step in range(1, batch.max_tokens):
             batch.run_step(step)
             if step % progress_every == 0 or step == batch.max_tokens - 1:
-                done, stuck, n_vert = torch.stack([s["done"].all(), s["stuck"].any(), s["n_vert"].max()]).tolist()
-                if stuck:
+                read = torch.cat([torch.stack([s["done"].all(), s["stuck"].any()]).long(), s["n_vert"][:b]]).tolist()
+                if read[1]:
                     raise FloatingPointError("the vertex decoder's logits allow no token (none is finite)")
                 if should_cancel is not None and should_cancel():
                     raise Cancelled("generation cancelled")
                 if progress is not None:
-                    progress(step, n_vert)
-                if done:
+                    progress(step, max(read[2:]))
+                if rows is not None:
+                    s["done"][:b] |= torch.tensor(rows(step, read[2:]), dtype=torch.bool).to(s["done"].device)
+                    read[0] = bool(s["done"].all())
+                if read[0]:
                     break
-        return _sequences(s["out"])
+        return _sequences(s["out"][:b])
+
+    def _start(self, prefix: torch.Tensor, cfg: SamplingConfig, evidence: Evidence | StackedEvidence | None,
+               seeds: list[int]) -> _Batch:
+        """The static batch of this call, reset to its inputs (captured first where it is new).
+
+        With capture the rows are padded to a power of two (copies of row 0, finished from the start), so the
+        batches of a worker, which vary in size, share a few graphs.
+        """
+        b = prefix.shape[0]
+        pad = (1 << (b - 1).bit_length()) - b if self.capture else 0
+        prefix = torch.cat([prefix, prefix[:1].expand(pad, -1, -1)]) if pad else prefix
+        ev = None if evidence is None else stack_evidence(_rows_of(evidence) + [_rows_of(evidence)[0]] * pad)
+        gate = cell_gate(ev, cfg)
+        batch, new = self._batch(prefix, cfg, ev, gate)
+        keys = [seed_key(x) for x in seeds] + [0] * pad
+        batch.reset(prefix, keys, ev, gate, live=b)
+        if new and self.capture:
+            try:
+                batch.capture()
+            except RuntimeError as e:  # an op the graph cannot hold: the same steps, run eagerly
+                log.warning("CUDA graph capture of the decode step failed (%s); decoding without it", e)
+                batch.graph = None
+            batch.reset(prefix, keys, ev, gate, live=b)
+        return batch
 
 
 def _sequences(out: torch.Tensor) -> list[torch.Tensor]:

@@ -241,13 +241,14 @@ def _check(dec: OrtDecoder, atol: float = 1e-3) -> None:
             raise RuntimeError(f"ONNX decode step (batch {b}) differs from eager by {float(err):.2e}")
 
 
-def choose_decoder(model: VertexDecoder, device: torch.device | str):
+def choose_decoder(model: VertexDecoder, device: torch.device | str, threads: int | None = None):
     """The decoder ``generate`` should run: an :class:`OrtDecoder`, a ``decode.StaticDecoder`` or ``model`` itself.
 
     ``FASTMESH_DECODER`` = ``onnx`` | ``torch`` | ``static`` | ``auto`` (default: static shapes with the step
     captured as a CUDA graph on CUDA, onnx on CPU when onnxruntime imports: on a CPU the static loop is slower,
-    ``benchmarks/decode_paths.py``).  Any failure to export or to match eager logs a warning and falls back to
-    eager: a worker never dies for want of the fast path.
+    ``benchmarks/decode_paths.py``).  ``threads``: ONNX Runtime's threads (default torch's count).  Any failure
+    to export or to match eager logs a warning and falls back to eager: a worker never dies for want of the fast
+    path.
     """
     want = os.environ.get("FASTMESH_DECODER", "auto").strip().lower() or "auto"
     if want not in ("auto", "onnx", "torch", "static"):
@@ -261,7 +262,7 @@ def choose_decoder(model: VertexDecoder, device: torch.device | str):
     if want == "torch" or kind != "cpu":
         return model
     try:
-        dec = OrtDecoder(model)
+        dec = OrtDecoder(model, threads=threads)
         _check(dec)
         return dec
     except ImportError as e:

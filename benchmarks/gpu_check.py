@@ -11,7 +11,7 @@ the same runs on the CPU with fewer runs.
    fill ``wheels/`` on a machine with a network, for the GPU machine's Python (here 3.12) and what it lacks::
 
        python -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \\
-           --platform manylinux2014_x86_64 --platform manylinux_2_17_x86_64 -d wheels trimesh mapbox-earcut
+           --platform manylinux2014_x86_64 --platform manylinux_2_28_x86_64 -d wheels trimesh mapbox-earcut
 
 2. ``pytest -m gpu`` over the test files that hold GPU tests (``tests/test_gpu.py``, ``tests/test_static_decode.py``):
    CUDA and CPU results of the same quality, ``FASTMESH_GPU_CHECK_RUNS`` generate runs on varied inputs with no

@@ -191,6 +191,8 @@ def _inputs_on(m, seed: int, device: str):
 @pytest.mark.parametrize("temperature", [0.0, 1.0])
 def test_cuda_graph_gives_the_eager_static_steps_tokens(temperature):
     """Three rows: the graph's batch is padded to four (a finished copy of row 0), the eager one is not."""
+    xs = torch.randint(0, 2**32, (4096,), generator=torch.Generator().manual_seed(0))
+    assert torch.equal(hash32(xs.cuda()).cpu(), hash32(xs))  # int64 products wrap alike on both devices
     m = _model(6, True, True).cuda()
     prefix, evidence = (x[:3] for x in _inputs_on(m, 7, "cuda"))
     cfg = _cfg(temperature=temperature, max_vertices=40)

@@ -9,7 +9,7 @@ logits for NaN reads a value back to the host every token.  Here every draw is a
 which picks token i with probability p_i, and u_i is a hash of (the row's seed, the step, the stream, i):
 a pure function of integers, so the same on every device, in any batch, in a graph or not, and a row's
 draws do not depend on the other rows.  The hash is Chris Wellons' ``lowbias32`` on 32-bit values held
-in int64 tensors (each product split in 16-bit halves, so no int64 product overflows).
+in int64 tensors: some twenty integer kernels a draw.
 
 The two steps of ``choose_next`` are kept (the token's kind at ``structure_temperature``, then the token
 of that kind at ``temperature`` with top-k / top-p and the cell weight on the offsets), with the same
@@ -26,20 +26,19 @@ from .generate import _kind_mass, _nan_masked, token_kinds, token_probs
 
 MASK32 = 0xFFFFFFFF
 STREAM_KIND, STREAM_TOKEN = 0, 1  # the two draws of a step
-_IDS: dict[torch.device, torch.Tensor] = {}  # device -> (VOCAB,) hash of every token id
-
-
-def _mul32(x, c: int):
-    """``x * c mod 2^32`` for 32-bit ``x`` (int or int64 tensor) without an int64 product above 2^48."""
-    return (x * (c & 0xFFFF) + (((x * (c >> 16)) & 0xFFFF) << 16)) & MASK32
+_IDS: dict[torch.device, torch.Tensor] = {}  # device -> (2, VOCAB) hash of every token id per stream
 
 
 def hash32(x):
-    """lowbias32 of 32-bit values (a Python int or an int64 tensor of values in ``[0, 2^32)``)."""
+    """lowbias32 of 32-bit values (a Python int or an int64 tensor of values in ``[0, 2^32)``).
+
+    A product of two 32-bit values can pass 2^63 and wrap in int64; its low 32 bits, all that is kept, are
+    the same (two's complement, on every device), and a Python int keeps them exactly.
+    """
     x = x ^ (x >> 16)
-    x = _mul32(x, 0x7FEB352D)
+    x = (x * 0x7FEB352D) & MASK32
     x = x ^ (x >> 15)
-    x = _mul32(x, 0x846CA68B)
+    x = (x * 0x846CA68B) & MASK32
     return x ^ (x >> 16)
 
 
@@ -49,27 +48,30 @@ def seed_key(seed: int) -> int:
 
 
 def _token_hashes(device: torch.device) -> torch.Tensor:
+    """(2, VOCAB) a hash of every token id, one row per stream."""
     if device not in _IDS:
-        _IDS[device] = hash32(torch.arange(vt.VOCAB_SIZE, device=device, dtype=torch.long) ^ 0x85EBCA6B)
+        ids = torch.arange(vt.VOCAB_SIZE, device=device, dtype=torch.long)
+        _IDS[device] = torch.stack([hash32(ids ^ 0x85EBCA6B), hash32(ids ^ 0xC2B2AE35)])
     return _IDS[device]
 
 
 def gumbel(keys: torch.Tensor, step: torch.Tensor, stream: int, ids: torch.Tensor) -> torch.Tensor:
-    """Gumbel noise of B rows at one step, one value per id.
+    """Gumbel noise of B rows at one step, one value per id: ``-log(-log(u))``, ``u`` from the hash of the row's
+    key, the step, the stream and the id.
 
     Parameters
     ----------
     keys : (B,) int64 row keys (``seed_key``).
-    step : (1,) int64 step counter (a tensor, so a captured graph reads its current value).
-    stream : which draw of the step.
+    step : (1,) int64 step counter (a tensor, so a captured graph reads its current value), or (B,).
+    stream : which draw of the step (``STREAM_KIND`` or ``STREAM_TOKEN``).
     ids : (B, n) or (n,) int64 token ids in ``[0, VOCAB)``.
 
     Returns
     -------
     (B, n) float32.
     """
-    s = hash32(keys ^ hash32((step * 2 + stream) & MASK32))
-    h = hash32(s[:, None] ^ _token_hashes(keys.device)[ids])
+    s = hash32((keys + step * 0x9E3779B9) & MASK32)  # the row's value at this step (Weyl sequence, then mixed)
+    h = hash32(s[:, None] ^ _token_hashes(keys.device)[stream][ids])
     u = ((h >> 8).float() + 0.5) * (1.0 / (1 << 24))  # in (0, 1), 24 bits: exact in float32
     return -torch.log(-torch.log(u))
 

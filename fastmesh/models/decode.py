@@ -10,14 +10,16 @@ device tensors of fixed shapes, and one step is
     decode_one_token  (the token through the network, its keys/values written at ``prefix + step``)
 
 with the step counter itself a device tensor, so the same launches serve every step.  On CUDA the step is
-captured once per batch shape (``torch.cuda.CUDAGraph``) and replayed; elsewhere it runs eagerly, the same
-code.  The host reads back one small tensor every ``CHECK_EVERY`` steps (all rows finished? a row with no
-finite logit? the vertex count for progress) and polls ``should_cancel`` there.
+captured once per batch shape (``torch.cuda.CUDAGraph``; batches padded to a power of two) and replayed;
+elsewhere it runs eagerly, the same code.  The host reads back one small tensor every ``CHECK_EVERY`` steps
+(all rows finished? a row with no finite logit? the vertex count for progress) and polls ``should_cancel``
+there.
 
 The KV cache (``StaticCache``) is allocated at full length (prefix + 2 * max_vertices + 2 positions); a
 step writes its position with ``index_copy_`` and attends to the whole buffer under a mask of the positions
-written.  Finished rows stay in the batch, decoding PAD, so shapes never change.  On CUDA the evidence's
-bias of every block is tabled once per call and a step reads its row with one gather (``bias_table``).
+written (uncaptured on a CPU, to those positions only: ``decode_one_token``'s ``span``).  Finished rows stay
+in the batch, decoding PAD, so shapes never change.  On CUDA the evidence's bias of every block is tabled
+once per call and a step reads its row with one gather (``bias_table``).
 
 Draws differ from ``generate`` by construction (counter-based noise instead of ``torch.Generator``): row k
 samples from the hash of seed ``cfg.seed + k`` and the step, the same alone or in any batch.  At

@@ -12,12 +12,15 @@ import json
 import os
 import statistics
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 from gpu_inputs import smooth_cloud, varied
 
+from fastmesh.io import Normalization
+from fastmesh.models.generate import StackedEvidence, generate
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 
@@ -104,19 +107,15 @@ def test_a_batch_gives_each_job_what_it_gives_alone(pipe):
                 alone.append(e)
         assert all(_same(a, b) for a, b in zip(batched, alone, strict=True))
         return
-    from fastmesh.io import Normalization
-    from fastmesh.pipeline import STAGES
-
     shape = smooth_cloud("wavy", 7)
     unit = Normalization.fit(shape.vertices).apply(shape.vertices)
+    params = GenerateParams(seed=11, candidates=3)
     cells = pipe._cell_grid(shape, unit)
-
-    def tokens(seed: int, n: int) -> list[list[int]]:
-        timings = {name: 0.0 for name, _, _ in STAGES}
-        made = pipe._decode(shape, unit, GenerateParams(seed=seed, candidates=n), n, lambda *a: None, None, timings,
-                            cells)
-        return [t.tolist() for _, _, t in made]
-
-    batched = tokens(11, 3)
-    assert batched == [tokens(11 + k, 1)[0] for k in range(3)]
+    encoded = [pipe._encode(shape, unit, params.seed + k, params, cells) for k in range(3)]
+    prefix, evidence = [e[2] for e in encoded], [e[3] for e in encoded]
+    cfg = params.sampling(pipe.max_vertices)
+    batched = generate(pipe.decoder, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
+    alone = [generate(pipe.decoder, prefix[k], replace(cfg, seed=params.seed + k), evidence=evidence[k])[0]
+             for k in range(3)]
+    assert [t.tolist() for t in batched] == [t.tolist() for t in alone]
     assert len({len(t) for t in batched}) > 1  # three different sequences

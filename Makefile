@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test lint install bench-tokens web chromium assimp blender blender-addon
+.PHONY: run test lint install bench-tokens web chromium assimp blender blender-addon gpu-check
 
 # torch: PyPI's default Linux wheel is the CUDA build (about 2.7 GB with its nvidia-* packages).  On Linux
 # without an NVIDIA GPU we install the CPU build (about 200 MB) from PyTorch's CPU index instead; its own
@@ -62,3 +62,11 @@ lint: $(STAMP)
 
 bench-tokens: $(STAMP)
 	$(BIN)/python benchmarks/tokens.py ../shared/corpus
+
+# The device check: on a machine with one CUDA GPU and PyTorch (nothing else of ours), given this repository and,
+# without a network there, ./wheels (benchmarks/gpu_check.py says how to fill it): installs what is missing,
+# runs `pytest -m gpu` and the throughput benchmark, ends with one JSON line.  Without CUDA: the same on the CPU,
+# fewer runs.  Python: this checkout's .venv where there is one, else $(PY).
+GPU_PY := $(if $(wildcard $(BIN)/python),$(BIN)/python,$(PY))
+gpu-check:
+	$(GPU_PY) benchmarks/gpu_check.py

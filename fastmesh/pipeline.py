@@ -73,6 +73,10 @@ FRAME_MARGIN = 1.1
 # torch CPU threads when neither the caller nor $FASTMESH_TORCH_THREADS says: decoding one sequence is a chain of
 # small matrix-vector products, and on our 2-core machine a second thread made generation slower, not faster.
 CPU_THREADS = 1
+# Threads of the stages that run with fewer than the pipeline's own count (``Pipeline.threads``): the vertex
+# decoder's step is too small to share (on 16 cores, 16 threads made the vertex stage 5x slower than 1), while
+# the cell network and the face stage read thousands of points at once.  benchmarks/threads.py times each stage.
+STAGE_THREADS = {"vertices": 1}
 # A low-poly mesh input of a polyhedron is given back as it is when it has at most this many times the faces
 # of the polyhedron rebuilt from its planes (which has no vertex inside a face, such as a cylinder cap's centre).
 LOW_POLY_SLACK = 1.25
@@ -231,6 +235,7 @@ class Pipeline:
         # Process-wide (torch has one thread pool), and before the decoder is built: its ONNX session
         # takes torch's count.  See choose_threads.
         self.threads = choose_threads(self.device, threads)
+        self.stage_threads = dict(STAGE_THREADS)
         if self.threads is not None:
             torch.set_num_threads(self.threads)
         if vertex.cfg.evidence_cells and cells is None:
@@ -246,10 +251,28 @@ class Pipeline:
         self.source = source
         self.max_vertices = int(vertex.cfg.max_vertices)
         # Decode steps run in ONNX Runtime on CPU when it is installed (~3x faster per token than
-        # eager); FASTMESH_DECODER=torch|onnx forces a backend.  A snapshot of the vertex weights.
-        self.decoder = choose_decoder(self.vertex, self.device)
+        # eager), with static shapes and a captured graph on CUDA; FASTMESH_DECODER=torch|onnx|static forces a
+        # backend.  A snapshot of the vertex weights.
+        self.decoder = choose_decoder(self.vertex, self.device, threads=self._stage_threads("vertices"))
 
     # ------------------------------------------------------------------ construction
+
+    def _stage_threads(self, name: str) -> int | None:
+        """torch threads of stage ``name`` (None: torch's own count, on a GPU)."""
+        return None if self.threads is None else min(self.threads, self.stage_threads.get(name, self.threads))
+
+    @contextmanager
+    def threads_for(self, name: str) -> Iterator[None]:
+        """Run the block with stage ``name``'s torch threads (``STAGE_THREADS``), then the pipeline's again."""
+        n, before = self._stage_threads(name), torch.get_num_threads()
+        if n is None or n == before:
+            yield
+            return
+        torch.set_num_threads(n)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(before)
 
     @classmethod
     def from_pretrained(cls, weights: str | os.PathLike | None = None, device: str | None = None,
@@ -257,7 +280,8 @@ class Pipeline:
         """Load ``vertex/``, ``enhancer/`` and ``face/`` from ``weights`` (default: the shipped ones).
 
         ``threads``: torch CPU threads (default ``$FASTMESH_TORCH_THREADS``, else 1 on CPU: the fastest
-        measured for generating one mesh at a time); it applies to the whole process.
+        measured for generating one mesh at a time); it applies to the whole process, except for the stages of
+        ``STAGE_THREADS`` (the vertex decoder runs on one).
         """
         root = Path(weights) if weights else default_weights_dir()
         missing = [n for n in NETWORKS if not (root / n / "model.safetensors").exists()]
@@ -577,7 +601,7 @@ class Pipeline:
             report(min(1.0, n_vert / max_v))
 
         report(0.0)
-        with stage("vertices", timings):
+        with stage("vertices", timings), self.threads_for("vertices"):
             ev = None if evidence[0] is None else evidence[0] if len(evidence) == 1 else StackedEvidence(evidence)
             seqs = generate(self.decoder, torch.cat(prefixes), sampling, progress=on_step,
                             should_cancel=should_cancel, evidence=ev)

@@ -229,7 +229,8 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
 
     Parameters
     ----------
-    model : the decoder, or an ``onnx_decode.OrtDecoder`` wrapping it (same ``prefill``/``decode_step``).
+    model : the decoder, or an ``onnx_decode.OrtDecoder`` wrapping it (same ``prefill``/``decode_step``), or a
+        ``decode.StaticDecoder`` (which runs its own static-shape loop, drawing from counter-based noise).
     prefix : (B, M, dim) condition from ``model.condition``.
     cfg : sampling settings.
     progress : called as ``progress(step, max_vertices_so_far)`` every ``progress_every`` steps.
@@ -241,6 +242,8 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
     -------
     list of B int64 tensors: BOS ... EOS (EOS absent only if the token budget ran out).
     """
+    if getattr(model, "backend", None) == "static":  # models.decode: its own loop, with static shapes
+        return model.generate(prefix, cfg, progress, should_cancel, progress_every, evidence)
     cfg.validate()
     b, m, _ = prefix.shape
     device = prefix.device

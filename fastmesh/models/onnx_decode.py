@@ -241,21 +241,28 @@ def _check(dec: OrtDecoder, atol: float = 1e-3) -> None:
             raise RuntimeError(f"ONNX decode step (batch {b}) differs from eager by {float(err):.2e}")
 
 
-def choose_decoder(model: VertexDecoder, device: torch.device | str):
-    """The decoder ``generate`` should run: an :class:`OrtDecoder` or ``model`` itself.
+def choose_decoder(model: VertexDecoder, device: torch.device | str, threads: int | None = None):
+    """The decoder ``generate`` should run: an :class:`OrtDecoder`, a ``decode.StaticDecoder`` or ``model`` itself.
 
-    ``FASTMESH_DECODER`` = ``onnx`` | ``torch`` | ``auto`` (default: onnx on CPU when
-    onnxruntime imports).  Any failure to export or to match eager logs a warning and
-    falls back to eager: a worker never dies for want of the fast path.
+    ``FASTMESH_DECODER`` = ``onnx`` | ``torch`` | ``static`` | ``auto`` (default: static shapes with the step
+    captured as a CUDA graph on CUDA, onnx on CPU when onnxruntime imports: on a CPU the static loop is slower,
+    ``benchmarks/decode_paths.py``).  ``threads``: ONNX Runtime's threads (default torch's count).  Any failure
+    to export or to match eager logs a warning and falls back to eager: a worker never dies for want of the fast
+    path.
     """
     want = os.environ.get("FASTMESH_DECODER", "auto").strip().lower() or "auto"
-    if want not in ("auto", "onnx", "torch"):
-        log.warning("FASTMESH_DECODER=%r is not auto|onnx|torch; using auto", want)
+    if want not in ("auto", "onnx", "torch", "static"):
+        log.warning("FASTMESH_DECODER=%r is not auto|onnx|torch|static; using auto", want)
         want = "auto"
-    if want == "torch" or torch.device(device).type != "cpu":
+    kind = torch.device(device).type
+    if want == "static" or (want == "auto" and kind == "cuda"):
+        from .decode import StaticDecoder
+
+        return StaticDecoder(model)
+    if want == "torch" or kind != "cpu":
         return model
     try:
-        dec = OrtDecoder(model)
+        dec = OrtDecoder(model, threads=threads)
         _check(dec)
         return dec
     except ImportError as e:

@@ -23,6 +23,10 @@ This is the Python API the CLI, the worker and the evaluation call::
     pipe = Pipeline.from_pretrained()              # shipped weights, CPU or CUDA
     result = pipe.generate(load_shape("chair.ply"), GenerateParams(seed=1))
     open("chair.glb", "wb").write(result.export("glb"))
+
+``generate`` runs :meth:`Pipeline.steps`, the same stages as a generator that hands its vertex decoding to the
+caller; ``generate_batch`` (and a worker with ``FASTMESH_MAX_BATCH`` > 1) runs several jobs' steps together and
+decodes their candidates as one batch (:mod:`fastmesh.batch`).
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -38,6 +42,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .batch import DecodeRequest
 from .canonical import canonical_rotation, frame_normals, rotate_shape, turned_degrees
 from .closure import decide_closed
 from .facecount import TOLERANCE as COUNT_TOLERANCE
@@ -48,7 +53,7 @@ from .io import Normalization, Shape, input_surface, sample_surface
 from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model
 from .models.encoder import EncoderConfig
-from .models.generate import Cancelled, StackedEvidence, generate
+from .models.generate import Cancelled
 from .models.onnx_decode import choose_decoder
 from .output import MeshOut, finish
 from .params import GenerateParams
@@ -377,6 +382,48 @@ class Pipeline:
         ValueError for bad parameters, :class:`GenerationError` when no mesh comes out,
         :class:`Cancelled`.
         """
+        out = self.generate_batch([shape], [params], [progress], [should_cancel])[0]
+        if isinstance(out, BaseException):
+            raise out
+        return out
+
+    def generate_batch(self, shapes: list[Shape], params: list[GenerateParams | None],
+                       progress: list[Callable[[str, float], None] | None] | None = None,
+                       should_cancel: list[Callable[[], bool] | None] | None = None
+                       ) -> list[GenerateResult | Exception]:
+        """Several jobs at once, their vertex tokens decoded together (:mod:`fastmesh.batch`).
+
+        Job i gives exactly what ``generate(shapes[i], params[i])`` gives alone (its candidates keep their
+        seeds, evidence and sampling); jobs of different sampling settings share the rounds but not the decoder
+        batch.  ``progress[i]`` and ``should_cancel[i]`` are job i's, as :meth:`generate` takes them: a cancelled
+        job stops, the others go on.
+
+        Returns
+        -------
+        list, per job: its :class:`GenerateResult`, or the exception it raised (``ValueError``,
+        :class:`GenerationError`, :class:`Cancelled`, ...), which :meth:`generate` would raise.
+        """
+        from .batch import Batch
+
+        n = len(shapes)
+        if len(params) != n or (progress is not None and len(progress) != n) or (
+                should_cancel is not None and len(should_cancel) != n):
+            raise ValueError(f"generate_batch: {n} shapes need as many params, progress and should_cancel")
+        batch = Batch(self)
+        for i, shape in enumerate(shapes):
+            batch.add(i, self.steps(shape, params[i], progress[i] if progress else None,
+                                    should_cancel[i] if should_cancel else None))
+        while len(batch):
+            batch.round()
+        done = batch.pop_done()
+        return [done[i] for i in range(n)]
+
+    def steps(self, shape: Shape, params: GenerateParams | None = None,
+              progress: Callable[[str, float], None] | None = None, should_cancel: Callable[[], bool] | None = None
+              ) -> Generator[DecodeRequest, list[torch.Tensor], GenerateResult]:
+        """:meth:`generate` as a generator that stops where it needs the vertex decoder: it yields a
+        :class:`fastmesh.batch.DecodeRequest` (one per frame) and is sent that request's token sequences (one
+        per candidate); it returns the result.  :class:`fastmesh.batch.Batch` runs several at once."""
         params = params or GenerateParams()
         params.validate(limit=self.max_vertices)
         self._target(params)  # refuses a target_faces this decoder cannot read, before any work
@@ -400,7 +447,7 @@ class Pipeline:
         turn = canonical_rotation(shape.vertices, frame_normals(shape))
         if not np.array_equal(turn, frames[0]):
             frames.append(turn)
-        made, errors = self._in_frames(shape, frames, params, close, report, should_cancel, timings)
+        made, errors = yield from self._in_frames(shape, frames, params, close, report, should_cancel, timings)
         if not made:
             raise errors[0]
         best = self._nearest_frame(shape, made, params, timings)
@@ -472,14 +519,15 @@ class Pipeline:
         return made[-1] if fits[-1] <= FRAME_MARGIN * fits[0] else made[0]
 
     def _in_frames(self, shape: Shape, rotations: list[np.ndarray], params: GenerateParams, close: bool,
-                   report: Progress, should_cancel, timings: dict) -> tuple[list[dict], list[GenerationError]]:
+                   report: Progress, should_cancel, timings: dict
+                   ) -> Generator[DecodeRequest, list[torch.Tensor], tuple[list[dict], list[GenerationError]]]:
         """The best of the candidates made with ``shape`` turned by each of ``rotations`` ((3, 3) each), turned
         back: per frame that made a mesh a dict of vertices (input frame), faces, tokens, info and rotation;
         and the errors of the frames that made none.
 
         Stage by stage over every frame and candidate (all encoded, all decoded, every enhancer, then the face
         stage), so that the progress passes each stage once; each frame's candidate k is still exactly what
-        seed + k gives alone in that frame.
+        seed + k gives alone in that frame.  A :meth:`steps` generator: it yields each frame's decoding.
         """
         n_cand = params.candidates if params.temperature > 0 else 1  # greedy decoding: one answer
         frames = []
@@ -487,8 +535,8 @@ class Pipeline:
             report("encode", 0.0, i, len(rotations))
             frames.append(self._frame(shape, rotation, params, n_cand, timings))
         for i, frame in enumerate(frames):
-            frame["decoded"] = self._decode(frame, params, report.part("vertices", i, len(frames)), should_cancel,
-                                            timings)
+            frame["decoded"] = yield from self._decode(frame, params, report.part("vertices", i, len(frames)),
+                                                       should_cancel, timings)
         work = [(frame, k) for frame in frames for k in range(len(frame["decoded"]))]
         for j, (frame, k) in enumerate(work):
             report("enhancer", 0.0, j, len(work))
@@ -582,13 +630,15 @@ class Pipeline:
         return pts, nrm, prefix, evidence
 
     def _decode(self, frame: dict, params: GenerateParams, report: Callable[[float], None], should_cancel,
-                timings: dict) -> list[tuple]:
+                timings: dict) -> Generator[DecodeRequest, list[torch.Tensor], list[tuple]]:
         """Vertex tokens of the frame's candidates ``params.seed`` ... ``params.seed + n_cand - 1`` (its
         ``encoded`` conditions, from :meth:`_frame`), decoded as one batch.
 
         Candidate k reads its own surface sample (seed + k) and samples with seed + k: it is what that
-        seed gives alone.  Returns per candidate its (points, normals, tokens); adds the decoding time to
-        ``timings``; ``report(share)`` follows the vertices decoded.
+        seed gives alone.  Yields the :class:`DecodeRequest` of the candidates and is sent their sequences
+        (:class:`fastmesh.batch.Batch` decodes it, adds the decoding time to ``timings`` and calls the request's
+        ``progress``, here ``report(share)`` of the vertices decoded); returns per candidate its (points, normals,
+        tokens).
         """
         _check(should_cancel)
         samples = [(pts, nrm) for pts, nrm, _, _ in frame["encoded"]]
@@ -597,14 +647,12 @@ class Pipeline:
         sampling = params.sampling(self.max_vertices)
         max_v = sampling.max_vertices
 
-        def on_step(step: int, n_vert: int) -> None:
+        def on_step(n_vert: int) -> None:
             report(min(1.0, n_vert / max_v))
 
         report(0.0)
-        with stage("vertices", timings), self.threads_for("vertices"):
-            ev = None if evidence[0] is None else evidence[0] if len(evidence) == 1 else StackedEvidence(evidence)
-            seqs = generate(self.decoder, torch.cat(prefixes), sampling, progress=on_step,
-                            should_cancel=should_cancel, evidence=ev)
+        seqs = yield DecodeRequest(torch.cat(prefixes), None if evidence[0] is None else evidence, sampling,
+                                   [params.seed + k for k in range(len(prefixes))], on_step, should_cancel, timings)
         return [(pts, nrm, seq.cpu().numpy()) for (pts, nrm), seq in zip(samples, seqs, strict=True)]
 
     def vertex_cells(self, tokens: np.ndarray, cells: torch.Tensor | None, params: GenerateParams) -> np.ndarray:

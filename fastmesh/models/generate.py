@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from ..params import SamplingConfig
+from ..params import BOUNDS, SamplingConfig
 from ..tokenizer import vertex as vt
 from .evidence import Evidence, read_counts
 from .gate import CellGate
@@ -217,10 +217,11 @@ def cell_gate(evidence: Evidence | StackedEvidence | None, cfg: SamplingConfig) 
 def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: SamplingConfig,
              progress: Callable[[int, int], None] | None = None,
              should_cancel: Callable[[], bool] | None = None, progress_every: int = 16,
-             evidence: Evidence | StackedEvidence | None = None) -> list[torch.Tensor]:
+             evidence: Evidence | StackedEvidence | None = None, seeds: list[int] | None = None,
+             rows: Callable[[int, list[int]], list[bool]] | None = None) -> list[torch.Tensor]:
     """Sample one vertex-token sequence per prefix row, all rows decoded as one batch.
 
-    Row k samples with its own generator seeded ``cfg.seed + k`` and reads row k of
+    Row k samples with its own generator seeded ``cfg.seed + k`` (or ``seeds[k]``) and reads row k of
     ``evidence``: it is the sequence ``generate(model, prefix[k:k+1], cfg with seed cfg.seed + k,
     evidence of that row)`` gives.  Token for token with the ONNX Runtime decoder (its batched
     step computes each row as it does alone); with eager PyTorch up to the rounding of batched
@@ -237,13 +238,24 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
     should_cancel : polled at the same cadence; ``True`` raises :class:`Cancelled`.
     evidence : from ``model.point_evidence(points, normals)`` of the B shapes when the decoder was
         trained with it.
+    seeds : B generator seeds, one per row (default ``cfg.seed + k``): rows of several requests decoded
+        together (``fastmesh.batch``) keep the seeds they have alone.
+    rows : called at the cadence of ``progress`` as ``rows(step, n_vert)`` with the B rows' vertex counts
+        so far; returns B flags, True for the rows to stop now (a request of a batch that was cancelled):
+        a stopped row leaves the batch as a finished one does, its sequence cut where it stopped (no EOS).
 
     Returns
     -------
     list of B int64 tensors: BOS ... EOS (EOS absent only if the token budget ran out).
     """
+    b = prefix.shape[0]
+    seeds = [cfg.seed + k for k in range(b)] if seeds is None else list(seeds)
+    if len(seeds) != b:
+        raise ValueError(f"seeds: one per prefix row ({b}), got {len(seeds)}")
+    for s in seeds:
+        BOUNDS["seed"].check("seed", s)
     if getattr(model, "backend", None) == "static":  # models.decode: its own loop, with static shapes
-        return model.generate(prefix, cfg, progress, should_cancel, progress_every, evidence)
+        return model.generate(prefix, cfg, progress, should_cancel, progress_every, evidence, seeds, rows)
     cfg.validate()
     b, m, _ = prefix.shape
     device = prefix.device
@@ -254,7 +266,8 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
     else:
         cache = KVCache(model.cfg.depth, b, model.cfg.heads, m + max_tokens, model.cfg.head_dim,
                         device=device, dtype=prefix.dtype)
-    gens = [torch.Generator(device=device).manual_seed(cfg.seed + k) for k in range(b)]
+    gens = [torch.Generator(device=device).manual_seed(s) for s in seeds]
+    stopped = None  # (B,) rows stopped by ``rows``
     tokens = torch.full((b, 1), vt.BOS, dtype=torch.long, device=device)
     logits = model.prefill(prefix, tokens, cache)
     out = [tokens[:, 0]]
@@ -306,7 +319,11 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
                 raise Cancelled("generation cancelled")
             if progress is not None:
                 progress(step, int(n_vert.max()))
+            if rows is not None:
+                stopped = torch.tensor(rows(step, n_vert.tolist()), dtype=torch.bool, device=device)
         going = picked != vt.EOS
+        if stopped is not None:
+            going &= ~stopped[live]
         if not bool(going.any()):
             break
         if not bool(going.all()):  # finished rows stop costing: out of the batch and its cache

@@ -133,8 +133,9 @@ class Batch:
     ----------
     pipe : the :class:`fastmesh.pipeline.Pipeline` whose ``steps`` the jobs are: its decoder decodes them, with
         its threads of the vertex stage
-    fatal : an error after which nothing more may run in this process (a CUDA error): the first job to raise
-        one sets :attr:`failed`, and the batch then decodes and runs nothing more (:meth:`close` drops the rest)
+    fatal : an error after which nothing more may run in this process (a CUDA error): it sets :attr:`failed`
+        and is the outcome of the job that raised it (of every job in the decoding that raised it: which row
+        caused a device error cannot be told); the batch then runs nothing more (:meth:`close` drops the rest)
     """
 
     def __init__(self, pipe, fatal: Callable[[BaseException], bool] | None = None):
@@ -160,9 +161,14 @@ class Batch:
         items = list(self.waiting.items())
         with self.pipe.threads_for("vertices"):
             got = decode(self.pipe.decoder, [req for _, (_, req) in items], self.fatal)
+        fatal = [(key, e) for (key, _), e in zip(items, got, strict=True) if self._is_fatal(e)]
+        if fatal:  # every job whose rows were in the failed decoding has that error; nothing more runs
+            self.failed = fatal[0][1]
+            for key, e in fatal:
+                self.waiting.pop(key)[0].close()
+                self.done[key] = e
+            return
         for (key, (steps, req)), seqs in zip(items, got, strict=True):
-            if seqs is None:  # not decoded: a fatal error came first
-                continue
             del self.waiting[key]
             if isinstance(seqs, BaseException):
                 self._advance(key, steps, req.solo, lambda s=steps, e=seqs: s.throw(e))
@@ -170,6 +176,9 @@ class Batch:
                 self._advance(key, steps, req.solo, lambda s=steps, q=seqs: s.send(q))
             if self.failed is not None:  # the process is unusable: nothing more runs in it
                 return
+
+    def _is_fatal(self, outcome) -> bool:
+        return isinstance(outcome, BaseException) and self.fatal is not None and self.fatal(outcome)
 
     def pop_done(self) -> dict[Hashable, object]:
         """The jobs finished since the last call: key -> result, or the exception the job raised."""
@@ -191,7 +200,7 @@ class Batch:
             self.done[key] = end.value
         except Exception as e:  # noqa: BLE001 - the job's own outcome (Cancelled, GenerationError, ...)
             self.done[key] = e
-            if self.fatal is not None and self.fatal(e):
+            if self._is_fatal(e):
                 self.failed = e
         else:
             req.solo = solo

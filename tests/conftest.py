@@ -36,7 +36,7 @@ def redis_url():
 # ``pytest -m "not redis and not browser"`` runs the method suite alone (README, Tests).
 REDIS_MODULES = {"test_assimp_corpus", "test_bad_inputs", "test_faults", "test_loadtest", "test_preview",
                  "test_same_result", "test_service_api", "test_service_attacks", "test_service_client",
-                 "test_service_run", "test_web", "test_web_browser", "test_worker"}
+                 "test_service_run", "test_web", "test_web_browser", "test_worker", "test_worker_batch"}
 
 
 def pytest_collection_modifyitems(config, items):

@@ -14,6 +14,9 @@ import sys
 import threading
 import time
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 
 import redis
 from rq.timeouts import JobTimeoutException
@@ -36,11 +39,12 @@ class _State:
         self.pipeline = None
         self.loads = 0           # how many times this process built a Pipeline (the tests expect 1)
         self.jobs = 0
-        self.current: tuple[str, int] | None = None   # (job id, attempt), read by the heartbeat thread
+        self.running: dict[str, int] = {}   # job id -> attempt of the jobs running now, read by the heartbeat thread
         self.shutting_down = False
         # Set once a job met an error of the accelerator: the process takes no further job (worker.main).
         self.device_failed = False
         self.lock = threading.Lock()
+        self.max_batch = 1  # jobs decoded together (worker.batch); set by worker.main
 
     def configure(self, settings: Settings, store: Store | None = None) -> None:
         self.settings, self.store = settings, store or Store(settings)
@@ -58,7 +62,8 @@ class _State:
         limit = getattr(self.pipeline, "max_vertices", None)
         return {"pid": os.getpid(), "host": socket.gethostname(), "loads": self.loads, "jobs": self.jobs,
                 "max_vertices": limit,
-                "weights": s.weights or "shipped", "device": s.device or "auto", "current": self.current}
+                "weights": s.weights or "shipped", "device": s.device or "auto",
+                "current": [[j, a] for j, a in list(self.running.items())], "max_batch": self.max_batch}
 
 
 STATE = _State()
@@ -163,9 +168,20 @@ def run_job(job_id: str, attempt: int) -> None:
     if not store.start(job_id, attempt, name):
         log.info("job %s attempt %d: not queued any more (cancelled or superseded), skipped", job_id, attempt)
         return
-    STATE.current = (job_id, attempt)
+    STATE.running[job_id] = attempt
     try:
-        _run(store, job_id, attempt)
+        with outcome_recorded(store, job_id, attempt):
+            _run(store, job_id, attempt)
+    finally:
+        STATE.running.pop(job_id, None)
+        STATE.jobs += 1
+
+
+@contextmanager
+def outcome_recorded(store: Store, job_id: str, attempt: int) -> Iterator[None]:
+    """Around a job's work: what its own failure handling (:func:`conclude`) leaves uncaught, recorded."""
+    try:
+        yield
     except JobTimeoutException:  # RQ's hard timeout, the backstop of our cooperative one
         store.finish(job_id, attempt, "failed", error=timeout_error(store.settings.job_timeout))
     except (redis.ConnectionError, redis.TimeoutError) as e:
@@ -188,13 +204,41 @@ def run_job(job_id: str, attempt: int) -> None:
     except BaseException:  # cold shutdown (SystemExit, KeyboardInterrupt): hand the job back, then go
         _release(store, job_id, attempt, "worker shutting down")
         raise
-    finally:
-        STATE.current = None
-        STATE.jobs += 1
 
 
 def _run(store: Store, job_id: str, attempt: int) -> None:
-    from fastmesh.pipeline import Cancelled, GenerateParams
+    job = prepare(store, job_id, attempt)
+    if job is None:
+        return
+    if job.error is not None:
+        conclude(store, job, job.error)
+        return
+    try:
+        result = STATE.pipeline.generate(job.shape, job.params, progress=job.ctl.progress,
+                                         should_cancel=job.ctl.should_cancel)
+    except Exception as e:  # noqa: BLE001 - conclude records it, or raises what it does not know
+        result = e
+    conclude(store, job, result)
+
+
+@dataclass
+class Job:
+    """One attempt of a job, read from Redis and ready for the pipeline (``error``: its input would not load)."""
+
+    job_id: str
+    attempt: int
+    ctl: JobControl
+    params: object  # GenerateParams
+    formats: list[str]
+    timings: dict[str, float]
+    shape: object = None  # fastmesh.io.Shape
+    error: Exception | None = None
+    device_errors: int = 0  # device errors it met on earlier attempts
+
+
+def prepare(store: Store, job_id: str, attempt: int) -> Job | None:
+    """The started job's parameters and shape; None when it failed already (its input is gone)."""
+    from fastmesh.pipeline import GenerateParams
 
     job = store.get(job_id)
     timings = {"queue": job["started_at"] - job["created_at"]}
@@ -202,19 +246,34 @@ def _run(store: Store, job_id: str, attempt: int) -> None:
     if blob is None:
         store.finish(job_id, attempt, "failed", timings=timings,
                      error={"code": "input_missing", "message": "the job's input is no longer stored"})
-        return
-    ctl = JobControl(store, job_id, attempt)
+        return None
     names = {f.name for f in dataclasses.fields(GenerateParams)}
-    params = GenerateParams(**{k: v for k, v in job["params"].items() if k in names})
-    formats = job["params"].get("formats") or store.settings.default_formats
+    out = Job(job_id, attempt, JobControl(store, job_id, attempt),
+              GenerateParams(**{k: v for k, v in job["params"].items() if k in names}),
+              job["params"].get("formats") or store.settings.default_formats, timings,
+              device_errors=int(job.get("device_errors") or 0))
     try:
         t0 = time.perf_counter()
-        shape = with_normals(shape_from_bytes(blob))  # the API leaves a cloud's normal estimation to us
+        out.shape = with_normals(shape_from_bytes(blob))  # the API leaves a cloud's normal estimation to us
         timings["load"] = float(job["timings"].get("load") or 0.0) + time.perf_counter() - t0
-        result = STATE.pipeline.generate(shape, params, progress=ctl.progress, should_cancel=ctl.should_cancel)
+    except Exception as e:  # noqa: BLE001 - conclude records it (a ShapeError: the input's fault)
+        out.error = e
+    return out
+
+
+def conclude(store: Store, job: Job, outcome) -> None:
+    """Record what the pipeline gave ``job``: its result (exported and stored), or the exception it raised
+    (cancelled, refused, failed, a device error).  Raises what is no failure of the job (Redis away, a bug)."""
+    from fastmesh.pipeline import Cancelled
+
+    job_id, attempt, ctl, timings = job.job_id, job.attempt, job.ctl, job.timings
+    try:
+        if isinstance(outcome, BaseException):
+            raise outcome
+        result = outcome
         ctl.progress("export", 1.0)  # the pipeline reports overall fractions; it ended at 1
         t0 = time.perf_counter()
-        files = {fmt: result.export(fmt) for fmt in formats}
+        files = {fmt: result.export(fmt) for fmt in job.formats}
         files["npz"] = result.mesh.to_npz() if result.mesh is not None else mesh_to_bytes(result.vertices,
                                                                                            result.faces)
         timings["export"] = time.perf_counter() - t0
@@ -247,7 +306,7 @@ def _run(store: Store, job_id: str, attempt: int) -> None:
         store.put_result(job_id, fmt, data)
     timings.update({k: float(v) for k, v in result.timings.items()})
     info = {"vertices": int(len(result.vertices)), "faces": int(len(result.faces)), "tokens": int(result.tokens),
-            "formats": list(formats), "seed": result.info.get("chosen_seed"), "quality": result.quality,
+            "formats": list(job.formats), "seed": result.info.get("chosen_seed"), "quality": result.quality,
             "placement": result.info.get("placement"), "notes": result.info.get("notes") or []}
     if not store.finish(job_id, attempt, "succeeded", result=info, timings=timings):
         # Cancelled (or taken over) during export: drop what we wrote unless another attempt owns it now.

@@ -2,13 +2,16 @@
 
 It runs jobs in its own process (RQ's SimpleWorker: RQ 3's default worker starts a fresh
 interpreter per job, which would reload the model every time).  A heartbeat thread keeps the
-worker and its current job visibly alive in Redis and runs the reaper, which requeues or fails
+worker and its running jobs visibly alive in Redis and runs the reaper, which requeues or fails
 the jobs of workers that died (SIGKILL, OOM, lost machine).
 
 After a job meets a GPU error (a device-side assert, an illegal memory access: ``worker.jobs``), the
 process's CUDA context fails every later job, so the worker records that job's outcome and exits with
 status ``WORKER_EXIT_DEVICE_ERROR`` (3) instead of taking another.  Run it under a supervisor that
 restarts it (``make run``, the compose file's ``restart`` policy, systemd's ``Restart=always``: README).
+
+With ``FASTMESH_MAX_BATCH`` > 1 (unset: 8 on a GPU, 1 on a CPU) it runs that many jobs at once instead, their
+vertex decoding batched (``worker.batch``), with the same job life.
 
 Configuration: the ``FASTMESH_*`` environment (see ``service.settings.Settings``).
 """
@@ -30,9 +33,13 @@ from service.reaper import reap_logged
 from service.settings import Settings
 from service.store import Store
 
+from .batch import BatchWorker
 from .jobs import STATE
 
 log = logging.getLogger("fastmesh.worker")
+# Jobs a GPU worker runs at once unless FASTMESH_MAX_BATCH says: a decode step on a GPU costs its kernel launches,
+# nearly the same for 16 rows as for 2.  On a CPU a step's cost grows with its rows (docs/results.md), so 1.
+GPU_BATCH = 8
 
 
 class FastMeshWorker(SimpleWorker):
@@ -58,9 +65,8 @@ def _heartbeat(store: Store, stop: threading.Event) -> None:
     while True:
         try:
             store.worker_beat(STATE.name, STATE.info())
-            cur = STATE.current
-            if cur is not None:
-                store.heartbeat(*cur)
+            for job_id, attempt in list(STATE.running.items()):
+                store.heartbeat(job_id, attempt)
             if time.monotonic() - last_reap >= s.reaper_interval:
                 last_reap = time.monotonic()
                 reap_logged(store)
@@ -134,10 +140,15 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     beat = threading.Thread(target=_heartbeat, args=(store, stop), name="fastmesh-heartbeat", daemon=True)
     beat.start()
-    worker = FastMeshWorker([store.queue.name], connection=rq_conn, name=STATE.name)
-    log.info("worker %s ready on queue %s (%s)", STATE.name, settings.queue_name, settings.redis_url)
+    STATE.max_batch = settings.max_batch or (GPU_BATCH if STATE.pipeline.device.type == "cuda" else 1)
+    log.info("worker %s ready on queue %s (%s), %d job(s) at once", STATE.name, settings.queue_name,
+             settings.redis_url, STATE.max_batch)
     try:
-        worker.work(burst=args.burst, max_jobs=args.max_jobs, logging_level=args.log_level)
+        if STATE.max_batch > 1:
+            BatchWorker(store, STATE.max_batch).work(burst=args.burst, max_jobs=args.max_jobs)
+        else:
+            worker = FastMeshWorker([store.queue.name], connection=rq_conn, name=STATE.name)
+            worker.work(burst=args.burst, max_jobs=args.max_jobs, logging_level=args.log_level)
     finally:
         stop.set()
         try:

@@ -1,6 +1,7 @@
-"""Throughput per worker count, and polling latency while the workers are saturated.
+"""Throughput per worker count (and jobs batched per worker), and polling latency while the workers are saturated.
 
     python benchmarks/throughput.py                      # shipped weights, 1 then 2 workers, 60 s each
+    python benchmarks/throughput.py --workers 1,1x4,2    # 1 worker, 1 worker running 4 jobs at once, 2 workers
     python benchmarks/throughput.py --tiny --duration 20 # the tiny random model: the service's own overhead
 
 Starts everything it measures and stops it at the end: a private ``redis-server`` on a free port, the
@@ -63,7 +64,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--tiny", action="store_true", help="the tiny random model instead of the shipped weights")
     ap.add_argument("--weights", default=None, help="weights folder (default: the shipped weights)")
-    ap.add_argument("--workers", default="1,2", help="worker counts to measure, in order (default 1,2)")
+    ap.add_argument("--workers", default="1,2", help="worker counts to measure, in order (default 1,2); NxB: N "
+                                                     "workers each running B jobs at once (FASTMESH_MAX_BATCH)")
     ap.add_argument("--duration", type=float, default=60.0, help="seconds of load per worker count (default 60)")
     ap.add_argument("--grace", type=float, default=120.0, help="seconds accepted jobs may take after that")
     ap.add_argument("--concurrency", type=int, default=None, help="simulated users (default 2 x workers + 2)")
@@ -76,7 +78,7 @@ def main() -> int:
     ap.add_argument("--poll-interval", type=float, default=0.05, help="seconds between the poller's GETs")
     ap.add_argument("--json", action="store_true", help="print every report as JSON")
     args = ap.parse_args()
-    counts = [int(c) for c in args.workers.split(",")]
+    setups = [tuple(int(x) for x in (c.split("x") + ["1"])[:2]) for c in args.workers.split(",")]
     work = Path(tempfile.mkdtemp(prefix="fastmesh-throughput-"))
     weights = args.weights
     if args.tiny:
@@ -104,19 +106,23 @@ def main() -> int:
     rows, reports = [], {}
     params = {"max_vertices": str(max_vertices)} if max_vertices else {}
     try:
-        for k in counts:
-            while len(workers) < k:
-                workers.append(WorkerProcess(s, f"bench-w{len(workers) + 1}", work / f"w{len(workers) + 1}.log"))
-            while len(workers) > k:
+        for k, batch in setups:
+            while workers:  # each setup starts its own workers: the batch size is a worker's setting
                 workers.pop().stop()
+            for i in range(k):
+                workers.append(WorkerProcess(s, f"bench-w{i + 1}", work / f"w{i + 1}-{k}x{batch}.log",
+                                             FASTMESH_MAX_BATCH=str(batch)))
             for w in workers:
                 w.wait_ready(300)
                 if args.worker_nice:
                     os.setpriority(os.PRIO_PROCESS, w.pid, os.getpriority(os.PRIO_PROCESS, w.pid) + args.worker_nice)
-            users = args.concurrency or 2 * k + 2
-            # Warm-up: the first job of a process pays torch's lazy initialisation.
-            run(LoadConfig(url=api.url, inputs=[inputs], concurrency=k, jobs=2 * k, grace=args.grace, params=params))
-            print(f"[throughput] {k} worker(s), {users} users, {args.duration:g} s ...", file=sys.stderr)
+            users = args.concurrency or 2 * k * batch + 2
+            # Warm-up: the first jobs of a process pay torch's lazy initialisation (and the decoder's graph of
+            # each batch size).
+            run(LoadConfig(url=api.url, inputs=[inputs], concurrency=k * batch, jobs=k * batch, grace=args.grace,
+                           params=params))
+            print(f"[throughput] {k} worker(s) x {batch} job(s), {users} users, {args.duration:g} s ...",
+                  file=sys.stderr)
             poll = subprocess.Popen([sys.executable, __file__, "--poll-only", api.url, str(args.duration),
                                      str(args.poll_interval), str(sample), json.dumps(params)],
                                     stdout=subprocess.PIPE, text=True)
@@ -124,8 +130,8 @@ def main() -> int:
                                  grace=args.grace, params=params))
             out, _ = poll.communicate(timeout=args.duration + args.grace + 60)
             rep["poll"] = json.loads(out)
-            reports[k] = rep
-            rows.append((k, users, rep))
+            reports[f"{k}x{batch}"] = rep
+            rows.append((f"{k}x{batch}", users, rep))
     finally:
         for w in workers:
             w.stop()
@@ -138,7 +144,7 @@ def main() -> int:
     return 1 if any(r["jobs"]["lost"] for r in reports.values()) else 0
 
 
-def table(rows: list[tuple[int, int, dict]], model: str, max_vertices: int | None, nice: int = 0) -> str:
+def table(rows: list[tuple[str, int, dict]], model: str, max_vertices: int | None, nice: int = 0) -> str:
     head = (f"model: {model}; max_vertices: {max_vertices or 'model limit'}; cores: {os.cpu_count()}; "
             f"worker nice +{nice}; load average {os.getloadavg()[0]:.1f}\n"
             f"{'workers':>7} {'users':>5} {'jobs':>5} {'fail':>4} {'jobs/min':>9} "
@@ -153,9 +159,9 @@ def table(rows: list[tuple[int, int, dict]], model: str, max_vertices: int | Non
                      f"{e['p50'] or 0:>8.2f} {e['p95'] or 0:>8.2f} {e['p99'] or 0:>8.2f} {q['p50'] or 0:>9.2f} "
                      f"{q['p95'] or 0:>9.2f} {p['p50'] or 0:>9.2f} {p['p99'] or 0:>9.2f} {r['jobs']['lost']:>4} "
                      f"{sum(r['http_errors'].values()):>8}")
-    if len(rows) > 1 and rows[0][2]["jobs_per_minute"]:
-        lines.append(f"scaling {rows[-1][0]} vs {rows[0][0]} worker(s): "
-                     f"{rows[-1][2]['jobs_per_minute'] / rows[0][2]['jobs_per_minute']:.2f}x")
+    base = rows[0][2]["jobs_per_minute"]
+    for name, _, r in rows[1:] if base else []:
+        lines.append(f"jobs/min of {name} vs {rows[0][0]} (workers x jobs each): {r['jobs_per_minute'] / base:.2f}x")
     return "\n".join(lines)
 
 

@@ -307,6 +307,10 @@ NAME_WIDTH = 22  # the first column of the text report
 STAGE_LABELS = {"total": "total incl. queue"}
 
 
+def _seconds(x: float | None) -> str:
+    return "-" if x is None else f"{x:.2f} s"
+
+
 def format_report(rep: dict) -> str:
     """The report as a few aligned lines for a terminal."""
     j = rep["jobs"]
@@ -315,7 +319,8 @@ def format_report(rep: dict) -> str:
              f"{j['failed']} failed, {j['rejected']} rejected, {j['lost']} lost"
              + (f", {j['not_submitted']} not submitted" if j["not_submitted"] else "")
              + (f", {j['download_failed']} download failed" if j["download_failed"] else ""),
-             f"throughput: {rep['jobs_per_minute']:.1f} jobs/minute", "",
+             f"throughput: {rep['jobs_per_minute']:.1f} jobs/minute; job latency (upload to result) "
+             f"p50 {_seconds(rep['end_to_end_s']['p50'])}, p95 {_seconds(rep['end_to_end_s']['p95'])}", "",
              f"{'seconds':<{NAME_WIDTH}}{'p50':>9}{'p95':>9}{'p99':>9}{'mean':>9}{'n':>6}"]
 
     def f(x: float | None) -> str:

@@ -107,3 +107,6 @@ def test_text_report_names_the_total_as_including_the_queue():
     rep = summarize([rec], 10.0, Counter(), Counter(), 0, LoadConfig(url="http://x", inputs=[]), [])
     rows = [line.split()[0:3] for line in format_report(rep).splitlines() if line.startswith("  ")]
     assert rows == [["load", "0.100", "0.100"], ["vertices", "2.500", "2.500"], ["total", "incl.", "queue"]]
+    assert "throughput: 6.0 jobs/minute; job latency (upload to result) p50 5.20 s, p95 5.20 s" in format_report(rep)
+    none = summarize([], 1.0, Counter(), Counter(), 0, LoadConfig(url="http://x", inputs=[]), [])
+    assert "job latency (upload to result) p50 -, p95 -" in format_report(none)

@@ -120,29 +120,6 @@ def pull_in(vertices: np.ndarray, surface: np.ndarray, limit: float) -> tuple[np
     return v, int(far.sum())
 
 
-def weld_coincident(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices at exactly the same position made one, and the faces that collapse with them dropped.
-
-    Two vertices pulled onto the same surface sample (``pull_in``) coincide; their faces would have no area.
-
-    Parameters
-    ----------
-    vertices : (N, 3) float
-    faces : (F, 3) int
-
-    Returns
-    -------
-    (M, 3) vertices (first occurrences, in order) and (G, 3) faces with three distinct corners each
-    """
-    _, first, inverse = np.unique(vertices, axis=0, return_index=True, return_inverse=True)
-    order = np.argsort(first)  # keep the vertices in their first-seen order
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    f = rank[inverse.reshape(-1)][np.asarray(faces, dtype=np.int64)]
-    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
-    return np.asarray(vertices)[np.sort(first)], f[keep]
-
-
 def far_limit(shape_vertices: np.ndarray) -> float:
     """``FAR_CELLS`` cells of the vertex grid in the units of a shape with these (N, 3) vertices."""
     return FAR_CELLS * CELL / Normalization.fit(shape_vertices).scale

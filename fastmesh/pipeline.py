@@ -57,7 +57,7 @@ from .models.generate import Cancelled
 from .models.onnx_decode import choose_decoder
 from .output import MeshOut, finish
 from .params import GenerateParams
-from .pieces import drop_strays, far_limit, pull_in, split_pinches, weld_coincident
+from .pieces import drop_strays, far_limit, pull_in, split_pinches
 from .planar import polyhedron
 from .progress import STAGES, Progress
 from .quality import edge_face_counts, input_pieces, mesh_quality, weld
@@ -139,7 +139,8 @@ def _whole(shape: Shape, vertices: np.ndarray, faces: np.ndarray, params: Genera
     vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, pieces_in))[:2]
     vertices, pulled = pull_in(vertices, _surface_samples(shape), far_limit(shape.vertices))
     if pulled:
-        vertices, faces = remove_unreferenced(*weld_coincident(vertices, faces))[:2]
+        # Vertices pulled onto one sample coincide: made one, the faces between them (no area) dropped.
+        vertices, faces = remove_unreferenced(*weld(vertices, faces, tol=1e-12))[:2]
     # In the unit cube: the areas of a shape 1e-200 across underflow to 0 in its own units.
     if not len(faces) or not triangle_areas(Normalization.fit(shape.vertices).apply(vertices), faces).any():
         raise GenerationError("no_faces", "every face of the result collapsed onto the input surface")

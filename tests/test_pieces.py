@@ -87,12 +87,3 @@ def test_pulling_in_works_at_any_scale(scale):
     assert count == 1 and np.array_equal(moved[0], vertices[0])
     assert moved[1, 2] == 0 and any((moved[1] == s).all() for s in surface)
 
-
-def test_coincident_vertices_are_welded_and_collapsed_faces_dropped():
-    from fastmesh.pieces import weld_coincident
-
-    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0], [0, 0, 1.0]])
-    f = np.array([[0, 1, 2], [0, 3, 1], [0, 3, 4], [2, 1, 4]])  # the second face collapses: 1 and 3 coincide
-    wv, wf = weld_coincident(v, f)
-    assert np.array_equal(wv, v[[0, 1, 2, 4]])
-    assert np.array_equal(wf, [[0, 1, 2], [0, 1, 3], [2, 1, 3]])

@@ -113,11 +113,11 @@ def test_tuned_params_carry_sampling_overrides_and_refuse_unknown_or_bad_ones():
 
 def test_eval_cli_measures_a_sampling_setting(sphere_set, capsys, monkeypatch):
     """``fastmesh eval --sampling``: the setting reaches the decoder (a bad one is a clear error, exit 2)."""
-    import fastmesh.pipeline as fp
+    import fastmesh.batch as fb
     from fastmesh.cli import main
 
-    seen, decode = [], fp.generate
-    monkeypatch.setattr(fp, "generate",
+    seen, decode = [], fb.generate
+    monkeypatch.setattr(fb, "generate",
                         lambda model, prefix, cfg, **kw: seen.append(cfg) or decode(model, prefix, cfg, **kw))
     args = ["eval", "--inputs", str(sphere_set / "inputs"), "--reference", str(sphere_set / "reference"),
             "--limit", "1"]

@@ -150,11 +150,10 @@ def _whole(shape: Shape, vertices: np.ndarray, faces: np.ndarray, params: Genera
 
 def _surface_samples(shape: Shape) -> np.ndarray:
     """(M, 3) points of the input surface in its own frame: a point cloud's own, a mesh's ``PLANAR_SAMPLES``
-    samples (fixed seed; drawn in the unit cube, where the areas of far-apart coordinates cannot overflow)."""
+    samples (``facecount.input_samples``: fixed seed, drawn in the unit cube)."""
     if shape.faces is None:
         return np.asarray(shape.vertices, dtype=np.float64)
-    norm = Normalization.fit(shape.vertices)
-    return norm.invert(sample_surface(shape, PLANAR_SAMPLES, seed=0, vertices=norm.apply(shape.vertices))[0])
+    return input_samples(shape, PLANAR_SAMPLES)[0]
 
 
 def _low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:

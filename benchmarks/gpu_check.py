@@ -29,6 +29,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -130,6 +131,9 @@ def benchmark(sizes: dict) -> dict:
         t = time.perf_counter()
         pipe.generate_batch([s for _, s, _ in jobs], [p for _, _, p in jobs])
         out["jobs_per_min_batched"] = round(60 * len(jobs) / (time.perf_counter() - t), 2)
+    shapes_seen = getattr(pipe.decoder, "_batches", {})
+    print(f"gpu-check: decoder {pipe.info()['decoder']}, {sum(b.graph is not None for b in shapes_seen.values())} of"
+          f" {len(shapes_seen)} batch shapes kept captured as CUDA graphs", flush=True)
     return out
 
 
@@ -144,6 +148,7 @@ def device_name() -> str:
 def main() -> int:
     t0 = time.perf_counter()
     WORK.mkdir(exist_ok=True)
+    logging.basicConfig(level=logging.WARNING, format="gpu-check: %(name)s: %(message)s")  # e.g. a failed capture
     install()
     import torch
 

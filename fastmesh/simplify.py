@@ -72,7 +72,7 @@ class _Mesh:
 
     def link(self, v: int) -> tuple[str, list[int]] | None:
         """The ring of ``v``: ("interior", cycle) or ("border", path in face order), None where
-        the faces around ``v`` are not one fan (a pinch or a non-manifold edge)."""
+        the faces around ``v`` are not one fan (a pinch or a non-manifold edge) or there are none."""
         nxt: dict[int, int] = {}
         for i in self.around[v]:
             f = self.faces[i]
@@ -81,6 +81,8 @@ class _Mesh:
             if a in nxt:
                 return None
             nxt[a] = b
+        if not nxt:  # no face left around v (a collapse nearby took them all)
+            return None
         starts = set(nxt) - set(nxt.values())
         if len(starts) > 1:
             return None

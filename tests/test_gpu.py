@@ -8,6 +8,7 @@ else on the CPU with fewer runs, so that everything but the CUDA kernels is test
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import statistics
@@ -120,3 +121,16 @@ def test_a_batch_gives_each_job_what_it_gives_alone(pipe):
              for k in range(3)]
     assert [t.tolist() for t in batched] == [t.tolist() for t in alone]
     assert len({len(t) for t in batched}) > 1  # three different sequences
+
+
+@pytest.mark.skipif(not CUDA, reason="needs CUDA: the cell features computed on the device against the CPU's")
+def test_the_cell_grid_on_the_device_matches_the_cpu(pipe):
+    """The cell evidence (features and network) computed on CUDA, in float64 like on the CPU: the same candidate
+    cells, log-odds equal up to rounding."""
+    shape = smooth_cloud("wavy", 3)
+    unit = Normalization.fit(shape.vertices).apply(shape.vertices).astype(np.float32)
+    normals = shape.normals.astype(np.float32)
+    on_device = pipe.cells.grid(unit, normals)
+    on_cpu = copy.deepcopy(pipe.cells).cpu().grid(unit, normals)
+    assert on_device.device.type == "cuda"
+    assert torch.allclose(on_device.cpu(), on_cpu, atol=1e-3)

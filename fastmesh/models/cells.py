@@ -52,6 +52,7 @@ N_FEATURES = PER_SCALE * len(SHIFTS) + 1
 # Eigenvalues of the normals' second moment below this share of the largest are directions the planes
 # leave free: the fitted point stays at the centroid along them (the usual truncated pseudo-inverse).
 PLANE_FIT_RANK = 0.05
+SCORE_CHUNK = 65536  # candidate cells through the network at once (bounds its activations)
 
 
 _NEIGHBOURS = torch.tensor([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
@@ -76,13 +77,14 @@ def candidate_cells(points: torch.Tensor, radius: int = CANDIDATE_RADIUS) -> tup
     """
     u = grid_coords(points.double())
     own = quantize(points.double())
-    r = torch.arange(-radius, radius + 1)
+    r = torch.arange(-radius, radius + 1, device=points.device)
     offs = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
     around = (own[:, None] + offs[None]).reshape(-1, 3)
     dist = (u[:, None] - (around.reshape(len(u), -1, 3) + 0.5)).norm(dim=-1).reshape(-1)
     ok = ((around >= 0) & (around < CELLS)).all(-1)
     flat, inv = torch.unique(flat_index(around[ok]), return_inverse=True)
-    nearest = torch.full((len(flat),), float("inf"), dtype=dist.dtype).scatter_reduce(0, inv, dist[ok], "amin")
+    nearest = torch.full((len(flat),), float("inf"), dtype=dist.dtype, device=dist.device).scatter_reduce(
+        0, inv, dist[ok], "amin")
     return unflat_index(flat), nearest
 
 
@@ -101,15 +103,16 @@ def cell_features(points: torch.Tensor, normals: torch.Tensor, cells: torch.Tens
 
     Returns
     -------
-    (C, n_features(plane_fit)) float32
+    (C, n_features(plane_fit)) float32, on the device of ``points`` (every input on one device)
     """
     u = grid_coords(points.double())  # positions in cell units
     own = quantize(points.double())
     n = normals.double()
     centre = cells.double() + 0.5
+    dev = u.device
     # Per point: 1, u, upper(u u^T), upper(n n^T); for the plane fit also n (n.u) and (n.u)^2.
-    iu, ju = torch.triu_indices(3, 3)
-    parts = [torch.ones(len(u), 1, dtype=u.dtype), u, (u[:, iu] * u[:, ju]), (n[:, iu] * n[:, ju])]
+    iu, ju = torch.triu_indices(3, 3, device=dev)
+    parts = [torch.ones(len(u), 1, dtype=u.dtype, device=dev), u, (u[:, iu] * u[:, ju]), (n[:, iu] * n[:, ju])]
     if plane_fit:
         nu = (n * u).sum(1, keepdim=True)
         parts += [n * nu, nu ** 2]
@@ -118,10 +121,10 @@ def cell_features(points: torch.Tensor, normals: torch.Tensor, cells: torch.Tens
     for s in SHIFTS:
         res = CELLS >> s
         coarse = own >> s
-        around = (coarse[:, None] + _NEIGHBOURS[None]).reshape(-1, 3)  # (P*27, 3)
+        around = (coarse[:, None] + _NEIGHBOURS.to(dev)[None]).reshape(-1, 3)  # (P*27, 3)
         ok = ((around >= 0) & (around < res)).all(-1)
         keys, inv = torch.unique(flat_index(around[ok], res), return_inverse=True)
-        sums = torch.zeros(len(keys), mom.shape[1], dtype=u.dtype)
+        sums = torch.zeros(len(keys), mom.shape[1], dtype=u.dtype, device=dev)
         sums.index_add_(0, inv, mom.repeat_interleave(27, 0)[ok])
         shape = _key_features(sums)  # per coarse key: what does not depend on the cell
         ck = flat_index(cells >> s, res)
@@ -136,7 +139,7 @@ def cell_features(points: torch.Tensor, normals: torch.Tensor, cells: torch.Tens
 
 def _upper_to_sym(x: torch.Tensor) -> torch.Tensor:
     """(C, 6) upper-triangle entries (00, 01, 02, 11, 12, 22) -> (C, 3, 3)."""
-    i = torch.tensor([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
+    i = torch.tensor([[0, 1, 2], [1, 3, 4], [2, 4, 5]], device=x.device)
     return x[:, i]
 
 
@@ -146,7 +149,7 @@ def _key_features(m: torch.Tensor) -> dict[str, torch.Tensor]:
     c = count.clamp(min=1)[:, None]
     mu = m[:, 1:4] / c
     cov = _upper_to_sym(m[:, 4:10] / c) - mu[:, :, None] * mu[:, None, :]
-    evals, evecs = torch.linalg.eigh(cov + 1e-9 * torch.eye(3, dtype=cov.dtype))  # ascending
+    evals, evecs = torch.linalg.eigh(cov + 1e-9 * torch.eye(3, dtype=cov.dtype, device=cov.device))  # ascending
     return {"count": count, "mu": mu, "spread": evals.clamp(min=0).sqrt().flip(-1), "axes": evecs,
             "nvals": torch.linalg.eigvalsh(_upper_to_sym(m[:, 10:16] / c)).flip(-1)}
 
@@ -216,22 +219,30 @@ class CellNet(nn.Module):
 
     @torch.no_grad()
     def score(self, points: np.ndarray | torch.Tensor, normals: np.ndarray | torch.Tensor,
-              chunk: int = 65536) -> tuple[torch.Tensor, torch.Tensor]:
-        """(P, 3) points and normals in the unit cube -> candidate cells (C, 3) and their log-odds (C,)."""
-        p = torch.as_tensor(np.asarray(points), dtype=torch.float32).cpu()
-        nrm = torch.as_tensor(np.asarray(normals), dtype=torch.float32).cpu()
+              chunk: int = SCORE_CHUNK) -> tuple[torch.Tensor, torch.Tensor]:
+        """(P, 3) points and normals in the unit cube -> candidate cells (C, 3) and their log-odds (C,), on the CPU."""
+        cells, logits = self._score(points, normals, chunk)
+        return cells.cpu(), logits.cpu()
+
+    def _score(self, points, normals, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`score` on the network's device: on a GPU the features are computed there too (on the host
+        they cost a GPU worker more than the rest of its job's encoding)."""
+        dev = self.norm.running_mean.device
+        p = torch.as_tensor(np.asarray(points), dtype=torch.float32).to(dev)
+        nrm = torch.as_tensor(np.asarray(normals), dtype=torch.float32).to(dev)
         cells, nearest = candidate_cells(p)
         feats = cell_features(p, nrm, cells, nearest, self.cfg.plane_fit)
         was = self.training
         self.eval()
-        dev = self.norm.running_mean.device
-        logits = torch.cat([self(feats[i:i + chunk].to(dev)).float().cpu() for i in range(0, len(feats), chunk)])
+        logits = torch.cat([self(feats[i:i + chunk]).float() for i in range(0, len(feats), chunk)])
         self.train(was)
         return cells, logits
 
+    @torch.no_grad()
     def grid(self, points: np.ndarray | torch.Tensor, normals: np.ndarray | torch.Tensor) -> torch.Tensor:
-        """(P, 3) points and normals -> (128^3,) float32 log-odds of every cell (``FLOOR`` off the surface)."""
-        return dense_grid(*self.score(points, normals))
+        """(P, 3) points and normals -> (128^3,) float32 log-odds of every cell (``FLOOR`` off the surface), on
+        the network's device."""
+        return dense_grid(*self._score(points, normals, SCORE_CHUNK))
 
 
 FLOOR = -12.0  # log-odds of a cell that is no candidate (farther than CANDIDATE_RADIUS from every point)
@@ -244,9 +255,9 @@ def dense_grid(cells: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
 
 def dense_grid_flat(flat, logits) -> torch.Tensor:
     """(C,) flat cell indices and their log-odds -> (128^3,) float32 grid, ``FLOOR`` elsewhere."""
-    grid = torch.full((N_CELLS,), FLOOR)
-    grid[torch.as_tensor(np.asarray(flat), dtype=torch.long)] = torch.as_tensor(
-        np.asarray(logits, dtype=np.float32)).clamp(min=FLOOR)
+    logits = torch.as_tensor(logits, dtype=torch.float32)  # numpy or a tensor on any device
+    grid = torch.full((N_CELLS,), FLOOR, device=logits.device)
+    grid[torch.as_tensor(flat, dtype=torch.long, device=logits.device)] = logits.clamp(min=FLOOR)
     return grid
 
 

@@ -123,9 +123,9 @@ def benchmark(sizes: dict) -> dict:
     out["decode_steps_per_s"] = round(steps / seconds, 1)
     jobs = varied(sizes["jobs"], seed=9)
     t = time.perf_counter()
-    for job in jobs:
-        run(pipe, *job)
+    records = [run(pipe, *job) for job in jobs]
     out["jobs_per_min_single"] = round(60 * len(jobs) / (time.perf_counter() - t), 2)
+    out["benchmark_failures"] = [f"{r['name']}: {r.get('error', 'no faces')}" for r in records if not r["ok"]]
     out["jobs_per_min_batched"] = None
     if hasattr(pipe, "generate_batch"):
         t = time.perf_counter()
@@ -167,6 +167,9 @@ def main() -> int:
         status = status or 1
     keys = ("device", "runs", "failures", "p50_s", "p95_s", "p50_s_500v", "decode_steps_per_s",
             "jobs_per_min_batched", "jobs_per_min_single")
+    for failure in result.get("benchmark_failures", []):  # a throughput job that failed is a failure too
+        print(f"gpu-check: benchmark job failed: {failure}", flush=True)
+        status = status or 1
     print(f"gpu-check: {time.perf_counter() - t0:.0f} s in all", flush=True)
     print(json.dumps({k: result.get(k) for k in keys}), flush=True)
     return 1 if status or result["failures"] or not runs else 0

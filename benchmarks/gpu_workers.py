@@ -42,14 +42,14 @@ def _worker(rank: int, n: int, device: str, jobs: list, duration: float, ready, 
     start.wait()
     t0, done, i = time.perf_counter(), [], rank
     while time.perf_counter() - t0 < duration:
-        _, shape, params = jobs[i % len(jobs)]
+        name, shape, params = jobs[i % len(jobs)]
         t = time.perf_counter()
         try:
             pipe.generate(shape, params)
-            ok = True
-        except Exception:  # noqa: BLE001 - counted as a failure
-            ok = False
-        done.append((time.perf_counter() - t, ok, time.perf_counter() - t0))
+            error = None
+        except Exception as e:  # noqa: BLE001 - counted as a failure, reported with its input
+            error = f"{name}: {type(e).__name__}: {e}"[:400]
+        done.append((time.perf_counter() - t, error, time.perf_counter() - t0))
         i += n
     results.put(done)
 
@@ -69,7 +69,8 @@ def measure(n: int, device: str, jobs: list, duration: float) -> dict:
     for p in procs:
         p.join()
     seconds = [s for s, _, _ in runs]
-    return {"processes": n, "jobs": len(runs), "failures": sum(not ok for _, ok, _ in runs),
+    errors = sorted({e for _, e, _ in runs if e})
+    return {"processes": n, "jobs": len(runs), "failures": sum(e is not None for _, e, _ in runs), "errors": errors[:5],
             "jobs_per_min": round(60 * len(runs) / max(end for _, _, end in runs), 1),
             "p50_s": round(float(np.median(seconds)), 3), "p95_s": round(float(np.quantile(seconds, 0.95)), 3)}
 
@@ -93,7 +94,8 @@ def main() -> None:
         rows.append({"device": device, **measure(n, device, jobs, args.duration)})
         print(json.dumps(rows[-1]) if args.json else
               f"{n:3d} processes: {rows[-1]['jobs_per_min']:7.1f} jobs/min, p50 {rows[-1]['p50_s']} s, "
-              f"p95 {rows[-1]['p95_s']} s, {rows[-1]['failures']} failures of {rows[-1]['jobs']}", flush=True)
+              f"p95 {rows[-1]['p95_s']} s, {rows[-1]['failures']} failures of {rows[-1]['jobs']}"
+              + "".join(f"\n    {e}" for e in rows[-1]["errors"]), flush=True)
 
 
 if __name__ == "__main__":

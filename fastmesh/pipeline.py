@@ -737,4 +737,4 @@ class Pipeline:
         if len(faces) == 0:
             return GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")
         return {"vertices": verts, "faces": faces, "tokens": int(len(tokens)), "generated_vertices": decoded,
-                "edges": int(len(edges)), "evidence": EdgeEvidence(np.asarray(positions, np.float64), logits, edges)}
+                "edges": int(len(edges)), "evidence": EdgeEvidence.of_mesh(verts, faces, positions, logits, edges)}

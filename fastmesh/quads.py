@@ -46,41 +46,79 @@ class QuadConfig:
     diagonal_prob: float = 0.5
 
 
+def _matched(points: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """(V,) int64 index of the row of ``points`` (N, 3) at each of ``vertices`` (V, 3), -1 where none is (to
+    ``MATCH_TOL`` of the points' extent)."""
+    vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    if len(points) == 0:
+        return np.full(len(vertices), -1, np.int64)
+    extent = float(np.ptp(points, axis=0).max()) or 1.0
+    dist, idx = cKDTree(points).query(vertices)
+    return np.where(dist <= MATCH_TOL * extent, idx, -1).astype(np.int64)
+
+
+def _keys(pairs: np.ndarray, n: int) -> np.ndarray:
+    """(E,) int64 one key per unordered pair of (E, 2) indices below ``n``."""
+    return np.min(pairs, axis=1) * n + np.max(pairs, axis=1)
+
+
 @dataclass(frozen=True)
 class EdgeEvidence:
-    """The face model's word on the edges among the vertices it connected, kept by the vertices' positions:
-    between the face stage and the written result the mesh is re-indexed (unused vertices dropped, pieces
-    split, coinciding vertices welded), but a vertex keeps its position.
+    """The face model's probabilities of the face stage's edges, kept by the vertices' positions: between the
+    face stage and the written result the mesh is re-indexed (unused vertices dropped, pieces split, coinciding
+    vertices welded), but a vertex keeps its position.
 
     Attributes
     ----------
     points : (N, 3) float64, the face stage's vertices
-    logits : (N, N) float, the face model's edge logits among them (its first, unmasked pass)
-    predicted : (K, 2) int64, the edges it finally predicted (after filtering)
+    keys : (K,) int64, sorted: the edges among them the model has a probability for (``i * N + j``, i < j)
+    prob : (K,) float64, their probabilities
     """
 
     points: np.ndarray
-    logits: np.ndarray
-    predicted: np.ndarray
+    keys: np.ndarray
+    prob: np.ndarray
+
+    @classmethod
+    def of_mesh(cls, vertices: np.ndarray, faces: np.ndarray, positions: np.ndarray, logits: np.ndarray,
+                predicted: np.ndarray) -> EdgeEvidence:
+        """The evidence about the edges of the face stage's mesh, as
+        :func:`fastmesh.surface_triangles.edge_log_prob` weighs it (a predicted edge at least 0.5).
+
+        Parameters
+        ----------
+        vertices : (M, 3) float, faces : (F, 3) int
+            The face stage's mesh: some of the model's vertices, and any it added (which have no evidence).
+        positions : (N, 3) float, the vertices the model connected
+        logits : (N, N) float, its edge logits among them (the first, unmasked pass)
+        predicted : (E, 2) int, the edges it finally predicted (after filtering)
+        """
+        points = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+        f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+        edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+        idx = _matched(np.asarray(positions, dtype=np.float64), points)[edges]
+        known = np.all(idx >= 0, axis=1)
+        prob = np.exp(edge_log_prob(idx[known], logits, predicted)) if known.any() else np.zeros(0)
+        keys = _keys(edges[known], len(points))  # edges are sorted rows: their keys are sorted
+        return cls(points, keys, prob)
 
     def moved(self, points: np.ndarray) -> EdgeEvidence:
         """The same evidence at the vertices' new positions ``points`` (N, 3), such as the input's frame."""
-        return EdgeEvidence(np.asarray(points, dtype=np.float64), self.logits, self.predicted)
+        return EdgeEvidence(np.asarray(points, dtype=np.float64), self.keys, self.prob)
 
     def probabilities(self, vertices: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-        """(E,) probability the model gave each pair of ``vertices`` (V, 3) that ``pairs`` (E, 2) name, as
-        :func:`fastmesh.surface_triangles.edge_log_prob` weighs it (a predicted edge at least 0.5); NaN where
-        a vertex is none of :attr:`points` (made or moved after the face stage)."""
+        """(E,) probability the model gave each pair of ``vertices`` (V, 3) that ``pairs`` (E, 2) name; NaN where
+        it gave none (a vertex made or moved after the face stage, or two that were no edge of its mesh)."""
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         out = np.full(len(pairs), np.nan)
-        if len(pairs) == 0 or len(self.points) == 0:
+        if len(pairs) == 0 or len(self.keys) == 0:
             return out
-        extent = float(np.ptp(self.points, axis=0).max()) or 1.0
-        dist, idx = cKDTree(self.points).query(np.asarray(vertices, dtype=np.float64))
-        idx = np.where(dist <= MATCH_TOL * extent, idx, -1)[pairs]
-        known = np.all(idx >= 0, axis=1)
-        if known.any():
-            out[known] = np.exp(edge_log_prob(idx[known], self.logits, self.predicted))
+        idx = _matched(self.points, vertices)[pairs]
+        known = np.flatnonzero(np.all(idx >= 0, axis=1))
+        keys = _keys(idx[known], len(self.points))
+        at = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        hit = self.keys[at] == keys
+        out[known[hit]] = self.prob[at[hit]]
         return out
 
 

@@ -29,12 +29,16 @@ def strip() -> tuple[np.ndarray, np.ndarray]:
     return v, faces
 
 
-def evidence_for(v: np.ndarray, edges: list[tuple[int, int]]) -> EdgeEvidence:
-    """The model predicting exactly ``edges`` among ``v``, surely, and surely nothing else."""
+def evidence_for(v: np.ndarray, faces: np.ndarray, edges: list[tuple[int, int]], unsure: dict | None = None
+                 ) -> EdgeEvidence:
+    """The model predicting exactly ``edges`` among ``v``, surely, and surely nothing else but the pairs of
+    ``unsure``, given their probability; of the edges of the mesh ``v``, ``faces``."""
     logits = np.full((len(v), len(v)), -SURE, np.float32)
     for i, j in edges:
         logits[i, j] = logits[j, i] = SURE
-    return EdgeEvidence(v, logits, np.sort(np.array(edges), axis=1))
+    for (i, j), p in (unsure or {}).items():
+        logits[i, j] = logits[j, i] = np.log(p / (1 - p))
+    return EdgeEvidence.of_mesh(v, faces, v, logits, np.sort(np.array(edges), axis=1))
 
 
 # The artist's quads A E B C and A C F D: their sides predicted, their diagonals A-B and C-D never edges.
@@ -49,7 +53,7 @@ def test_the_models_flat_4_cliques_win_over_the_better_shape():
     v, faces = strip()
     alone = pair_triangles(v, faces)
     assert corner_sets(v, faces, alone) == {frozenset({0, 1, 2, 3})}  # shape alone: the square, two left over
-    pairs = pair_triangles(v, faces, evidence=evidence_for(v, ARTIST))
+    pairs = pair_triangles(v, faces, evidence=evidence_for(v, faces, ARTIST))
     assert corner_sets(v, faces, pairs) == {frozenset({0, 4, 1, 2}), frozenset({0, 2, 5, 3})}
     assert len(np.unique(pairs[:, :2])) == 4  # every triangle in a quad
 
@@ -58,15 +62,14 @@ def test_a_predicted_diagonal_or_an_unpredicted_side_is_no_clique():
     v, faces = strip()
     quads = quad_corners(faces, np.array([[0, 1, 0, 0], [2, 3, 1, 0]]))  # the two outer quads
     assert sorted(quads[0]) == [0, 1, 2, 4] and sorted(quads[1]) == [0, 2, 3, 5]
-    with_diagonal = evidence_for(v, ARTIST + [(0, 1)])  # A-B predicted: A E B C is two artist triangles
+    with_diagonal = evidence_for(v, faces, ARTIST + [(0, 1)])  # A-B predicted: A E B C is two artist triangles
     assert flat_cliques(v, quads, with_diagonal, QuadConfig()).tolist() == [False, True]
-    no_side = evidence_for(v, [e for e in ARTIST if e != (5, 3)])  # F-D not predicted
+    no_side = evidence_for(v, faces, [e for e in ARTIST if e != (5, 3)])  # F-D not predicted
     assert flat_cliques(v, quads, no_side, QuadConfig()).tolist() == [True, False]
-    both = evidence_for(v, ARTIST + [(0, 1), (2, 3)])  # every pair an edge: no clique, the shape decides
+    both = evidence_for(v, faces, ARTIST + [(0, 1), (2, 3)])  # every pair an edge: no clique, the shape decides
     assert corner_sets(v, faces, pair_triangles(v, faces, evidence=both)) == {frozenset({0, 1, 2, 3})}
     # The limits are the config's: a diagonal the model gives 0.6 is a clique's below diagonal_prob=0.7.
-    lenient = evidence_for(v, ARTIST)
-    lenient.logits[0, 1] = lenient.logits[1, 0] = np.log(0.6 / 0.4)
+    lenient = evidence_for(v, faces, ARTIST, unsure={(0, 1): 0.6})
     assert flat_cliques(v, quads[:1], lenient, QuadConfig()).tolist() == [False]
     assert flat_cliques(v, quads[:1], lenient, QuadConfig(diagonal_prob=0.7)).tolist() == [True]
 
@@ -75,9 +78,9 @@ def test_cliques_still_pass_the_shape_limits_and_vertices_the_model_never_saw_ar
     v, faces = strip()
     folded = v.copy()
     folded[4] = [0.5, 0.0, -0.7]  # E folded 90 degrees down: A E B C is no near-planar quad, clique or not
-    pairs = pair_triangles(folded, faces, evidence=evidence_for(folded, ARTIST))
+    pairs = pair_triangles(folded, faces, evidence=evidence_for(folded, faces, ARTIST))
     assert frozenset({0, 4, 1, 2}) not in corner_sets(folded, faces, pairs)
-    ev = evidence_for(v, ARTIST)
+    ev = evidence_for(v, faces, ARTIST)
     moved = v + [0.0, 0.0, 1e-3]  # every vertex moved after the face stage: no evidence about any of them
     assert np.isnan(ev.probabilities(moved, [[0, 4]])).all()
     assert corner_sets(v, faces, pair_triangles(moved, faces, evidence=ev)) == {frozenset({0, 1, 2, 3})}
@@ -85,12 +88,16 @@ def test_cliques_still_pass_the_shape_limits_and_vertices_the_model_never_saw_ar
     turn = trimesh.transformations.rotation_matrix(0.7, [1, 2, 3])[:3, :3]
     far = v @ turn.T * 40 + 7
     assert ev.moved(far).probabilities(far, [[0, 4], [0, 1]]) == pytest.approx([1.0, 0.0], abs=1e-3)
+    # Kept by position, not index: the result's vertices in another order; E-F was no edge of the mesh.
+    order = np.array([5, 3, 0, 4, 1, 2])
+    assert ev.probabilities(v[order], [[2, 3], [2, 4], [3, 0]]) == pytest.approx([1.0, 0.0, np.nan], abs=1e-3,
+                                                                                  nan_ok=True)
 
 
 def test_finish_pairs_by_the_evidence_it_is_given():
     v, faces = strip()
     params = GenerateParams(topology="quad")
-    mesh = finish(v, faces, params, evidence=evidence_for(v, ARTIST))[0]
+    mesh = finish(v, faces, params, evidence=evidence_for(v, faces, ARTIST))[0]
     assert mesh.counts() == {"quads": 2, "quad_share": 1.0}
     assert finish(v, faces, params)[0].counts()["quads"] == 1
 

@@ -5,8 +5,10 @@ Usage: python benchmarks/quad_cliques.py MESH.ply ... [--points 8192] [--seed 0]
 
 Each mesh is sampled (points with their face normals, fixed seed) and run through the shipped weights on the
 CPU with ``topology=quad``; the result's triangles are paired twice: with the face stage's evidence (what the
-pipeline writes) and without it.  One JSON line per mesh, then the totals.  The corpus keeps triangles only
-(its README: polygons were fan-triangulated), so the quads cannot be compared with the artist's own.
+pipeline writes) and without it.  One JSON line per mesh, then the totals, with the quantiles of the
+probabilities the model gave the candidates' diagonals and weakest sides and the result's edges.  The corpus
+keeps triangles only (its README: polygons were fan-triangulated), so the quads cannot be compared with the
+artist's own.
 """
 
 from __future__ import annotations
@@ -45,7 +47,9 @@ def candidates(vertices: np.ndarray, faces: np.ndarray, config: quads.QuadConfig
     return corners[np.isfinite(score)]
 
 
-def measure(pipe: Pipeline, path: str, n_points: int, seed: int) -> dict:
+def measure(pipe: Pipeline, path: str, n_points: int, seed: int, probs: dict) -> dict:
+    """One mesh's row; adds to ``probs`` the probabilities of its candidates' diagonals and weakest sides and of
+    its result's edges (lists under "diagonal", "side" and "edge")."""
     src = load_shape(path)
     mesh = trimesh.Trimesh(src.vertices, src.faces, process=False)
     points, index = trimesh.sample.sample_surface(mesh, n_points, seed=seed)
@@ -71,6 +75,10 @@ def measure(pipe: Pipeline, path: str, n_points: int, seed: int) -> dict:
         cand = candidates(v, f, quads.QuadConfig())
         cliques = quads.flat_cliques(v, cand, evidence, quads.QuadConfig())
         written = {frozenset(q) for q in quads.quad_corners(f, res.mesh.pairs).tolist()}
+        sides = np.stack([cand, np.roll(cand, -1, axis=1)], axis=2).reshape(-1, 2)
+        probs["diagonal"] += evidence.probabilities(v, cand[:, [0, 2]]).tolist()
+        probs["side"] += evidence.probabilities(v, sides).reshape(-1, 4).min(axis=1).tolist()
+        probs["edge"] += evidence.probabilities(v, edges).tolist()
         row.update({"edges_with_evidence": round(float(np.isfinite(evidence.probabilities(v, edges)).mean()), 3),
                     "candidates": len(cand), "cliques": int(cliques.sum()),
                     "clique_quads_written": sum(frozenset(q) in written for q in cand[cliques].tolist())})
@@ -84,15 +92,20 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     pipe = Pipeline.from_pretrained(device="cpu")
-    rows = []
+    rows, probs = [], {"diagonal": [], "side": [], "edge": []}
     for path in args.meshes:
-        rows.append(measure(pipe, path, args.points, args.seed))
+        rows.append(measure(pipe, path, args.points, args.seed, probs))
         print(json.dumps(rows[-1]), flush=True)
     total = {k: sum(r.get(k, 0) for r in rows) for k in ("faces", "quads", "quads_shape_only", "candidates",
                                                          "cliques", "clique_quads_written")}
     for k in ("quad_share", "quad_share_shape_only", "worst_corner", "worst_corner_shape_only"):
         vals = [r[k] for r in rows if r[k] is not None]
         total[f"mean_{k}"] = round(float(np.mean(vals)), 4) if vals else None
+    for name, p in probs.items():  # NaN (a side, diagonal or edge without evidence) compares False: left out
+        p = np.asarray(p)[np.isfinite(p)]
+        if len(p):
+            total[f"{name}_prob_q10_q50_q90"] = np.round(np.quantile(p, [0.1, 0.5, 0.9]), 3).tolist()
+            total[f"{name}_prob_below_half"] = round(float(np.mean(p < 0.5)), 3)
     print(json.dumps({"meshes": len(rows), **total}))
 
 

@@ -16,7 +16,7 @@ from . import layout as uvs
 from .layout import UVLayout, uv_layout
 from .meshfiles import glb_bytes, obj_bytes, ply_bytes
 from .placement import Placement, placement, turn_up
-from .quads import pair_triangles, quad_corners, quad_share
+from .quads import EdgeEvidence, pair_triangles, quad_corners, quad_share
 
 FORMATS = ("glb", "obj", "ply")
 
@@ -111,11 +111,13 @@ class MeshOut:
                        up=str(z["up"]) if "up" in z else "y")
 
 
-def finish(vertices: np.ndarray, faces: np.ndarray, params, source=None) -> tuple[MeshOut, Placement, list[str]]:
+def finish(vertices: np.ndarray, faces: np.ndarray, params, source=None, evidence: EdgeEvidence | None = None
+           ) -> tuple[MeshOut, Placement, list[str]]:
     """The result ``vertices`` (V, 3, the input's frame) and ``faces`` (F, 3) made ready to write as ``params``
     (:class:`fastmesh.params.GenerateParams`) ask.
 
-    ``source`` is the input :class:`fastmesh.io.Shape`, whose texture ``bake`` reads.  Returns the
+    ``source`` is the input :class:`fastmesh.io.Shape`, whose texture ``bake`` reads; ``evidence`` the face
+    model's edges, whose flat 4-cliques become quads first (:func:`fastmesh.quads.pair_triangles`).  Returns the
     :class:`MeshOut`, its placement and notes for people on what a format leaves out.
 
     Raises
@@ -128,7 +130,8 @@ def finish(vertices: np.ndarray, faces: np.ndarray, params, source=None) -> tupl
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     where = placement(vertices, params.origin, params.height, params.up)  # refuses before the slower steps
     notes = []
-    pairs = pair_triangles(vertices, faces) if params.topology == "quad" else np.zeros((0, 4), np.int64)
+    pairs = (pair_triangles(vertices, faces, evidence=evidence) if params.topology == "quad"
+             else np.zeros((0, 4), np.int64))
     if params.topology == "quad":
         notes.append("GLB holds triangles only (glTF has no quads): the quads are in the OBJ and PLY files")
     layout = texture = None

@@ -60,6 +60,7 @@ from .params import GenerateParams
 from .pieces import drop_strays, far_limit, pull_in, split_pinches
 from .planar import polyhedron
 from .progress import STAGES, Progress
+from .quads import EdgeEvidence
 from .quality import edge_face_counts, input_pieces, mesh_quality, weld
 from .support import surface_fit
 from .tokenizer import dequantize
@@ -455,14 +456,17 @@ class Pipeline:
         vertices, faces, result_from, pulled = _whole(shape, best["vertices"], best["faces"], params, pieces_in)
         result = self._result(shape, vertices, faces, params, decision, timings, tokens=best["tokens"],
                               info={**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3),
-                                    "result_from": result_from, "pulled_in": pulled}, pieces_in=pieces_in)
+                                    "result_from": result_from, "pulled_in": pulled}, pieces_in=pieces_in,
+                              evidence=best["evidence"] if result_from == "model" else None)
         report.done()
         return result
 
     @staticmethod
     def _result(shape: Shape, vertices: np.ndarray, faces: np.ndarray, params: GenerateParams, decision: dict,
-                timings: dict, tokens: int, info: dict, pieces_in: int | None = None) -> GenerateResult:
-        """The result with its quality report (``pieces_in``: the input's pieces, counted when None)."""
+                timings: dict, tokens: int, info: dict, pieces_in: int | None = None,
+                evidence: EdgeEvidence | None = None) -> GenerateResult:
+        """The result with its quality report (``pieces_in``: the input's pieces, counted when None); ``evidence``:
+        the face model's edges, which choose the quads first (``quads.pair_triangles``)."""
         pieces_in = input_pieces(shape) if pieces_in is None else pieces_in
         step, met = None, None
         if params.target_faces is not None:  # the count asked for holds (``facecount``)
@@ -476,7 +480,7 @@ class Pipeline:
                    "target_faces": params.target_faces, "target_met": met, "count_step": step}
         # Quads, UVs, baking and placement: timed with the faces they are made of.
         with stage("faces", timings):
-            mesh, where, notes = finish(vertices, faces, params, source=shape)
+            mesh, where, notes = finish(vertices, faces, params, source=shape, evidence=evidence)
         return GenerateResult(vertices=mesh.vertices, faces=mesh.faces, tokens=tokens, timings=timings,
                               info={**info, "closed_decision": decision, "placement": where.to_dict(),
                                     "notes": notes},
@@ -588,12 +592,13 @@ class Pipeline:
                 best = {**cand, "fit": fit, "seed": params.seed + k}
         if best is None:
             raise errors[0]
+        evidence = best["evidence"].moved(frame["norm"].invert(best["evidence"].points) @ frame["rotation"])
         info = {"generated_vertices": best["generated_vertices"], "edges": best["edges"], "candidates": n_cand,
                 "chosen_seed": best["seed"]}
         if n_cand > 1:
             info["fits"] = fits  # per candidate: its surface_fit in the unit cube, None if it made no mesh
         return {"vertices": frame["norm"].invert(best["vertices"]) @ frame["rotation"], "faces": best["faces"],
-                "tokens": best["tokens"], "info": info, "rotation": frame["rotation"]}
+                "tokens": best["tokens"], "info": info, "rotation": frame["rotation"], "evidence": evidence}
 
     def _target(self, params: GenerateParams) -> torch.Tensor | None:
         """(1,) faces asked for, as the decoder's count token reads them (None: the model's choice)."""
@@ -732,4 +737,4 @@ class Pipeline:
         if len(faces) == 0:
             return GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")
         return {"vertices": verts, "faces": faces, "tokens": int(len(tokens)), "generated_vertices": decoded,
-                "edges": int(len(edges))}
+                "edges": int(len(edges)), "evidence": EdgeEvidence.of_mesh(verts, faces, positions, logits, edges)}

@@ -5,6 +5,11 @@ Each interior edge between two consistently oriented triangles is a candidate; i
 (how near its four corners are to right angles) lowered by how far it bends along the removed diagonal.  The
 candidates are taken greedily, best first, each triangle joining at most one quad: a maximum-weight matching
 would find a few more, but the greedy one keeps the best-shaped quads, which is what a modeller looks at.
+
+With the face model's edge probabilities (:class:`EdgeEvidence`), the model's flat 4-cliques go first: the
+candidates whose four sides the model predicted and whose removed diagonal it did not (an artist's quad, whose
+diagonal was never an edge: the triangulation only added it).  Geometry alone cannot tell that quad from the
+one its neighbour would make; the model was trained on the artist's edges and can.
 """
 
 from __future__ import annotations
@@ -12,6 +17,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
+
+from .surface_triangles import edge_log_prob
+
+# A result vertex is the face stage's vertex at the same position to this share of the vertices' extent: the
+# steps between them copy positions (or move a vertex away, which then has no evidence).
+MATCH_TOL = 1e-9
 
 
 @dataclass(frozen=True)
@@ -21,12 +33,113 @@ class QuadConfig:
     ``max_bend``: largest angle between the two triangles' normals, degrees (near-planar).  ``min_angle`` and
     ``max_angle``: the range every corner of the quad must lie in, degrees (convex and not a sliver).
     ``min_score``: the lowest score a quad is kept at (1 is a flat square).
+    ``side_prob`` and ``diagonal_prob``: with :class:`EdgeEvidence`, a quad is one of the model's flat 4-cliques
+    where each of its four sides has at least probability ``side_prob`` and its removed diagonal less than
+    ``diagonal_prob`` (the face stage's cut between an edge and none is 0.5).
     """
 
     max_bend: float = 30.0
     min_angle: float = 35.0
     max_angle: float = 150.0
     min_score: float = 0.25
+    side_prob: float = 0.5
+    diagonal_prob: float = 0.5
+
+
+def _matched(points: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """(V,) int64 index of the row of ``points`` (N, 3) at each of ``vertices`` (V, 3), -1 where none is (to
+    ``MATCH_TOL`` of the points' extent)."""
+    vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    if len(points) == 0:
+        return np.full(len(vertices), -1, np.int64)
+    extent = float(np.ptp(points, axis=0).max()) or 1.0
+    dist, idx = cKDTree(points).query(vertices)
+    return np.where(dist <= MATCH_TOL * extent, idx, -1).astype(np.int64)
+
+
+def _keys(pairs: np.ndarray, n: int) -> np.ndarray:
+    """(E,) int64 one key per unordered pair of (E, 2) indices below ``n``."""
+    return np.min(pairs, axis=1) * n + np.max(pairs, axis=1)
+
+
+@dataclass(frozen=True)
+class EdgeEvidence:
+    """The face model's probabilities of the face stage's edges, kept by the vertices' positions: between the
+    face stage and the written result the mesh is re-indexed (unused vertices dropped, pieces split, coinciding
+    vertices welded), but a vertex keeps its position.
+
+    Attributes
+    ----------
+    points : (N, 3) float64, the face stage's vertices
+    keys : (K,) int64, sorted: the edges among them the model has a probability for (``i * N + j``, i < j)
+    prob : (K,) float64, their probabilities
+    """
+
+    points: np.ndarray
+    keys: np.ndarray
+    prob: np.ndarray
+
+    @classmethod
+    def of_mesh(cls, vertices: np.ndarray, faces: np.ndarray, positions: np.ndarray, logits: np.ndarray,
+                predicted: np.ndarray) -> EdgeEvidence:
+        """The evidence about the edges of the face stage's mesh, as
+        :func:`fastmesh.surface_triangles.edge_log_prob` weighs it (a predicted edge at least 0.5).
+
+        Parameters
+        ----------
+        vertices : (M, 3) float, faces : (F, 3) int
+            The face stage's mesh: some of the model's vertices, and any it added (which have no evidence).
+        positions : (N, 3) float, the vertices the model connected
+        logits : (N, N) float, its edge logits among them (the first, unmasked pass)
+        predicted : (E, 2) int, the edges it finally predicted (after filtering)
+        """
+        points = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+        f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+        edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+        idx = _matched(np.asarray(positions, dtype=np.float64), points)[edges]
+        known = np.all(idx >= 0, axis=1)
+        prob = np.exp(edge_log_prob(idx[known], logits, predicted)) if known.any() else np.zeros(0)
+        keys = _keys(edges[known], len(points))  # edges are sorted rows: their keys are sorted
+        return cls(points, keys, prob)
+
+    def moved(self, points: np.ndarray) -> EdgeEvidence:
+        """The same evidence at the vertices' new positions ``points`` (N, 3), such as the input's frame."""
+        return EdgeEvidence(np.asarray(points, dtype=np.float64), self.keys, self.prob)
+
+    def probabilities(self, vertices: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+        """(E,) probability the model gave each pair of ``vertices`` (V, 3) that ``pairs`` (E, 2) name; NaN where
+        it gave none (a vertex made or moved after the face stage, or two that were no edge of its mesh)."""
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        out = np.full(len(pairs), np.nan)
+        if len(pairs) == 0 or len(self.keys) == 0:
+            return out
+        idx = _matched(self.points, vertices)[pairs]
+        known = np.flatnonzero(np.all(idx >= 0, axis=1))
+        keys = _keys(idx[known], len(self.points))
+        at = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        hit = self.keys[at] == keys
+        out[known[hit]] = self.prob[at[hit]]
+        return out
+
+
+def flat_cliques(vertices: np.ndarray, quads: np.ndarray, evidence: EdgeEvidence, config: QuadConfig
+                 ) -> np.ndarray:
+    """(P,) bool: the candidate quads that are the model's flat 4-cliques (``config.side_prob`` and
+    ``config.diagonal_prob``); a side or diagonal the evidence does not know never makes one.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+    quads : (P, 4) int, corners in order as :func:`quad_corners` gives them: the removed diagonal is 0-2
+    evidence : EdgeEvidence
+    config : QuadConfig
+    """
+    q = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
+    sides = np.stack([q, np.roll(q, -1, axis=1)], axis=2).reshape(-1, 2)  # (4 P, 2): corner k -> k + 1
+    prob = evidence.probabilities(vertices, np.concatenate([sides, q[:, [0, 2]]]))
+    side, diagonal = prob[:len(sides)].reshape(-1, 4), prob[len(sides):]
+    # NaN compares False: an unknown side is not predicted, an unknown diagonal not known to be absent.
+    return np.all(side >= config.side_prob, axis=1) & (diagonal < config.diagonal_prob)
 
 
 def interior_pairs(faces: np.ndarray) -> np.ndarray:
@@ -103,15 +216,19 @@ def quad_scores(vertices: np.ndarray, quads: np.ndarray, normals_f: np.ndarray, 
     return np.where(ok, score, -np.inf)
 
 
-def pair_triangles(vertices: np.ndarray, faces: np.ndarray, config: QuadConfig | None = None) -> np.ndarray:
-    """Triangles merged into quads, greedily by score: (Q, 4) int64 rows ``(f, g, i, j)`` as
-    :func:`interior_pairs` gives them, no triangle in two rows.
+def pair_triangles(vertices: np.ndarray, faces: np.ndarray, config: QuadConfig | None = None,
+                   evidence: EdgeEvidence | None = None) -> np.ndarray:
+    """Triangles merged into quads, greedily: (Q, 4) int64 rows ``(f, g, i, j)`` as :func:`interior_pairs`
+    gives them, no triangle in two rows.  The model's flat 4-cliques (:func:`flat_cliques`, with ``evidence``)
+    first, then the other quads, each group best score first; every quad passes ``config``'s shape limits.
 
     Parameters
     ----------
     vertices : (V, 3) float
     faces : (F, 3) int
     config : QuadConfig, optional
+    evidence : EdgeEvidence, optional
+        The face model's edge probabilities; without them the quads are chosen by shape alone.
     """
     config = config or QuadConfig()
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
@@ -124,9 +241,11 @@ def pair_triangles(vertices: np.ndarray, faces: np.ndarray, config: QuadConfig |
     score = quad_scores(v, quad_corners(faces, cand), normals[cand[:, 0]], normals[cand[:, 1]], config)
     keep = np.isfinite(score)
     cand, score = cand[keep], score[keep]
+    clique = (flat_cliques(v, quad_corners(faces, cand), evidence, config) if evidence is not None
+              else np.zeros(len(cand), dtype=bool))
     used = np.zeros(len(faces), dtype=bool)
     chosen = []
-    for k in np.argsort(-score, kind="stable"):  # a Python loop over candidates only: ~1 s per million
+    for k in np.lexsort((-score, ~clique)):  # cliques first, each by score; a loop over candidates: ~1 s/million
         f, g = cand[k, 0], cand[k, 1]
         if not (used[f] or used[g]):
             used[f] = used[g] = True

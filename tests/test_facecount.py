@@ -10,6 +10,8 @@ import pytest
 import torch
 import trimesh
 
+from fastmesh.cli import main
+from fastmesh.cli.generate import faces_text
 from fastmesh.facecount import KEEP, TOLERANCE, decimate, hold_count, input_samples, split_longest
 from fastmesh.io import Shape
 from fastmesh.params import GenerateParams
@@ -197,3 +199,20 @@ def test_a_vertex_left_without_faces_by_a_nearby_collapse_is_skipped():
     data = np.load(Path(__file__).parent / "data" / "decimate_lone_vertex.npz")
     faces = decimate(data["vertices"], data["faces"], int(data["target"]))
     assert len(faces) <= int(data["target"]) and topology(faces)["non_manifold_edges"] == 0
+
+
+def test_the_cli_summary_says_faces_achieved_over_target(tmp_path, capsys, weights):
+    """``fastmesh generate`` prints "achieved / target faces" and whether the count holds (``fastmesh submit``
+    prints the same words, from the job's quality report)."""
+    assert faces_text(148, {"target_faces": None, "target_met": None}) == "148 faces"
+    assert faces_text(812, {"target_faces": 1000, "target_met": True}) == "812 / 1000 faces (within ±20 %)"
+    assert faces_text(238, {"target_faces": 500, "target_met": False}) == "238 / 500 faces (outside ±20 %)"
+    src, out = tmp_path / "ball.obj", tmp_path / "ball.glb"
+    trimesh.creation.icosphere(2).export(src)
+    code = main(["generate", str(src), "-o", str(out), "--weights", weights, "--max-vertices", "12",
+                 "--candidates", "1", "--target-faces", "60"])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    made = len(trimesh.load(out, force="mesh").faces)
+    held = "within" if abs(made - 60) <= TOLERANCE * 60 else "outside"
+    assert f"{made} / 60 faces ({held} ±20 %)" in err, err

@@ -9,12 +9,15 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
+import subprocess
 from pathlib import Path
 
 import httpx
 import pytest
 from test_preview import served, settings_for
 
+from fastmesh.facecount import TOLERANCE
 from service.processes import local_redis
 from service.web.routes import THREE_DIR, WEB_DIR
 
@@ -76,6 +79,7 @@ def test_config_tells_the_page_defaults_limits_and_auth(client):
     assert cfg["bounds"]["top_k"] == {"min": 0, "max": 1_000_000}  # the API's own bounds (params.BOUNDS)
     assert cfg["bounds"]["temperature"]["min"] == 0 and cfg["bounds"]["candidates"] == {"min": 1, "max": 16}
     assert cfg["three_installed"] is True
+    assert cfg["face_tolerance"] == TOLERANCE  # the page words target_met with the server's own tolerance
     assert "k1" not in json.dumps(cfg)
 
 
@@ -103,3 +107,34 @@ def test_node_modules_is_ignored_by_git_and_three_is_pinned():
     assert lock["packages"]["node_modules/three"]["version"] == pinned
     installed = json.loads((Path(THREE_DIR) / "package.json").read_text())["version"]
     assert installed == pinned, "service/web/node_modules is stale: run `make web`"
+
+
+def run_facts(function: str, calls: list[list]) -> list:
+    """``function`` of the page's facts.js applied to each of ``calls`` (argument lists), in node: the page's own
+    module, run without a browser."""
+    node = shutil.which("node")
+    assert node, "node missing: it comes with npm, which `make web` needs"
+    script = (f"import {{ {function} }} from {json.dumps((WEB_DIR / 'static' / 'facts.js').as_uri())};"
+              f"const calls = JSON.parse(process.argv[1]);"
+              f"console.log(JSON.stringify(calls.map((args) => {function}(...args))));")
+    out = subprocess.run([node, "--input-type=module", "-e", script, json.dumps(calls)], capture_output=True,
+                         text=True, timeout=60, check=True)
+    assert out.stderr == ""
+    return json.loads(out.stdout)
+
+
+def test_the_page_shows_faces_achieved_over_target_and_whether_it_holds():
+    def result(faces, target=None, met=None):
+        return {"faces": faces, "quality": {"faces": faces, "target_faces": target, "target_met": met}}
+
+    got = run_facts("faceCount", [
+        [result(812, 1000, True), TOLERANCE],
+        [result(1246, 2000, False), TOLERANCE],
+        [result(500, 500, True), 0.1],          # the tolerance as the server states it
+        [result(148), TOLERANCE],               # no count asked for: the faces alone
+        [{"faces": 7}, TOLERANCE],              # an older job without a quality report
+        [result(300, 1000, False), None],       # a server that does not state its tolerance
+        [{}, TOLERANCE],                        # no result yet
+    ])
+    assert got == ["812 / 1000 (within ±20 %)", "1246 / 2000 (outside ±20 %)", "500 / 500 (within ±10 %)", "148",
+                   "7", "300 / 1000 (outside the tolerance)", None]

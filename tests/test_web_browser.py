@@ -354,3 +354,21 @@ def test_quads_uv_and_pivot_from_the_form(stack, page, tmp_path, shots):
     mesh = trimesh.load(io.BytesIO(glb), file_type="glb", force="mesh", process=False)
     assert np.allclose(mesh.bounds, [[-0.5, 0, -1.5], [0.5, 2, 1.5]]) and mesh.visual.uv is not None
     shots(page, "quads")
+
+
+def test_a_face_count_shows_achieved_over_target(stack, page, tmp_path, shots):
+    """Asked for a face count, the page shows "achieved / target" and whether it holds, as the API reports it;
+    without one, the faces alone (the first test)."""
+    open_page(page, stack.url)
+    choose(page, tmp_path, "crate.ply", box_cloud())
+    page.fill("input[name=max_vertices]", "12")
+    page.fill("input[name=target_faces]", "40")
+    page.click("#submit")
+    page.wait_for_selector("#status.succeeded", timeout=JOB_TIMEOUT_MS)
+    job_id = page.evaluate("location.hash").removeprefix("#job=")
+    result = httpx.get(f"{stack.url}/v1/jobs/{job_id}").json()["result"]
+    q = result["quality"]
+    assert q["target_faces"] == 40 and q["target_met"] is (abs(result["faces"] - 40) <= 8)
+    held = "within" if q["target_met"] else "outside"
+    assert page.text_content("#c-faces") == f"{result['faces']} / 40 ({held} ±20 %)"
+    shots(page, "face-count")

@@ -85,6 +85,18 @@ def params_from_args(args):
                           target_faces=args.target_faces, closed=args.closed, **extra)
 
 
+def faces_text(faces: int, quality: dict) -> str:
+    """The faces of a result as the summaries print them: ``"812 faces"``, or with a face count asked for
+    ``"812 / 1000 faces (within ±20 %)"`` (``quality``'s ``target_faces`` and ``target_met``)."""
+    from fastmesh.facecount import TOLERANCE
+
+    target = quality.get("target_faces")
+    if target is None:
+        return f"{faces} faces"
+    held = "within" if quality.get("target_met") else "outside"
+    return f"{faces} / {target} faces ({held} ±{100 * TOLERANCE:.0f} %)"
+
+
 def load_pipeline(args):
     from fastmesh.pipeline import Pipeline
 
@@ -144,8 +156,7 @@ def _run(args) -> int:
         if args.json:
             print(json.dumps(rec), flush=True)
         q = res.quality
-        target = f" (target {q['target_faces']})" if q.get("target_faces") is not None else ""
-        print(f"[{i}/{len(jobs)}] {src} -> {dst}: {rec['vertices']} vertices, {rec['faces']} faces{target}, "
+        print(f"[{i}/{len(jobs)}] {src} -> {dst}: {rec['vertices']} vertices, {faces_text(rec['faces'], q)}, "
               f"CD {q['cd']:.2f} % / HD {q['hd']:.2f} % of the input's size, {q['boundary_edges']} open edges, "
               f"{timings['total']:.2f} s", file=sys.stderr, flush=True)
         if params.topology == "quad":

@@ -76,8 +76,11 @@ def _submit(args) -> int:
         return 1
     if not args.quiet:
         print(file=sys.stderr)
+        from .generate import faces_text
+
         r = job["result"]
-        print(f"wrote {out} ({r['vertices']} vertices, {r['faces']} faces) in {time.monotonic() - t0:.1f} s",
+        faces = faces_text(r["faces"], r.get("quality") or {})
+        print(f"wrote {out} ({r['vertices']} vertices, {faces}) in {time.monotonic() - t0:.1f} s",
               file=sys.stderr)
     if args.json:
         print(json.dumps(job, indent=2))

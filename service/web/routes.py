@@ -16,6 +16,7 @@ from pathlib import Path
 from fastapi import APIRouter
 from fastapi.responses import FileResponse, JSONResponse, Response
 
+from fastmesh.facecount import TOLERANCE
 from fastmesh.io import EXPORT_FORMATS, SUPPORTED_FORMATS
 from fastmesh.params import BOUNDS
 
@@ -51,7 +52,8 @@ def _file(root: Path, rel: str, cache: str) -> FileResponse:
 
 
 def page_config(settings: Settings, defaults: dict) -> dict:
-    """What the page needs to know to build its form: parameter defaults, limits, formats, auth."""
+    """What the page needs to know to build its form and word the result: parameter defaults, limits,
+    formats, auth, and the share of ``target_faces`` a result's face count may miss it by (``target_met``)."""
     return {
         "auth": bool(settings.api_keys),
         "defaults": defaults,
@@ -62,6 +64,7 @@ def page_config(settings: Settings, defaults: dict) -> dict:
         "input_formats": list(SUPPORTED_FORMATS),
         "max_upload_bytes": settings.max_upload_bytes,
         "max_points": settings.max_points,
+        "face_tolerance": TOLERANCE,
     }
 
 

@@ -2,6 +2,8 @@
 // Plain ES module, no build step.  The 3D viewer (three.js) is imported lazily, so a missing three.js
 // install costs the 3D view only, not the form.
 
+import { faceCount } from './facts.js';
+
 const $ = (sel) => document.querySelector(sel);
 const KEY_STORE = 'fastmesh.apiKey';
 const JOBS_STORE = 'fastmesh.jobs';
@@ -354,7 +356,8 @@ function showJob(job, position) {
 function showResultFacts(result) {
   const q = result.quality || {};
   const facts = {
-    'c-vertices': result.vertices, 'c-faces': result.faces, 'c-tokens': result.tokens,
+    'c-vertices': result.vertices, 'c-faces': faceCount(result, state.config.face_tolerance),
+    'c-tokens': result.tokens,
     'c-boundary': q.boundary_edges, 'c-non-manifold': q.non_manifold_edges, 'c-components': q.components,
     'c-watertight': q.watertight == null ? null : q.watertight ? 'yes' : 'no',
     'c-pieces': q.pieces == null ? null : `${q.pieces} / ${q.input_pieces ?? '-'}`,

@@ -80,7 +80,6 @@ BOUNDS = {
     "structure_temperature": Bound(MIN_TEMPERATURE, MAX_TEMPERATURE, integer=False, zero=True, zero_means="greedy"),
     "cell_weight": Bound(0.0, 20.0, integer=False),
     "pace": Bound(0.1, 100.0, integer=False, zero=True, zero_means="off"),
-    "cell_floor": Bound(-12.0, 12.0, integer=False, none=True),  # log-odds (None: off); -12 is models.cells.FLOOR
     "snap_margin": Bound(0.0, 24.0, integer=False, none=True),  # log-odds (None: off)
     # Metres the result is scaled to stand (0.1 mm to 100 km): a scale that stays a sane size.
     "height": Bound(1e-4, 1e5, integer=False),
@@ -168,12 +167,6 @@ class SamplingConfig:
     # (seed 0); means of seeds 0 and 7: 1.0 0.427 / 0.358, 1.1 0.424 / 0.368, 1.2 0.414 / 0.367
     # (docs/results.md).  Scaled to a face-count target they are paced at 1: the target is the count asked for.
     pace: float = 1.1
-    # No vertex in a cell the cell evidence scores below this log-odds, no block without such a cell (None: off;
-    # decoders that read the cells; not with a face-count target: models.gate).  Off: on the held-out packages
-    # -4 raised P@1 0.347 -> 0.395 for R@1 0.348 -> 0.342, but CD 1.33 -> 1.49 and HD 8.40 -> 10.14: the cell
-    # network spreads its probability thin along smooth curved surfaces too, and those lost their vertices
-    # (docs/results.md).
-    cell_floor: float | None = None
     # After decoding, each vertex moves to the best cell among its own and the 26 around it where that cell's
     # log-odds exceed its own by more than this, and vertices that meet become one (None: off; decoders that
     # read the cells; not with a face-count target: the merges lower the count; models.cells.snap_to_cells).

@@ -19,7 +19,6 @@ from fastmesh.pipeline import Pipeline
 from fastmesh.primitives import point_cloud, primitive
 from fastmesh.support import surface_fit
 from fastmesh.tokenizer import vertex as vt
-from fastmesh.tokenizer.grid import BLOCK_SIDE, block_coords, offset_coords
 
 torch.set_num_threads(1)
 B = 4
@@ -203,49 +202,6 @@ def test_pacing_closes_the_block_once_the_sequence_runs_ahead_of_the_cells():
     assert seen[True] == 0 and seen[False] > 0
 
 
-def test_the_cell_floor_keeps_vertices_out_of_cells_scored_below_it():
-    """With ``cell_floor``, every vertex lies in a cell scored at least the floor and every block entered holds
-    one; without it the same decoder goes on into the cells below (it takes a block's cells in order)."""
-    m, prefix, evidence = _crowded()  # 8.0, 7.9, ... in sequence order: a floor of 5 opens about 30 of them
-    below = {}
-    for floor in (None, 5.0):
-        cfg = SamplingConfig(temperature=0, max_vertices=100, pace=0.0, cell_floor=floor)
-        seqs = generate(m, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
-        scores = [ev.cells[0, flat_index(torch.from_numpy(vt.decode(row.numpy(), strict=True)))]
-                  for row, ev in zip(seqs, evidence, strict=True)]
-        below[floor] = sum(int((s < 5.0).sum()) for s in scores)
-        assert all(len(s) > 0 for s in scores)
-    assert below[5.0] == 0 and below[None] > 0
-
-
-def test_the_cell_floor_is_a_log_odds_or_none():
-    for ok in (None, -4.0, -12.0):
-        SamplingConfig(cell_floor=ok).validate()
-    for bad in (20.0, "x", -13.0):
-        with pytest.raises(ValueError, match="cell_floor"):
-            SamplingConfig(cell_floor=bad).validate()
-
-
-def test_the_gate_opens_the_cells_at_the_floor_and_the_blocks_holding_one():
-    """``CellGate``: the cells at or above the floor and the blocks holding one are open; every cell of a row with
-    a target, or whose floor leaves nothing open, is."""
-    from fastmesh.models.gate import CellGate
-
-    grids = _cell_grids(3, 5)
-    gate = CellGate(grids, torch.tensor([False, True, False]), 2.0)
-    per_block = grids.reshape(3, 8, 16, 8, 16, 8, 16).amax((2, 4, 6)).reshape(3, -1)
-    assert torch.equal(gate.open_blocks[0], per_block[0] >= 2.0) and 0 < int(gate.open_blocks[0].sum()) < 512
-    assert gate.open_blocks[1].all()  # a target
-    block = gate.open_blocks[0].nonzero()[:1, 0].repeat(3)
-    cells = block_coords(block)[:, None] * BLOCK_SIDE + offset_coords(torch.arange(vt.N_OFFSETS))
-    opened = gate.offsets(block)
-    assert torch.equal(opened[0], grids[0, flat_index(cells[0])] >= 2.0) and opened[1].all()
-    assert 0 < int(opened[0].sum()) < vt.N_OFFSETS
-    assert gate.offsets(torch.tensor([-1, -1, -1])).all()  # before the first block
-    high = CellGate(grids, torch.zeros(3, dtype=torch.bool), 100.0)  # no cell that high: nothing closed
-    assert high.open_blocks.all() and high.offsets(block).all()
-
-
 def test_stacked_count_reading_equals_each_row_read_alone():
     """``StackedEvidence.count_bias`` reads all rows at once; each row must read what its own evidence gives,
     rows with and without a face-count target mixed."""
@@ -273,7 +229,7 @@ def test_stacked_count_reading_equals_each_row_read_alone():
 def _crowded():
     """A decoder with cell evidence, as if trained, and B shapes whose cells crowd into one block each: it goes
     to the block the cells fill, takes its cells (likelier in sequence order) and ends when they are done."""
-    from fastmesh.models.cells import CELLS, FLOOR, flat_index
+    from fastmesh.models.cells import CELLS, FLOOR
     from fastmesh.tokenizer.grid import sort_key
 
     m = _model(2, cells=True)

@@ -14,7 +14,6 @@ from fastmesh.models.generate import (
     Cancelled,
     SamplingConfig,
     StackedEvidence,
-    cell_gate,
     generate,
     pace_mask,
 )
@@ -31,7 +30,6 @@ def reference(m, prefix, cfg: SamplingConfig, evidence, seed: int) -> list[int]:
     """One shape decoded alone, one token at a time, each step a full uncached pass of the decoder (which adds the
     evidence and count bias and the grammar mask itself) and the draw of ``sampling.choose_static``."""
     keys = torch.tensor([seed_key(seed)])
-    gate = cell_gate(evidence, cfg)
     cells = evidence is not None and evidence.reads_cells
     tokens = torch.tensor([[vt.BOS]])
     for step in range(1, 2 * cfg.max_vertices + 2):
@@ -42,8 +40,6 @@ def reference(m, prefix, cfg: SamplingConfig, evidence, seed: int) -> list[int]:
         if cells and cfg.pace > 0:
             mask[:, vt.OFFSET0:] &= ~pace_mask(evidence.expected_through(block, cfg.pace), tokens[:, -1],
                                                n_vert)[:, None]
-        if gate is not None:
-            mask = gate.mask(mask, gate.open_blocks, gate.offsets(block))
         bias = evidence.weighted_cells(block, cfg.cell_weight) if cells else None
         nxt, stuck = choose_static(logits.masked_fill(~mask, float("-inf")), cfg, keys, torch.tensor([step]), bias)
         assert not stuck.any()
@@ -86,23 +82,23 @@ def test_greedy_static_decoding_gives_the_eager_loops_tokens(cells, counts):
     assert len({len(r) for r in eager}) > 1  # rows that end at different steps
 
 
-@pytest.mark.parametrize("temperature,top_k,top_p,cells,counts,floor", [
-    (1.0, 0, 1.0, False, False, None), (0.7, 20, 0.9, False, False, None), (1.0, 0, 0.95, True, False, None),
-    (0.3, 50, 0.95, True, True, None), (1.0, 0, 0.95, True, True, 0.0)])
-def test_sampled_rows_are_the_slow_reference_of_each_seed_alone(temperature, top_k, top_p, cells, counts, floor):
+@pytest.mark.parametrize("temperature,top_k,top_p,cells,counts", [
+    (1.0, 0, 1.0, False, False), (0.7, 20, 0.9, False, False), (1.0, 0, 0.95, True, False),
+    (0.3, 50, 0.95, True, True), (0.5, 10, 0.8, True, True)])
+def test_sampled_rows_are_the_slow_reference_of_each_seed_alone(temperature, top_k, top_p, cells, counts):
     m = _model(2, cells, counts)
     prefix, evidence = _inputs(m, 2)
-    cfg = _cfg(temperature=temperature, top_k=top_k, top_p=top_p, cell_floor=floor)
+    cfg = _cfg(temperature=temperature, top_k=top_k, top_p=top_p)
     static = generate(StaticDecoder(m), torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
     want = [reference(m, prefix[k], cfg, evidence[k], cfg.seed + k) for k in range(B)]
     assert [r.tolist() for r in static] == want
     assert len({tuple(r) for r in want}) == B and all(r[-1] == vt.EOS for r in want)
 
 
-def test_the_pace_and_the_floor_hold_in_the_static_loop():
-    """The pace and gate masks as the eager loop applies them (``test_batched_decode``'s crowded shapes)."""
+def test_the_pace_holds_in_the_static_loop():
+    """The pace mask as the eager loop applies it (``test_batched_decode``'s crowded shapes)."""
     m, prefix, evidence = _crowded()
-    for kw in (dict(pace=0.5), dict(pace=0.0, cell_floor=5.0)):
+    for kw in (dict(pace=0.5), dict(pace=0.0)):
         cfg = SamplingConfig(temperature=0, max_vertices=100, **kw)
         eager = generate(m, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
         static = generate(StaticDecoder(m), torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))

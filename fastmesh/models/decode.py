@@ -5,7 +5,7 @@ host (the grammar state as lists, NaN checks, the draw of a ``torch.Generator``)
 the batch, so no two steps have the same shapes.  Here everything a step needs lives in preallocated
 device tensors of fixed shapes, and one step is
 
-    sample  (evidence bias, count bias, grammar / pace / gate mask, two-step Gumbel draw: ``sampling``)
+    sample  (evidence bias, count bias, grammar / pace mask, two-step Gumbel draw: ``sampling``)
     update  (grammar state, the token written at ``out[:, step]``)
     decode_one_token  (the token through the network, its keys/values written at ``prefix + step``)
 
@@ -38,8 +38,7 @@ import torch
 from ..params import SamplingConfig
 from ..tokenizer import vertex as vt
 from .evidence import Evidence, _block
-from .gate import CellGate
-from .generate import Cancelled, StackedEvidence, cell_gate, pace_mask
+from .generate import Cancelled, StackedEvidence, pace_mask, sequences
 from .kv_cache import KVCache
 from .layers import apply_rotary, rotary
 from .sampling import choose_static, seed_key
@@ -146,9 +145,9 @@ def bias_table(evidence: Evidence, out: torch.Tensor) -> torch.Tensor:
 
 
 def masked_logits(logits: torch.Tensor, state: dict, cfg: SamplingConfig, evidence: Evidence | None,
-                  gate: CellGate | None, counts: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+                  counts: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(B, VOCAB) decoder logits -> the logits ``generate`` samples from (evidence and count bias added,
-    grammar, pace and gate masks applied) and the (B, 4096) cell weight on the offsets (or None)."""
+    grammar and pace masks applied) and the (B, 4096) cell weight on the offsets (or None)."""
     prev, block, offset, n_vert = state["prev"], state["block"], state["offset"], state["n_vert"]
     cell_bias = through = None
     if evidence is not None:
@@ -167,8 +166,6 @@ def masked_logits(logits: torch.Tensor, state: dict, cfg: SamplingConfig, eviden
     mask = grammar_mask(prev, block, offset, eos_only=n_vert >= cfg.max_vertices)
     if through is not None and cfg.pace > 0:
         mask[:, vt.OFFSET0:] &= ~pace_mask(through, prev, n_vert)[:, None]
-    if gate is not None:
-        mask = gate.mask(mask, gate.open_blocks, gate.offsets(block))
     return logits.masked_fill(~mask, float("-inf")), cell_bias
 
 
@@ -190,11 +187,11 @@ class _Batch:
     """The static buffers of one batch shape, and its step (captured as a graph on CUDA)."""
 
     def __init__(self, model: VertexDecoder, cfg: SamplingConfig, batch: int, m: int, device, dtype,
-                 evidence: Evidence | None, gate: CellGate | None, window: bool, table: bool):
+                 evidence: Evidence | None, window: bool, table: bool):
         self.model, self.cfg, self.m, self.window = model, cfg, m, window
         self.max_tokens = 2 * cfg.max_vertices + 2  # a block token for every vertex, plus BOS and EOS
         self.cache = StaticCache(model, batch, m + self.max_tokens, device, dtype)
-        self.evidence, self.gate = evidence, gate
+        self.evidence = evidence
         self.counts = evidence is not None and model.cfg.evidence_counts
         z = dict(dtype=torch.long, device=device)
         self.state = {"rows": torch.arange(batch, device=device), "step": torch.ones(1, **z),
@@ -210,7 +207,7 @@ class _Batch:
         self.graph = None
 
     def reset(self, prefix: torch.Tensor, keys: Sequence[int], evidence: Evidence | None,
-              gate: CellGate | None, live: int) -> None:
+              live: int) -> None:
         """Start a new generation of ``prefix`` (B, M, dim): prefill, state at BOS, this call's evidence; the rows
         from ``live`` on are padding, finished from the start."""
         s = self.state
@@ -218,10 +215,6 @@ class _Batch:
             _copy_evidence(self.evidence, evidence)
             if "bias" in s:
                 bias_table(evidence, s["bias"])
-        if gate is not None:
-            self.gate.cells.copy_(gate.cells)
-            self.gate.open_blocks.copy_(gate.open_blocks)
-            self.gate.free.copy_(gate.free)
         s["logits"].copy_(prefill(self.model, prefix, self.cache))
         s["keys"].copy_(torch.tensor(list(keys), dtype=torch.long))
         s["step"].fill_(1)
@@ -238,7 +231,7 @@ class _Batch:
         """Choose the token of ``step`` for every row, advance, and run it through the decoder (attending to the
         first ``span`` positions of the cache, or to all of them under a mask)."""
         s = self.state
-        logits, cell_bias = masked_logits(s["logits"], s, self.cfg, self.evidence, self.gate, self.counts)
+        logits, cell_bias = masked_logits(s["logits"], s, self.cfg, self.evidence, self.counts)
         nxt, stuck = choose_static(logits, self.cfg, s["keys"], s["step"], cell_bias)
         s["stuck"] |= stuck & ~s["done"]
         nxt = torch.where(s["done"], vt.PAD, nxt)  # a row ended (EOS) or stopped by the caller takes PAD
@@ -294,19 +287,17 @@ class StaticDecoder:
         self.table = device.type == "cuda" if table is None else table
         self._batches: OrderedDict[tuple, _Batch] = OrderedDict()
 
-    def _batch(self, prefix: torch.Tensor, cfg: SamplingConfig, evidence: Evidence | None,
-               gate: CellGate | None) -> tuple[_Batch, bool]:
+    def _batch(self, prefix: torch.Tensor, cfg: SamplingConfig, evidence: Evidence | None) -> tuple[_Batch, bool]:
         """The static buffers for this call's shapes, and whether they are new."""
         key = (tuple(prefix.shape), prefix.dtype, astuple(SamplingConfig(**{**cfg.__dict__, "seed": 0})),
-               evidence is not None, gate is not None)
+               evidence is not None)
         if key in self._batches:
             self._batches.move_to_end(key)
             return self._batches[key], False
         if len(self._batches) >= MAX_GRAPHS:
             self._batches.popitem(last=False)
         own_ev = None if evidence is None else stack_evidence([evidence])
-        own_gate = None if gate is None else CellGate(gate.cells.clone(), gate.free.clone(), gate.floor)
-        b = _Batch(self.model, cfg, prefix.shape[0], prefix.shape[1], prefix.device, prefix.dtype, own_ev, own_gate,
+        b = _Batch(self.model, cfg, prefix.shape[0], prefix.shape[1], prefix.device, prefix.dtype, own_ev,
                    self.window and not self.capture, self.table)
         self._batches[key] = b
         return b, True
@@ -342,7 +333,7 @@ class StaticDecoder:
                     read[0] = bool(s["done"].all())
                 if read[0]:
                     break
-        return _sequences(s["out"][:b])
+        return sequences(s["out"][:b].to("cpu", copy=True))  # a copy: the buffer is the next call's
 
     def _start(self, prefix: torch.Tensor, cfg: SamplingConfig, evidence: Evidence | StackedEvidence | None,
                seeds: list[int]) -> _Batch:
@@ -355,24 +346,15 @@ class StaticDecoder:
         pad = (1 << (b - 1).bit_length()) - b if self.capture else 0
         prefix = torch.cat([prefix, prefix[:1].expand(pad, -1, -1)]) if pad else prefix
         ev = None if evidence is None else stack_evidence(_rows_of(evidence) + [_rows_of(evidence)[0]] * pad)
-        gate = cell_gate(ev, cfg)
-        batch, new = self._batch(prefix, cfg, ev, gate)
+        batch, new = self._batch(prefix, cfg, ev)
         keys = [seed_key(x) for x in seeds] + [0] * pad
-        batch.reset(prefix, keys, ev, gate, live=b)
+        batch.reset(prefix, keys, ev, live=b)
         if new and self.capture:
             try:
                 batch.capture()
             except RuntimeError as e:  # an op the graph cannot hold: the same steps, run eagerly
                 log.warning("CUDA graph capture of the decode step failed (%s); decoding without it", e)
                 batch.graph = None
-            batch.reset(prefix, keys, ev, gate, live=b)
+            batch.reset(prefix, keys, ev, live=b)
         return batch
 
-
-def _sequences(out: torch.Tensor) -> list[torch.Tensor]:
-    """(B, T) tokens -> each row up to its first EOS (or without its PAD where it has none), as ``generate``."""
-    result = []
-    for row in out.to("cpu", copy=True):  # the buffer is the next call's
-        end = (row == vt.EOS).nonzero()
-        result.append(row[: int(end[0]) + 1] if len(end) else row[row != vt.PAD])
-    return result

@@ -9,10 +9,14 @@ Each token is chosen in two steps (``choose_next``): its kind (EOS, a new block,
 vertex in this block) from the decoder's own probabilities at ``structure_temperature``,
 then the token of that kind at ``temperature``, the offsets with the cell evidence weighted
 by ``cell_weight``.  With cell evidence, ``pace_mask`` also closes the current block once the
-sequence runs ahead of ``pace`` x the cells' expected vertices, and ``cell_gate`` closes the cells
-scored below ``cell_floor`` (``models.gate``).  These settings trade count for precision, so none
-applies where a face-count target sets the count (``Evidence.weighted_cells``,
-``Evidence.expected_through``, ``CellGate``).
+sequence runs ahead of ``pace`` x the cells' expected vertices.  These settings trade count for precision, so
+neither applies where a face-count target sets the count (``Evidence.weighted_cells``,
+``Evidence.expected_through``).
+
+The loop is gpt-fast's: a :class:`DecodeState` of every row's grammar state, and per step the evidence's bias
+(``biased_logits``, read again only when a row enters a new block: :class:`BlockReading`), the tokens the grammar
+and the pace allow (``allowed``), the draw (``choose_next``), the state moved past it (``DecodeState.advance``)
+and the next token through the decoder.
 
 A batch of sequences is decoded in lockstep, one decode step for all of them (the step
 is bound by reading the weights, so B sequences cost little more than one).  Each row
@@ -24,6 +28,7 @@ that seed; a finished row leaves the batch.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
@@ -31,7 +36,6 @@ import torch
 from ..params import BOUNDS, SamplingConfig
 from ..tokenizer import vertex as vt
 from .evidence import Evidence, read_counts
-from .gate import CellGate
 from .kv_cache import KVCache
 from .vertex import VertexDecoder, add_count_bias, grammar_mask, grammar_mask_rows, grammar_state
 
@@ -203,14 +207,105 @@ def pace_mask(through: torch.Tensor, prev: torch.Tensor, n_vert: torch.Tensor) -
     return (prev >= vt.OFFSET0) & (n_vert >= through + PACE_SLACK)
 
 
-def cell_gate(evidence: Evidence | StackedEvidence | None, cfg: SamplingConfig) -> CellGate | None:
-    """The :class:`CellGate` of ``cfg.cell_floor`` over the rows of ``evidence``, or None where it does not apply
-    (no floor, or a decoder that does not read the cells)."""
-    if evidence is None or not evidence.reads_cells or cfg.cell_floor is None:
-        return None
-    rows = evidence.rows if isinstance(evidence, StackedEvidence) else [evidence]
-    given = torch.cat([e.given for e in rows]) > 0
-    return CellGate(torch.cat([e.cells for e in rows]), given, cfg.cell_floor)
+def new_cache(model: VertexDecoder | OrtDecoder, batch: int, length: int, device, dtype) -> KVCache:
+    """An empty cache of ``length`` positions for ``batch`` rows (another backend brings its own layout)."""
+    if hasattr(model, "new_cache"):  # models.onnx_decode
+        return model.new_cache(batch, length, device, dtype)
+    c = model.cfg
+    return KVCache(c.depth, batch, c.heads, length, c.head_dim, device=device, dtype=dtype)
+
+
+@dataclass
+class DecodeState:
+    """The grammar state of B rows, each (B,) int64, and the tokens so far."""
+
+    block: torch.Tensor  # current block, -1 before the first
+    offset: torch.Tensor  # last offset in the current block, -1 right after a block token
+    prev: torch.Tensor  # last token
+    n_vert: torch.Tensor  # vertices so far
+    n_in_block: torch.Tensor  # vertices so far in the current block
+    live: torch.Tensor  # (L,) the rows still decoding, in order: the rows of the logits and of the cache
+    out: list[torch.Tensor]  # each step's (B,) tokens, PAD in the rows that have left
+
+    @classmethod
+    def start(cls, batch: int, device) -> DecodeState:
+        """Every row at BOS."""
+        def full(v):
+            return torch.full((batch,), v, dtype=torch.long, device=device)
+
+        bos = full(vt.BOS)
+        return cls(full(-1), full(-1), bos, full(0), full(0), torch.arange(batch, device=device), [bos])
+
+    def advance(self, picked: torch.Tensor) -> torch.Tensor:
+        """Move the live rows past their (L,) ``picked`` tokens; returns the (B,) step's tokens."""
+        nxt = torch.full_like(self.prev, vt.PAD)
+        nxt[self.live] = picked
+        self.out.append(nxt)
+        is_block = (nxt >= vt.BLOCK0) & (nxt < vt.OFFSET0)
+        is_off = nxt >= vt.OFFSET0
+        self.block = torch.where(is_block, nxt - vt.BLOCK0, self.block)
+        self.offset = torch.where(is_off, nxt - vt.OFFSET0, torch.where(is_block, -1, self.offset))
+        self.n_vert = self.n_vert + is_off.long()
+        self.n_in_block = torch.where(is_block, 0, self.n_in_block + is_off.long())
+        self.prev = nxt
+        return nxt
+
+    def keep(self, going: torch.Tensor, cache: KVCache) -> None:
+        """Only the live rows flagged in ``going`` (L,) stay in the batch and its cache."""
+        rows = going.nonzero()[:, 0]
+        cache.select(rows)
+        self.live = self.live[rows]
+
+
+@dataclass
+class BlockReading:
+    """What the evidence says of the rows' current blocks (each (B, ...)); it changes only when a row enters a new
+    block, so it is read again only then."""
+
+    block: torch.Tensor | None = None  # the blocks it was read for
+    bias: torch.Tensor | None = None  # (B, VOCAB) logit bias
+    cell_bias: torch.Tensor | None = None  # (B, 4096) cell weight on the offsets (decoders that read the cells)
+    through: torch.Tensor | None = None  # (B,) the cells' expected vertices up to the block's end, times the pace
+
+    def update(self, evidence: Evidence | StackedEvidence, block: torch.Tensor, cfg: SamplingConfig) -> None:
+        if self.block is not None and torch.equal(block, self.block):
+            return
+        self.bias, self.block = evidence.logit_bias(block[:, None])[:, 0], block.clone()
+        if evidence.reads_cells:
+            self.cell_bias = evidence.weighted_cells(block, cfg.cell_weight)
+            self.through = evidence.expected_through(block, cfg.pace)
+
+
+def biased_logits(logits: torch.Tensor, s: DecodeState, evidence: Evidence | StackedEvidence | None,
+                  reading: BlockReading, cfg: SamplingConfig, counts: bool) -> torch.Tensor:
+    """(L, VOCAB) decoder logits of the live rows plus the evidence's bias and, with ``counts``, its count bias."""
+    if evidence is None:
+        return logits
+    reading.update(evidence, s.block, cfg)
+    logits = logits + reading.bias[s.live]
+    if counts:  # read with every vertex
+        eos, stay = evidence.count_bias(s.block[:, None], s.offset[:, None], s.n_vert[:, None], s.n_in_block[:, None])
+        logits = add_count_bias(logits, eos[s.live, 0], stay[s.live, 0])
+    return logits
+
+
+def allowed(s: DecodeState, cfg: SamplingConfig, reading: BlockReading) -> torch.Tensor:
+    """(L, VOCAB) bool: the tokens the grammar allows the live rows, and the pace where the cells are read."""
+    live = s.live
+    mask = grammar_mask_rows(s.prev[live].tolist(), s.block[live].tolist(), s.offset[live].tolist(),
+                             (s.n_vert[live] >= cfg.max_vertices).tolist(), s.prev.device)
+    if reading.through is not None and cfg.pace > 0:
+        mask[:, vt.OFFSET0:] &= ~pace_mask(reading.through, s.prev, s.n_vert)[live, None]
+    return mask
+
+
+def sequences(tokens: torch.Tensor) -> list[torch.Tensor]:
+    """(B, T) tokens -> each row up to its first EOS, or without its PAD where it has none."""
+    result = []
+    for row in tokens:
+        end = (row == vt.EOS).nonzero()
+        result.append(row[: int(end[0]) + 1] if len(end) else row[row != vt.PAD])
+    return result
 
 
 @torch.inference_mode()
@@ -252,91 +347,40 @@ def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: Sampl
     seeds = [cfg.seed + k for k in range(b)] if seeds is None else list(seeds)
     if len(seeds) != b:
         raise ValueError(f"seeds: one per prefix row ({b}), got {len(seeds)}")
-    for s in seeds:
-        BOUNDS["seed"].check("seed", s)
+    for seed in seeds:
+        BOUNDS["seed"].check("seed", seed)
     if getattr(model, "backend", None) == "static":  # models.decode: its own loop, with static shapes
         return model.generate(prefix, cfg, progress, should_cancel, progress_every, evidence, seeds, rows)
     cfg.validate()
-    b, m, _ = prefix.shape
-    device = prefix.device
-    # Worst case: a block token for every vertex, plus BOS and EOS.
-    max_tokens = 2 * cfg.max_vertices + 2
-    if hasattr(model, "new_cache"):  # another backend (models.onnx_decode) brings its own cache layout
-        cache = model.new_cache(b, m + max_tokens, device, prefix.dtype)
-    else:
-        cache = KVCache(model.cfg.depth, b, model.cfg.heads, m + max_tokens, model.cfg.head_dim,
-                        device=device, dtype=prefix.dtype)
-    gens = [torch.Generator(device=device).manual_seed(s) for s in seeds]
-    stopped = None  # (B,) rows stopped by ``rows``
-    tokens = torch.full((b, 1), vt.BOS, dtype=torch.long, device=device)
-    logits = model.prefill(prefix, tokens, cache)
-    out = [tokens[:, 0]]
-    # Grammar state of every row; `live` indexes the rows still in the batch (those of `logits`
-    # and of the cache), in order.
-    block = torch.full((b,), -1, dtype=torch.long, device=device)
-    offset = torch.full((b,), -1, dtype=torch.long, device=device)
-    prev = tokens[:, 0]
-    n_vert = torch.zeros(b, dtype=torch.long, device=device)
-    n_in_block = torch.zeros(b, dtype=torch.long, device=device)
-    live = torch.arange(b, device=device)
-    ev_block = ev_bias = cell_bias = through = open_offsets = None
+    m, device = prefix.shape[1], prefix.device
+    max_tokens = 2 * cfg.max_vertices + 2  # worst case: a block token for every vertex, plus BOS and EOS
+    cache = new_cache(model, b, m + max_tokens, device, prefix.dtype)
+    gens = [torch.Generator(device=device).manual_seed(seed) for seed in seeds]
     counts = evidence is not None and model.cfg.evidence_counts
-    cells = evidence is not None and evidence.reads_cells
-    gate = cell_gate(evidence, cfg)
+    s, reading, stopped = DecodeState.start(b, device), BlockReading(), None
+    logits = model.prefill(prefix, s.prev[:, None], cache)
     for step in range(1, max_tokens):
-        if evidence is not None:  # the bias changes only when a sequence enters a new block
-            if ev_block is None or not torch.equal(block, ev_block):
-                ev_bias, ev_block = evidence.logit_bias(block[:, None])[:, 0], block.clone()
-                if cells:
-                    cell_bias = evidence.weighted_cells(block, cfg.cell_weight)
-                    through = evidence.expected_through(block, cfg.pace)
-                if gate is not None:
-                    open_offsets = gate.offsets(block)
-            logits = logits + ev_bias[live]
-            if counts:  # ... and the count reading with every vertex
-                eos, stay = evidence.count_bias(block[:, None], offset[:, None], n_vert[:, None], n_in_block[:, None])
-                logits = add_count_bias(logits, eos[live, 0], stay[live, 0])
-        mask = grammar_mask_rows(prev[live].tolist(), block[live].tolist(), offset[live].tolist(),
-                                 (n_vert[live] >= cfg.max_vertices).tolist(), device)
-        if cells and cfg.pace > 0:
-            mask[:, vt.OFFSET0:] &= ~pace_mask(through, prev, n_vert)[live, None]
-        if gate is not None:
-            mask = gate.mask(mask, gate.open_blocks[live], open_offsets[live])
-        picked = choose_next(logits.masked_fill(~mask, float("-inf")), cfg, [gens[int(k)] for k in live],
-                             None if cell_bias is None else cell_bias[live])
-        nxt = torch.full((b,), vt.PAD, dtype=torch.long, device=device)
-        nxt[live] = picked
-        out.append(nxt)
-        is_block = (nxt >= vt.BLOCK0) & (nxt < vt.OFFSET0)
-        is_off = nxt >= vt.OFFSET0
-        block = torch.where(is_block, nxt - vt.BLOCK0, block)
-        offset = torch.where(is_off, nxt - vt.OFFSET0, torch.where(is_block, -1, offset))
-        n_vert += is_off.long()
-        n_in_block = torch.where(is_block, 0, n_in_block + is_off.long())
-        prev = nxt
+        logits = biased_logits(logits, s, evidence, reading, cfg, counts)
+        cell_bias = None if reading.cell_bias is None else reading.cell_bias[s.live]
+        picked = choose_next(logits.masked_fill(~allowed(s, cfg, reading), float("-inf")), cfg,
+                             [gens[int(k)] for k in s.live], cell_bias)
+        nxt = s.advance(picked)
         if step % progress_every == 0:
             if should_cancel is not None and should_cancel():
                 raise Cancelled("generation cancelled")
             if progress is not None:
-                progress(step, int(n_vert.max()))
+                progress(step, int(s.n_vert.max()))
             if rows is not None:
-                stopped = torch.tensor(rows(step, n_vert.tolist()), dtype=torch.bool, device=device)
+                stopped = torch.tensor(rows(step, s.n_vert.tolist()), dtype=torch.bool, device=device)
         going = picked != vt.EOS
         if stopped is not None:
-            going &= ~stopped[live]
+            going &= ~stopped[s.live]
         if not bool(going.any()):
             break
         if not bool(going.all()):  # finished rows stop costing: out of the batch and its cache
-            keep = going.nonzero()[:, 0]
-            cache.select(keep)
-            live = live[keep]
-        logits = model.decode_step(nxt[live, None], block[live, None], m + step, cache)
-    seqs = torch.stack(out, dim=1)
-    result = []
-    for row in seqs:
-        end = (row == vt.EOS).nonzero()
-        result.append(row[: int(end[0]) + 1] if len(end) else row[row != vt.PAD])
-    return result
+            s.keep(going, cache)
+        logits = model.decode_step(nxt[s.live, None], s.block[s.live, None], m + step, cache)
+    return sequences(torch.stack(s.out, dim=1))
 
 
 @torch.inference_mode()
@@ -347,7 +391,6 @@ def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: 
     if cfg.temperature != 0:
         raise ValueError("generate_uncached decodes greedily: cfg.temperature must be 0")
     cells = evidence is not None and evidence.reads_cells
-    gate = cell_gate(evidence, cfg)
     tokens = torch.full((prefix.shape[0], 1), vt.BOS, dtype=torch.long, device=prefix.device)
     for _ in range(2 * max_vertices + 1):
         logits = model(tokens, prefix=prefix, evidence=evidence)[:, -1]
@@ -358,8 +401,6 @@ def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: 
         if cells and cfg.pace > 0:
             through = evidence.expected_through(block[:, -1], cfg.pace)
             mask[:, vt.OFFSET0:] &= ~pace_mask(through, tokens[:, -1], n_vert)[:, None]
-        if gate is not None:
-            mask = gate.mask(mask, gate.open_blocks, gate.offsets(block[:, -1]))
         cell_bias = evidence.weighted_cells(block[:, -1], cfg.cell_weight) if cells else None
         nxt = choose_next(logits.masked_fill(~mask, float("-inf")), cfg, None, cell_bias)
         tokens = torch.cat([tokens, nxt[:, None]], dim=1)

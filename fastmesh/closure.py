@@ -134,11 +134,16 @@ def winding_closed_share(points: np.ndarray, normals: np.ndarray, seed: int = 0)
 
 def _winding(queries: np.ndarray, points: np.ndarray, normals: np.ndarray, area: np.ndarray) -> np.ndarray:
     """(Q,) generalized winding numbers of oriented points (dipoles of strength ``area``) at ``queries``."""
+    # As products of (Q, 3) by (3, N): (p - q).n = p.n - q.n and |p - q|^2 = |p|^2 - 2 p.q + |q|^2, without the
+    # (Q, N, 3) differences (a sixth of the time).  The cancellation in |p - q|^2 costs ~1e-12 of it at the
+    # nearest sources (2 spacings away in the unit cube), far below the margins the decision reads.
     out = np.empty(len(queries))
+    pn, pp = np.einsum("ni,ni->n", points, normals), np.einsum("ni,ni->n", points, points)
     for s in range(0, len(queries), 256):  # 256 x N pairs at a time: bounded memory
-        d = points[None] - queries[s:s + 256, None]
-        r = np.maximum(np.linalg.norm(d, axis=2), 1e-12)
-        out[s:s + 256] = (area * np.einsum("qni,ni->qn", d, normals) / r**3).sum(1) / (4 * np.pi)
+        q = queries[s:s + 256]
+        dot = pn[None] - q @ normals.T
+        r2 = np.maximum(pp[None] - 2.0 * (q @ points.T) + np.einsum("qi,qi->q", q, q)[:, None], 1e-24)
+        out[s:s + 256] = (area * dot / (r2 * np.sqrt(r2))).sum(1) / (4 * np.pi)
     return out
 
 
@@ -171,11 +176,11 @@ def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarra
     vertices : (N + k, 3) float64, ``vertices`` and the k the closure added (:func:`_fan`)
     faces : (F', 3) int64, ``faces`` and the closing faces (windings to be made consistent by the caller)
     """
-    support = SupportCache(vertices, points, tree)
-    tree = support.tree
     # A cap may lie on the input by the median of each face and still cross an opening the input has: the
     # farthest point of its faces is held to the last relaxed limit too.
     reach = limit * RELAX[-1]
+    support = SupportCache(vertices, points, tree, bound=reach)  # no step compares with more than reach
+    tree = support.tree
 
     def near(faces):
         if faces and _farthest(vertices, faces, tree) > reach:

@@ -341,7 +341,7 @@ def fill_holes(vertices: np.ndarray, faces: np.ndarray, book: _Selection, points
     -------
     (F', 3) int64 faces: the selection, with at most the faces bordering re-clipped loops exchanged.
     """
-    support = SupportCache(vertices, points, tree)  # the same faces are asked for many times
+    support = SupportCache(vertices, points, tree, bound=limit)  # the same faces are asked for many times
     kept = {tuple(sorted(t)): tuple(t) for t in np.asarray(faces, dtype=np.int64).reshape(-1, 3).tolist()}
     stuck = []
     for loop in boundary_loops(faces):

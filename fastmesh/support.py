@@ -17,6 +17,7 @@ from .io import sample_triangles
 
 SPACING_FACTOR = 3.0  # the limit is never below this many median point spacings
 GRID = 6  # face samples per edge of the barycentric grid: 21 points inside each triangle
+BOUND_PAD = 1e-6  # relative margin of a bounded search (``support_distance``'s ``bound``) over its bound
 
 
 def _barycentric_grid(n: int) -> np.ndarray:
@@ -35,7 +36,7 @@ def face_samples(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def support_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
-                     tree: cKDTree | None = None) -> np.ndarray:
+                     tree: cKDTree | None = None, bound: float = np.inf) -> np.ndarray:
     """How far each face strays from the input surface.
 
     Parameters
@@ -45,6 +46,10 @@ def support_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
     points : (P, 3) float
         Dense samples of the input surface, in the frame of ``vertices``.
     tree : cKDTree of ``points``, optional (built when not given)
+    bound : float
+        The distances up to ``bound`` are exact; a face farther than ``bound`` gets some distance above it
+        (``inf`` where the nearest-point search stopped at the bound, which spares the search across empty
+        space that costs most for faces far from the input).
 
     Returns
     -------
@@ -56,7 +61,9 @@ def support_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
         return np.zeros(0)
     if tree is None:
         tree = cKDTree(np.asarray(points, dtype=np.float64))
-    dist, _ = tree.query(samples.reshape(-1, 3))
+    # The search keeps points strictly nearer than its bound: padded, so a distance equal to ``bound`` stays.
+    reach = bound * (1.0 + BOUND_PAD) if np.isfinite(bound) else np.inf
+    dist, _ = tree.query(samples.reshape(-1, 3), distance_upper_bound=reach)
     return np.median(dist.reshape(samples.shape[:2]), axis=1)
 
 
@@ -67,17 +74,24 @@ class SupportCache:
     retries (about a third of its requests repeat).  A triple is keyed in its own vertex order: the
     grid of samples inside a face depends on it, so (a, b, c) and (b, c, a) may differ slightly.
 
+    Hole filling only compares a face's distance with its limit and ranks the faces within it, so the
+    searches stop at the largest limit the cache serves (``bound``): a face beyond it reads some distance
+    above it, and what is within it is exact.
+
     Parameters
     ----------
     vertices : (N, 3) float
     points : (P, 3) float
     tree : cKDTree of ``points``, optional
+    bound : float, the largest limit the callers compare distances with (``support_distance``)
     """
 
-    def __init__(self, vertices: np.ndarray, points: np.ndarray, tree: cKDTree | None = None):
+    def __init__(self, vertices: np.ndarray, points: np.ndarray, tree: cKDTree | None = None,
+                 bound: float = np.inf):
         self.vertices = np.asarray(vertices, dtype=np.float64)
         self.points = np.asarray(points, dtype=np.float64)
         self.tree = tree if tree is not None else cKDTree(self.points)
+        self.bound = float(bound)
         self._known: dict[tuple[int, int, int], float] = {}
 
     def __call__(self, faces: np.ndarray) -> np.ndarray:
@@ -85,7 +99,7 @@ class SupportCache:
         keys = [tuple(t) for t in np.asarray(faces, dtype=np.int64).reshape(-1, 3).tolist()]
         new = list(dict.fromkeys(k for k in keys if k not in self._known))
         if new:
-            d = support_distance(self.vertices, np.array(new, dtype=np.int64), self.points, self.tree)
+            d = support_distance(self.vertices, np.array(new, dtype=np.int64), self.points, self.tree, self.bound)
             self._known.update(zip(new, d.tolist(), strict=True))
         return np.array([self._known[k] for k in keys], dtype=np.float64)
 

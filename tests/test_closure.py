@@ -7,7 +7,7 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from fastmesh.closure import close_loops, decide_closed, mesh_open_share, winding_closed_share
+from fastmesh.closure import _winding, close_loops, decide_closed, mesh_open_share, winding_closed_share
 from fastmesh.io import Shape, sample_surface
 from fastmesh.primitives import point_cloud
 from fastmesh.quality import topology
@@ -73,6 +73,19 @@ def test_a_closed_mesh_split_at_its_seams_is_closed_and_asking_overrides():
     assert decide_closed(Shape(vertices=np.random.default_rng(2).random((100, 3)))) == (False, "open_points")
     with pytest.raises(ValueError, match="closed must be one of"):
         decide_closed(sheet, "yes")
+
+
+def test_winding_numbers_match_the_sum_over_dipoles():
+    """``_winding`` (products of (Q, 3) by (3, N)) against its slow twin, the dipoles' sum taken pair by
+    pair, at queries near and far from the points."""
+    rng = np.random.default_rng(2)
+    pts, nrm = sample_surface(_shape(trimesh.creation.icosphere(3)), 3000, seed=1)
+    pts, nrm = pts.astype(np.float64), nrm.astype(np.float64)
+    area = rng.uniform(1e-4, 2e-3, len(pts))
+    queries = np.concatenate([pts[:300] * 0.98, pts[300:600] * 1.02, rng.uniform(-2, 2, (300, 3))])
+    d = pts[None] - queries[:, None]
+    slow = (area * np.einsum("qni,ni->qn", d, nrm) / np.linalg.norm(d, axis=2) ** 3).sum(1) / (4 * np.pi)
+    np.testing.assert_allclose(_winding(queries, pts, nrm, area), slow, rtol=1e-9, atol=1e-9)
 
 
 def test_winding_share_is_high_inside_a_sphere_and_low_on_a_disc():

@@ -127,3 +127,20 @@ def test_surface_fit_prefers_a_whole_mesh_to_one_with_a_hole_of_the_same_mean():
     assert surface_fit(sphere.vertices, holed, points, hausdorff_weight=0) < surface_fit(larger, sphere.faces, points,
                                                                                       hausdorff_weight=0)
     assert surface_fit(sphere.vertices, holed, points) > surface_fit(larger, sphere.faces, points)
+
+
+def test_a_bounded_search_is_exact_within_its_bound_and_above_it_beyond():
+    """Faces on the surface and across the gap, with the bound between them and at a face's own distance:
+    every distance up to the bound is the unbounded one exactly, every other is above the bound."""
+    v, real, bridge, points = _two_squares()
+    rng = np.random.default_rng(1)
+    faces = np.concatenate([real, bridge, rng.integers(0, len(v), (40, 3))])
+    free = support_distance(v, faces, points)
+    for bound in (0.05, 0.2, float(np.sort(free)[len(free) // 2])):
+        d = support_distance(v, faces, points, bound=bound)
+        within = free <= bound
+        assert within.any() and (~within).any()
+        assert np.array_equal(d[within], free[within])
+        assert (d[~within] > bound).all()
+        cache = SupportCache(v, points, bound=bound)
+        assert np.array_equal(cache(faces) <= bound, within)

@@ -29,6 +29,8 @@ ALIGNED_DEGREES = 5.0
 # Without normals: turn when the oriented box holds the shape in less than this share of its axis-aligned
 # box's volume (a box turned by 2 degrees about one axis fills about 0.94 of it).
 TURN_BELOW = 0.97
+# Added to the angle of :func:`aligned_share_bound`: floating-point rounding never takes a normal out of it.
+BOUND_MARGIN_DEGREES = 0.01
 # Normals within this angle of an axis of the box's frame align that frame exactly (:func:`_aligned`).
 SNAP_DEGREES = 15.0
 # Each box side is padded by this share of the longest before volumes are compared: a flat shape (a
@@ -78,6 +80,8 @@ def canonical_rotation(points: np.ndarray, normals: np.ndarray | None = None,
     -------
     (3, 3) float64 rotation R (det +1): the shape in the canonical frame is ``points @ R.T``.
     """
+    if normals is not None and aligned_share_bound(normals) < aligned_share(normals) + TURN_GAIN:
+        return np.eye(3)  # no frame could lay enough of the normals along its axes: the box is not looked for
     rot = _box_rotation(points)
     if rot is None:
         return np.eye(3)
@@ -102,6 +106,28 @@ def aligned_share(normals: np.ndarray, degrees: float = ALIGNED_DEGREES) -> floa
         return 0.0
     length = np.maximum(np.linalg.norm(n, axis=1), 1e-12)
     return float((np.abs(n).max(1) / length >= np.cos(np.radians(degrees))).mean())
+
+
+def aligned_share_bound(normals: np.ndarray, degrees: float = ALIGNED_DEGREES) -> float:
+    """An upper bound on :func:`aligned_share` of ``normals`` (M, 3) turned by any rotation.
+
+    The normals within ``degrees`` of an axis (either direction) lie within twice ``degrees`` of any one of
+    them (either direction), so each of the three axes holds at most the most normals found within twice
+    ``degrees`` of one normal.  Smooth shapes (no flat walls) read a few per cent: far below what a turn
+    must gain, which :func:`canonical_rotation` then knows without looking for the box.
+    """
+    from scipy.spatial import cKDTree
+
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    n = n[np.isfinite(n).all(1)]
+    length = np.linalg.norm(n, axis=1)
+    u = n[length > 0] / length[length > 0, None]
+    if len(u) == 0:
+        return 0.0
+    # Chord length of the angle, with a margin for rounding; a normal and its opposite are never both near.
+    chord = 2.0 * np.sin(np.radians(2.0 * degrees + BOUND_MARGIN_DEGREES) / 2.0)
+    near = cKDTree(np.concatenate([u, -u])).query_ball_point(u, chord, return_length=True)
+    return min(1.0, 3.0 * float(np.max(near)) / len(n))
 
 
 def _box_rotation(points: np.ndarray) -> np.ndarray | None:

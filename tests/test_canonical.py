@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.canonical import canonical_rotation, rotate_shape, turned_degrees
+from fastmesh import canonical
+from fastmesh.canonical import aligned_share, aligned_share_bound, canonical_rotation, rotate_shape, turned_degrees
 from fastmesh.io import Shape
 from fastmesh.primitives import point_cloud
 
@@ -92,3 +93,50 @@ def test_rotate_shape_turns_points_and_normals_together():
     assert np.allclose(np.abs(turned.normals).max(1), 1.0, atol=1e-6)
     back = rotate_shape(turned, rot.T)
     assert np.allclose(back.vertices, cloud.vertices) and np.allclose(back.normals, cloud.normals)
+
+
+def _clustered_normals(rng: np.random.Generator) -> np.ndarray:
+    """(M, 3) unit normals: clusters of random spread about random directions, and some scattered."""
+    centres = rng.normal(size=(int(rng.integers(1, 7)), 3))
+    spread = rng.uniform(0.0, 0.2, len(centres))
+    n = np.concatenate([c + rng.normal(scale=s, size=(int(rng.integers(5, 300)), 3))
+                        for c, s in zip(centres / np.linalg.norm(centres, axis=1, keepdims=True), spread, strict=True)]
+                       + [rng.normal(size=(int(rng.integers(0, 200)), 3))])
+    return n / np.linalg.norm(n, axis=1, keepdims=True) * rng.uniform(0.5, 2.0, (len(n), 1))
+
+
+def test_the_aligned_share_bound_holds_for_every_rotation():
+    """Random rotations, and the ones that put a cluster's normals, or two of them, on the axes exactly."""
+    rng = np.random.default_rng(3)
+    for _ in range(60):
+        n = _clustered_normals(rng)
+        bound = aligned_share_bound(n)
+        turns = [trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3] for _ in range(20)]
+        for i, j in rng.integers(0, len(n), (20, 2)):
+            a = n[i] / np.linalg.norm(n[i])
+            b = n[j] - (n[j] @ a) * a
+            b = b / np.linalg.norm(b) if np.linalg.norm(b) > 1e-9 else np.cross(a, [0.6, 0.0, 0.8])
+            b /= np.linalg.norm(b)
+            turns.append(np.stack([a, b, np.cross(a, b)]))  # n[i] onto x, n[j] into the xy plane
+        assert all(aligned_share(n @ r.T) <= bound for r in turns)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_bound_leaves_every_frame_as_the_box_search_finds_it(monkeypatch, seed):
+    """canonical_rotation against its slow twin, the box searched for every shape: the same rotation on
+    smooth shapes (where the bound spares the search), turned boxes and noisy boxes."""
+    rng = np.random.default_rng(seed)
+    ellipsoid = trimesh.creation.icosphere(3)
+    ellipsoid.apply_scale(rng.uniform(0.3, 1.0, 3))
+    shapes = [_random_box(rng)[0], trimesh.creation.icosphere(3), ellipsoid, trimesh.creation.torus(1.0, 0.3),
+              trimesh.creation.cylinder(0.3, 1.0, sections=48)]
+    clouds = []
+    for m in shapes:
+        m.apply_transform(trimesh.transformations.random_rotation_matrix(rng.random(3)))
+        cloud = point_cloud(Shape(vertices=np.asarray(m.vertices), faces=np.asarray(m.faces)), 3000, seed=seed)
+        clouds.append((cloud.vertices + rng.normal(scale=0.002, size=cloud.vertices.shape), cloud.normals))
+    fast = [canonical_rotation(p, n) for p, n in clouds]
+    monkeypatch.setattr(canonical, "aligned_share_bound", lambda normals: 1.0)
+    slow = [canonical_rotation(p, n) for p, n in clouds]
+    assert all(np.array_equal(a, b) for a, b in zip(fast, slow, strict=True))
+    assert sum(aligned_share_bound(n) < aligned_share(n) + canonical.TURN_GAIN for _, n in clouds) >= 2

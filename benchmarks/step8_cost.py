@@ -1,0 +1,126 @@
+"""What closing and making whole cost a job: seconds of ``Pipeline.generate`` and of its parts, on varied inputs.
+
+    python benchmarks/step8_cost.py [--n 12] [--seed 9] [--root DIR] [--threads 1]
+
+Runs ``generate`` on ``tests/gpu_inputs.varied(n, seed)`` (point clouds with and without a face-count
+target, artist meshes, posed primitives: made from seeds, nothing to download) and a turned 64-sided cylinder
+(generated in two frames), after one warm-up, and times inside each job:
+
+- ``decide``: deciding closedness (``closure.decide_closed``: winding numbers on a point cloud);
+- ``frame``: choosing the frame (``canonical.canonical_rotation`` with the normals it reads, and the choice
+  between the two frames' results);
+- ``second_frame``: the job's time less the same job's made in its own frame only (inputs with two frames);
+- ``closure``: closing the loops hole filling leaves (``closure.close_loops``);
+- ``whole``: making the result whole (``pipeline._whole``: pinches, strays, far vertices, a low-poly input);
+- ``holes``: the face stage's hole filling (``holes.fill_holes``), reported beside them.
+
+Prints one JSON line: the sums over the jobs, the share of the jobs' time that step 8 (decide, frame,
+second_frame, closure, whole) takes, and that share with the hole filling added.  ``--root`` runs another
+checkout's ``fastmesh`` (a ``git worktree`` of another commit): alternate the runs, the machine's load drifts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+STEP8 = ("decide", "frame", "second_frame", "closure", "whole")
+
+
+def _timed(fn, name: str, spent: dict):
+    def run(*args, **kwargs):
+        t = time.perf_counter()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            spent[name] += time.perf_counter() - t
+
+    return run
+
+
+def _inputs(n: int, seed: int) -> list:
+    import numpy as np
+    import trimesh
+    from gpu_inputs import varied
+
+    from fastmesh.io import Shape
+    from fastmesh.params import GenerateParams
+    from fastmesh.primitives import posed
+
+    cylinder = trimesh.creation.cylinder(0.3, 0.8, sections=64)
+    turned = posed(Shape(vertices=np.asarray(cylinder.vertices), faces=np.asarray(cylinder.faces)),
+                   np.random.default_rng(7))
+    return [*varied(n, seed=seed), ("cylinder64-turned", turned, GenerateParams(seed=2))]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--n", type=int, default=12, help="varied inputs")
+    ap.add_argument("--seed", type=int, default=9)
+    ap.add_argument("--root", default=str(Path(__file__).resolve().parents[1]), metavar="DIR",
+                    help="the checkout whose fastmesh runs (default: this one)")
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+    sys.path[:0] = [args.root, str(Path(args.root) / "tests")]
+    import numpy as np
+
+    from fastmesh import pipeline, surface_triangles
+    from fastmesh.pipeline import Pipeline
+
+    spent: dict[str, float] = defaultdict(float)
+    pipeline.decide_closed = _timed(pipeline.decide_closed, "decide", spent)
+    for name in ("canonical_rotation", "frame_normals"):
+        setattr(pipeline, name, _timed(getattr(pipeline, name), "frame", spent))
+    Pipeline._nearest_frame = _timed(Pipeline._nearest_frame, "frame", spent)
+    pipeline._whole = _timed(pipeline._whole, "whole", spent)
+    surface_triangles.close_loops = _timed(surface_triangles.close_loops, "closure", spent)
+    surface_triangles.fill_holes = _timed(surface_triangles.fill_holes, "holes", spent)
+    frames = {"n": 0}
+    make_frame = Pipeline._frame
+
+    def counted(self, *a, **k):
+        frames["n"] += 1
+        return make_frame(self, *a, **k)
+
+    Pipeline._frame = counted
+    turn = pipeline.canonical_rotation
+
+    pipe = Pipeline.from_pretrained(threads=args.threads)
+    items = _inputs(args.n, args.seed)
+    pipe.generate(items[0][1], items[0][2])  # warm-up: first-call costs are not the pipeline's
+    spent.clear()
+    jobs = {}
+    for name, shape, params in items:
+        frames["n"] = 0
+        t = time.perf_counter()
+        pipe.generate(shape, params)
+        jobs[name] = time.perf_counter() - t
+        if frames["n"] > 1:  # the same job in its own frame only: what the second frame adds
+            pipeline.canonical_rotation = lambda *a, **k: np.eye(3)
+            before = dict(spent)
+            t = time.perf_counter()
+            pipe.generate(shape, params)
+            alone = time.perf_counter() - t
+            spent.clear()
+            spent.update(before)
+            pipeline.canonical_rotation = turn
+            spent["second_frame"] += jobs[name] - alone
+    total = sum(jobs.values())
+    step8 = sum(spent[k] for k in STEP8)
+    print(json.dumps({"root": args.root, "jobs": len(jobs), "seconds": round(total, 3),
+                      "median": round(float(np.median(list(jobs.values()))), 3),
+                      "parts": {k: round(spent[k], 3) for k in (*STEP8, "holes")},
+                      "step8_share": round(step8 / total, 4),
+                      "step8_share_of_the_rest": round(step8 / (total - step8), 4),
+                      "with_holes_share_of_the_rest": round((step8 + spent["holes"]) / (total - step8 - spent["holes"]),
+                                                            4),
+                      "runs": {k: round(v, 3) for k, v in jobs.items()}}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

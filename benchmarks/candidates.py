@@ -32,9 +32,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fastmesh.io import SUPPORTED_FORMATS, Normalization, load_shape  # noqa: E402
+from fastmesh.io import SUPPORTED_FORMATS, load_shape  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
+from fastmesh.request import Frame  # noqa: E402
 
 
 def pick_inputs(folder: Path, n: int) -> list[Path]:
@@ -76,10 +77,10 @@ def time_decoding(pipe: Pipeline, inputs: list[Path], k: int, rounds: int) -> No
     totals = {"batched": 0.0, "sequential": 0.0, "first alone": 0.0}
     for f in inputs:
         shape = load_shape(f)
-        unit = Normalization.fit(shape.vertices).apply(shape.vertices)
         # Candidate k's own surface sample and condition, as Pipeline.generate makes them.
-        cells = pipe._cell_grid(shape, unit)
-        encoded = [pipe._encode(shape, unit, seed, GenerateParams(), cells) for seed in range(k)]
+        frame = Frame.of(shape)
+        cells = pipe._cell_grid(frame)
+        encoded = [pipe._encode(frame, seed, GenerateParams(), cells) for seed in range(k)]
         prefix, evidence = [e[2] for e in encoded], [e[3] for e in encoded]
         med, lengths = _decode_times(pipe, prefix, evidence, rounds)
         for name in totals:

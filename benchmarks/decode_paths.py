@@ -31,11 +31,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from gpu_inputs import smooth_cloud, turned  # noqa: E402
 
-from fastmesh.io import Normalization  # noqa: E402
 from fastmesh.models.decode import StaticDecoder  # noqa: E402
 from fastmesh.models.generate import StackedEvidence, generate  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import Pipeline  # noqa: E402
+from fastmesh.request import Frame  # noqa: E402
 
 
 def shapes(seed: int = 0) -> dict:
@@ -47,9 +47,9 @@ def shapes(seed: int = 0) -> dict:
 def encoded(pipe: Pipeline, shape, params: GenerateParams) -> tuple[torch.Tensor, StackedEvidence | None]:
     """The decoder's inputs for ``shape`` as ``Pipeline._decode`` makes them: (C, M, dim) prefixes and the
     evidence of the C candidates."""
-    unit = Normalization.fit(shape.vertices).apply(shape.vertices)
-    cells = pipe._cell_grid(shape, unit)
-    encs = [pipe._encode(shape, unit, params.seed + k, params, cells) for k in range(params.candidates)]
+    frame = Frame.of(shape)
+    cells = pipe._cell_grid(frame)
+    encs = [pipe._encode(frame, params.seed + k, params, cells) for k in range(params.candidates)]
     evidence = [e[3] for e in encs]
     return torch.cat([e[2] for e in encs]), None if evidence[0] is None else StackedEvidence(evidence)
 

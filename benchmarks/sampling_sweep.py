@@ -28,11 +28,13 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from fastmesh.batch import decode  # noqa: E402
 from fastmesh.eval import artist_vertices, pair_inputs  # noqa: E402
-from fastmesh.io import Normalization, load_shape  # noqa: E402
+from fastmesh.io import load_shape  # noqa: E402
 from fastmesh.metrics import vertex_metrics  # noqa: E402
 from fastmesh.params import GenerateParams, TunedParams  # noqa: E402
 from fastmesh.pipeline import Pipeline  # noqa: E402
+from fastmesh.request import Request  # noqa: E402
 from fastmesh.tokenizer import dequantize  # noqa: E402
 
 BIG = 400  # a candidate with this many vertices or more: a run towards the cap
@@ -41,15 +43,14 @@ BIG = 400  # a candidate with this many vertices or more: a run towards the cap
 def candidates(pipe: Pipeline, shape, params: GenerateParams) -> list[np.ndarray]:
     """(N_k, 3) vertices of each candidate in the shape's own frame: the pipeline's decoding (and its moves of
     the vertices by the cell evidence, ``snap_margin``), stopped there."""
-    norm = Normalization.fit(shape.vertices)
-    unit = norm.apply(shape.vertices)
-    cells = pipe._cell_grid(shape, unit)
-    timings = {"encode": 0.0, "vertices": 0.0}
-    decoded = pipe._decode(shape, unit, params, params.candidates, lambda *a: None, None, timings, cells)
+    req = Request.start(shape, params)
+    frame = pipe._frame(req, np.eye(3))
+    steps = pipe._decode(req, frame, lambda share: None)
+    (seqs,) = decode(pipe.decoder, [next(steps)])
     out = []
-    for _, _, tokens in decoded:
-        q = pipe.vertex_cells(tokens, cells, params)
-        out.append(norm.invert(dequantize(q)) if len(q) else np.zeros((0, 3)))
+    for seq in seqs:
+        q = pipe.vertex_cells(seq.cpu().numpy(), frame.cells, params)
+        out.append(frame.norm.invert(dequantize(q)) if len(q) else np.zeros((0, 3)))
     return out
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import heapq
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -34,6 +35,37 @@ MAX_MOVE = 0.3  # a new vertex moves at most this share of its edge's length ont
 # middle lies 0.21 of it off a quarter circle; farther is another part of the input, or a gap the model spanned)
 SAMPLES = 32768  # input surface samples new vertices are moved onto (:func:`input_samples`)
 NEAREST = 4  # input samples whose tangent planes a new vertex is projected onto (averaged)
+
+
+@dataclass(frozen=True)
+class CountRule:
+    """What a face-count target changes in the stages (:func:`count_rule`): the one place that says it.
+
+    Attributes
+    ----------
+    target : int or None, faces asked for (None: the model chooses)
+    rebuild_planes : bool, a piecewise-planar input may come back as its polyhedron (which has the count it has)
+    low_poly_input : bool, a low-poly mesh input may come back as it is
+    snap : bool, vertex cells may move by the cell evidence (``SamplingConfig.snap_margin``)
+    remove_flat : bool, the vertices of flat regions may be removed (``TriangleConfig.flat_tol``)
+    hold : bool, the result is brought to the count (:func:`hold_count`)
+    """
+
+    target: int | None
+    rebuild_planes: bool
+    low_poly_input: bool
+    snap: bool
+    remove_flat: bool
+    hold: bool
+
+
+def count_rule(target: int | None) -> CountRule:
+    """The stages' rule for a ``target_faces`` of ``target``: with a target the result keeps the vertices the
+    decoder made for that count (no rebuild from planes, no low-poly input given back, no move by the cell
+    evidence, no flat vertex removed) and is brought to it; without one the model's own choices stand."""
+    free = target is None
+    return CountRule(target=target, rebuild_planes=free, low_poly_input=free, snap=free, remove_flat=free,
+                     hold=not free)
 
 
 def hold_count(vertices: np.ndarray, faces: np.ndarray, target: int, points: np.ndarray | None = None,

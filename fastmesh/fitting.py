@@ -128,13 +128,17 @@ def _solve(x: np.ndarray, p: np.ndarray, n: np.ndarray, radius: float, rel: floa
     return np.where(ok[:, None], delta, 0.0), np.where(ok, keep.sum(1), 0), vec[:, :, 0]
 
 
-def fit_samples(shape, unit: np.ndarray, config: FitConfig, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def fit_samples(shape, unit: np.ndarray, config: FitConfig, seed: int, draw=None) -> tuple[np.ndarray, np.ndarray]:
     """The input samples :func:`fit_to_planes` reads: ``config.points`` drawn on a mesh, a point
-    cloud's own points; (P, 3) points in the normalised frame ``unit`` and their normals."""
+    cloud's own points; (P, 3) points in the normalised frame ``unit`` and their normals.  ``draw(n, seed)``
+    draws the mesh's samples where given (``request.Frame.samples``: drawn once, shared), else
+    ``io.sample_surface``."""
     from .io import sample_surface
 
     if shape.faces is None:
         return np.asarray(unit, dtype=np.float64), np.asarray(shape.normals, dtype=np.float64)
+    if draw is not None:
+        return draw(config.points, seed)
     return sample_surface(shape, config.points, seed=seed, vertices=unit)
 
 

@@ -43,13 +43,13 @@ import numpy as np
 import torch
 
 from .batch import DecodeRequest
-from .canonical import canonical_rotation, frame_normals, rotate_shape, turned_degrees
+from .canonical import canonical_rotation, frame_normals, turned_degrees
 from .closure import decide_closed
 from .facecount import TOLERANCE as COUNT_TOLERANCE
-from .facecount import hold_count, input_samples
+from .facecount import CountRule, count_rule, hold_count
 from .filtering import FilterConfig, Predictor, predict_edges
 from .fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
-from .io import Normalization, Shape, input_surface, sample_surface
+from .io import Shape
 from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model
 from .models.encoder import EncoderConfig
@@ -59,16 +59,18 @@ from .output import MeshOut, finish
 from .params import GenerateParams
 from .pieces import drop_strays, far_limit, pull_in, split_pinches
 from .planar import polyhedron
-from .progress import STAGES, Progress
+from .progress import STAGES
 from .quads import EdgeEvidence
-from .quality import edge_face_counts, input_pieces, mesh_quality, weld
+from .quality import edge_face_counts, mesh_quality, weld
+from .request import PLANAR_SAMPLES, Frame, Request
 from .support import surface_fit
 from .tokenizer import dequantize
 from .tokenizer import vertex as vt
 from .tokenizer.grid import CELL
 from .triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced, triangle_areas
 
-__all__ = ["Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "Pipeline", "default_weights_dir"]
+__all__ = ["STAGES", "Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "Pipeline",
+           "default_weights_dir"]
 
 NETWORKS = ("vertex", "enhancer", "face")
 CELLS = "cells"  # the cell evidence network (models.cells), needed by a decoder trained with it
@@ -86,7 +88,6 @@ STAGE_THREADS = {"vertices": 1}
 # A low-poly mesh input of a polyhedron is given back as it is when it has at most this many times the faces
 # of the polyhedron rebuilt from its planes (which has no vertex inside a face, such as a cylinder cap's centre).
 LOW_POLY_SLACK = 1.25
-PLANAR_SAMPLES = 8192  # surface samples of a mesh input read by ``planar.polyhedron`` (a point cloud's own points)
 
 
 def default_weights_dir() -> Path:
@@ -130,31 +131,23 @@ def _timed(predict: Predictor, timings: dict[str, float], report: Callable[[floa
     return timed
 
 
-def _whole(shape: Shape, vertices: np.ndarray, faces: np.ndarray, params: GenerateParams, pieces_in: int
-           ) -> tuple[np.ndarray, np.ndarray, str, int]:
+def _whole(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, str, int]:
     """The result made whole (``pieces``: no surface pinched at a vertex, no stray pieces beyond the input's
-    ``pieces_in``, no vertex more than ``pieces.FAR_CELLS`` cells from the input), or the input itself where it
-    is a low-poly surface with no more faces (not with a face-count target).  Returns vertices, faces, where
+    ``req.pieces_in``, no vertex more than ``pieces.FAR_CELLS`` cells from the input), or the input itself where
+    it is a low-poly surface with no more faces (``req.count.low_poly_input``).  Returns vertices, faces, where
     they come from ("model" or "input") and how many vertices were pulled in to the input."""
+    shape = req.shape
     vertices, faces = split_pinches(vertices, faces)
-    vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, pieces_in))[:2]
-    vertices, pulled = pull_in(vertices, _surface_samples(shape), far_limit(shape.vertices))
+    vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, req.pieces_in))[:2]
+    vertices, pulled = pull_in(vertices, req.surface_points, far_limit(shape.vertices))
     if pulled:
         # Vertices pulled onto one sample coincide: made one, the faces between them (no area) dropped.
         vertices, faces = remove_unreferenced(*weld(vertices, faces, tol=1e-12))[:2]
     # In the unit cube: the areas of a shape 1e-200 across underflow to 0 in its own units.
-    if not len(faces) or not triangle_areas(Normalization.fit(shape.vertices).apply(vertices), faces).any():
+    if not len(faces) or not triangle_areas(req.frame.norm.apply(vertices), faces).any():
         raise GenerationError("no_faces", "every face of the result collapsed onto the input surface")
-    low = _low_poly(shape, len(faces)) if params.target_faces is None else None
+    low = _low_poly(shape, len(faces)) if req.count.low_poly_input else None
     return (vertices, faces, "model", pulled) if low is None else (*low, "input", 0)
-
-
-def _surface_samples(shape: Shape) -> np.ndarray:
-    """(M, 3) points of the input surface in its own frame: a point cloud's own, a mesh's ``PLANAR_SAMPLES``
-    samples (``facecount.input_samples``: fixed seed, drawn in the unit cube)."""
-    if shape.faces is None:
-        return np.asarray(shape.vertices, dtype=np.float64)
-    return input_samples(shape, PLANAR_SAMPLES)[0]
 
 
 def _low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -428,104 +421,95 @@ class Pipeline:
         params = params or GenerateParams()
         params.validate(limit=self.max_vertices)
         self._target(params)  # refuses a target_faces this decoder cannot read, before any work
-        report = Progress(progress, params.filtering)
-
-        timings = {name: 0.0 for name, _, _ in STAGES}
+        req = Request.start(shape, params, progress, should_cancel)
         # A point cloud that bounds a polyhedron is closed: the winding numbers are read only where it does not.
         cheap = shape.faces is not None or params.closed != "auto"
-        close, why = decide_closed(shape, params.closed) if cheap else (True, "closed_points")
-        flat = self._planar(shape, params, timings) if close else None
+        if cheap:
+            req.close, req.reason = decide_closed(shape, params.closed)
+        flat = self._planar(req) if req.close else None
         if flat is not None:
-            report.done("faces")
-            return self._result(shape, *flat[:2], params, {"close": close, "reason": why}, timings, tokens=0,
-                                info={"turned_degrees": 0.0, "result_from": flat[2]})
+            req.report.done("faces")
+            return self._result(req, *flat[:2], tokens=0, info={"turned_degrees": 0.0, "result_from": flat[2]})
         if not cheap:
-            close, why = decide_closed(shape, params.closed)
-        decision = {"close": close, "reason": why}
+            req.close, req.reason = decide_closed(shape, params.closed)
         # The input's own frame, and its canonical one where that lays more of its walls along the axes
         # (``canonical``): each is generated, and the mesh nearer the input kept.
         frames = [np.eye(3)]
         turn = canonical_rotation(shape.vertices, frame_normals(shape))
         if not np.array_equal(turn, frames[0]):
             frames.append(turn)
-        made, errors = yield from self._in_frames(shape, frames, params, close, report, should_cancel, timings)
+        made, errors = yield from self._in_frames(req, frames)
         if not made:
             raise errors[0]
-        best = self._nearest_frame(shape, made, params, timings)
-        pieces_in = input_pieces(shape)  # read by the whole step and the report
-        vertices, faces, result_from, pulled = _whole(shape, best["vertices"], best["faces"], params, pieces_in)
-        result = self._result(shape, vertices, faces, params, decision, timings, tokens=best["tokens"],
+        best = self._nearest_frame(req, made)
+        vertices, faces, result_from, pulled = _whole(req, best["vertices"], best["faces"])
+        result = self._result(req, vertices, faces, tokens=best["tokens"],
                               info={**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3),
-                                    "result_from": result_from, "pulled_in": pulled}, pieces_in=pieces_in,
+                                    "result_from": result_from, "pulled_in": pulled},
                               evidence=best["evidence"] if result_from == "model" else None)
-        report.done()
+        req.report.done()
         return result
 
     @staticmethod
-    def _result(shape: Shape, vertices: np.ndarray, faces: np.ndarray, params: GenerateParams, decision: dict,
-                timings: dict, tokens: int, info: dict, pieces_in: int | None = None,
+    def _result(req: Request, vertices: np.ndarray, faces: np.ndarray, tokens: int, info: dict,
                 evidence: EdgeEvidence | None = None) -> GenerateResult:
-        """The result with its quality report (``pieces_in``: the input's pieces, counted when None); ``evidence``:
-        the face model's edges, which choose the quads first (``quads.pair_triangles``)."""
-        pieces_in = input_pieces(shape) if pieces_in is None else pieces_in
+        """The result with its quality report, brought to the face count asked for (``req.count.hold``);
+        ``evidence``: the face model's edges, which choose the quads first (``quads.pair_triangles``)."""
+        params, timings = req.params, req.timings
         step, met = None, None
-        if params.target_faces is not None:  # the count asked for holds (``facecount``)
+        if req.count.hold:  # the count asked for holds (``facecount``)
             info = {**info, "model_faces": int(len(faces))}
             with stage("faces", timings):
-                vertices, faces, step = hold_count(vertices, faces, params.target_faces, *input_samples(shape))
+                vertices, faces, step = hold_count(vertices, faces, params.target_faces, *req.count_samples)
             met = bool(abs(len(faces) - params.target_faces) <= COUNT_TOLERANCE * params.target_faces)
-        why = decision["reason"]
-        quality = {**mesh_quality(vertices, faces, shape, pieces_in=pieces_in), "faces": int(len(faces)),
-                   "closed_decision": why if why == "asked" else ("closed" if decision["close"] else "open"),
+        why = req.reason
+        quality = {**mesh_quality(vertices, faces, req.shape, pieces_in=req.pieces_in), "faces": int(len(faces)),
+                   "closed_decision": why if why == "asked" else ("closed" if req.close else "open"),
                    "target_faces": params.target_faces, "target_met": met, "count_step": step}
         # Quads, UVs, baking and placement: timed with the faces they are made of.
         with stage("faces", timings):
-            mesh, where, notes = finish(vertices, faces, params, source=shape, evidence=evidence)
+            mesh, where, notes = finish(vertices, faces, params, source=req.shape, evidence=evidence)
         return GenerateResult(vertices=mesh.vertices, faces=mesh.faces, tokens=tokens, timings=timings,
-                              info={**info, "closed_decision": decision, "placement": where.to_dict(),
+                              info={**info, "closed_decision": req.decision, "placement": where.to_dict(),
                                     "notes": notes},
                               quality={**quality, **mesh.counts()}, mesh=mesh)
 
-    def _planar(self, shape: Shape, params: GenerateParams, timings: dict
-                ) -> tuple[np.ndarray, np.ndarray, str] | None:
+    def _planar(self, req: Request) -> tuple[np.ndarray, np.ndarray, str] | None:
         """The closed polyhedron of a piecewise-planar input (``planar.polyhedron``: exact corners, whatever
         the pose), in the input's frame, with where it comes from ("planes"); or a low-poly mesh input of the
         same shape, welded, where it has at most ``LOW_POLY_SLACK`` times the polyhedron's faces ("input": a
         cylinder's caps keep their centres).  None where the input is not a polyhedron or a face count is asked
-        for (the polyhedron has the count it has)."""
-        if params.target_faces is not None:
+        for (``req.count.rebuild_planes``: the polyhedron has the count it has)."""
+        if not req.count.rebuild_planes:
             return None
-        with stage("faces", timings):
-            norm = Normalization.fit(shape.vertices)
-            unit = norm.apply(shape.vertices)
+        shape, frame = req.shape, req.frame
+        with stage("faces", req.timings):
             if shape.faces is None and shape.normals is not None:
-                points, normals = unit, shape.normals
+                points, normals = frame.unit, shape.normals
             else:
-                points, normals = sample_surface(shape, PLANAR_SAMPLES, seed=0, vertices=unit)
+                points, normals = frame.samples(PLANAR_SAMPLES, 0)
             found = polyhedron(points, normals)
         if found is None:
             return None
         low = _low_poly(shape, int(LOW_POLY_SLACK * len(found[1])))
-        return (norm.invert(found[0]), found[1], "planes") if low is None else (*low, "input")
+        return (frame.norm.invert(found[0]), found[1], "planes") if low is None else (*low, "input")
 
-    def _nearest_frame(self, shape: Shape, made: list[dict], params: GenerateParams, timings: dict) -> dict:
+    def _nearest_frame(self, req: Request, made: list[dict]) -> dict:
         """Of the results ``made`` in the input's frame and (last) in its canonical one, the canonical one
         unless its surface_fit exceeds the other's by more than ``FRAME_MARGIN``: on a box both lie on its
         planes, but the turned one has its eight corners where the input's frame has a staircase of vertices
         along each wall."""
         if len(made) == 1:
             return made[0]
-        with stage("filtering", timings):
-            norm = Normalization.fit(shape.vertices)
-            reference = input_surface(shape, norm.apply(shape.vertices), self.triangle_config.support_points,
-                                      params.seed)
-            fits = [surface_fit(norm.apply(m["vertices"]), m["faces"], reference, params.seed) for m in made]
+        seed = req.params.seed
+        with stage("filtering", req.timings):
+            reference = req.frame.surface(self.triangle_config.support_points, seed)
+            fits = [surface_fit(req.frame.norm.apply(m["vertices"]), m["faces"], reference, seed) for m in made]
         return made[-1] if fits[-1] <= FRAME_MARGIN * fits[0] else made[0]
 
-    def _in_frames(self, shape: Shape, rotations: list[np.ndarray], params: GenerateParams, close: bool,
-                   report: Progress, should_cancel, timings: dict
+    def _in_frames(self, req: Request, rotations: list[np.ndarray]
                    ) -> Generator[DecodeRequest, list[torch.Tensor], tuple[list[dict], list[GenerationError]]]:
-        """The best of the candidates made with ``shape`` turned by each of ``rotations`` ((3, 3) each), turned
+        """The best of the candidates made with the input turned by each of ``rotations`` ((3, 3) each), turned
         back: per frame that made a mesh a dict of vertices (input frame), faces, tokens, info and rotation;
         and the errors of the frames that made none.
 
@@ -533,72 +517,67 @@ class Pipeline:
         stage), so that the progress passes each stage once; each frame's candidate k is still exactly what
         seed + k gives alone in that frame.  A :meth:`steps` generator: it yields each frame's decoding.
         """
-        n_cand = params.candidates if params.temperature > 0 else 1  # greedy decoding: one answer
+        report = req.report
         frames = []
         for i, rotation in enumerate(rotations):
             report("encode", 0.0, i, len(rotations))
-            frames.append(self._frame(shape, rotation, params, n_cand, timings))
+            frames.append(self._frame(req, rotation))
         for i, frame in enumerate(frames):
-            frame["decoded"] = yield from self._decode(frame, params, report.part("vertices", i, len(frames)),
-                                                       should_cancel, timings)
-        work = [(frame, k) for frame in frames for k in range(len(frame["decoded"]))]
+            frame.decoded = yield from self._decode(req, frame, report.part("vertices", i, len(frames)))
+        work = [(frame, k) for frame in frames for k in range(len(frame.decoded))]
         for j, (frame, k) in enumerate(work):
             report("enhancer", 0.0, j, len(work))
-            frame.setdefault("positions", []).append(self._positions(frame, params, k, should_cancel, timings))
+            frame.positions.append(self._positions(req, frame, k))
         for j, (frame, k) in enumerate(work):
             report("faces", 0.0, j, len(work))
-            parts = (report.part("filtering", j, len(work)) if params.filtering else None)
-            frame.setdefault("meshes", []).append(self._faces(frame, params, k, close, parts, should_cancel, timings))
+            parts = report.part("filtering", j, len(work)) if req.params.filtering else None
+            frame.meshes.append(self._faces(req, frame, k, parts))
             report("faces", 1.0, j, len(work))
         made, errors = [], []
         for frame in frames:
             try:
-                made.append(self._choose(frame, params, n_cand, timings))
+                made.append(self._choose(req, frame))
             except GenerationError as err:
                 errors.append(err)
         return made, errors
 
-    def _frame(self, shape: Shape, rotation: np.ndarray, params: GenerateParams, n_cand: int, timings: dict
-               ) -> dict:
-        """What every stage reads of ``shape`` turned by ``rotation``: the turned shape, its normalisation and
-        unit-cube vertices, the reference the candidates are scored against (None for one candidate), and the
-        cell evidence and candidates' encodings (``_encode``), timed as the encode stage."""
-        if not np.array_equal(rotation, np.eye(3)):
-            shape = rotate_shape(shape, rotation)
-        norm = Normalization.fit(shape.vertices)
-        unit = norm.apply(shape.vertices)
+    def _frame(self, req: Request, rotation: np.ndarray) -> Frame:
+        """The input turned by ``rotation`` (the request's own frame for the identity) with what every stage
+        reads of it: the reference the candidates are scored against (None for one candidate), and the cell
+        evidence and candidates' encodings (``_encode``), timed as the encode stage."""
+        frame = req.frame if np.array_equal(rotation, np.eye(3)) else Frame.of(req.shape, rotation)
+        seed, n_cand = req.params.seed, req.candidates
         # Candidate k is exactly what seed + k gives alone; all are scored against one sample of the input.
-        reference = input_surface(shape, unit, self.triangle_config.support_points, params.seed) if n_cand > 1 else None
-        with stage("encode", timings):
-            cells = self._cell_grid(shape, unit)
-            encoded = [self._encode(shape, unit, params.seed + k, params, cells) for k in range(n_cand)]
-        return {"shape": shape, "rotation": rotation, "norm": norm, "unit": unit, "reference": reference,
-                "cells": cells, "encoded": encoded}
+        frame.reference = frame.surface(self.triangle_config.support_points, seed) if n_cand > 1 else None
+        with stage("encode", req.timings):
+            frame.cells = self._cell_grid(frame)
+            frame.encoded = [self._encode(frame, seed + k, req.params, frame.cells) for k in range(n_cand)]
+        return frame
 
-    def _choose(self, frame: dict, params: GenerateParams, n_cand: int, timings: dict) -> dict:
+    def _choose(self, req: Request, frame: Frame) -> dict:
         """The frame's candidate nearest its input surface (``support.surface_fit``), turned back to the input's
         frame; raises the first candidate's GenerationError when none made a mesh."""
+        n_cand, seed = req.candidates, req.params.seed
         best, fits, errors = None, [], []
-        for k, cand in enumerate(frame["meshes"]):
+        for k, cand in enumerate(frame.meshes):
             if isinstance(cand, GenerationError):
                 errors.append(cand)
                 fits.append(None)
                 continue
-            with stage("filtering", timings):  # choosing among candidates: a filtering step
-                fit = (surface_fit(cand["vertices"], cand["faces"], frame["reference"], params.seed)
-                       if n_cand > 1 else 0.0)
+            with stage("filtering", req.timings):  # choosing among candidates: a filtering step
+                fit = surface_fit(cand["vertices"], cand["faces"], frame.reference, seed) if n_cand > 1 else 0.0
             fits.append(round(float(fit), 6))
             if best is None or fit < best["fit"]:
-                best = {**cand, "fit": fit, "seed": params.seed + k}
+                best = {**cand, "fit": fit, "seed": seed + k}
         if best is None:
             raise errors[0]
-        evidence = best["evidence"].moved(frame["norm"].invert(best["evidence"].points) @ frame["rotation"])
+        evidence = best["evidence"].moved(frame.norm.invert(best["evidence"].points) @ frame.rotation)
         info = {"generated_vertices": best["generated_vertices"], "edges": best["edges"], "candidates": n_cand,
                 "chosen_seed": best["seed"]}
         if n_cand > 1:
             info["fits"] = fits  # per candidate: its surface_fit in the unit cube, None if it made no mesh
-        return {"vertices": frame["norm"].invert(best["vertices"]) @ frame["rotation"], "faces": best["faces"],
-                "tokens": best["tokens"], "info": info, "rotation": frame["rotation"], "evidence": evidence}
+        return {"vertices": frame.norm.invert(best["vertices"]) @ frame.rotation, "faces": best["faces"],
+                "tokens": best["tokens"], "info": info, "rotation": frame.rotation, "evidence": evidence}
 
     def _target(self, params: GenerateParams) -> torch.Tensor | None:
         """(1,) faces asked for, as the decoder's count token reads them (None: the model's choice)."""
@@ -608,23 +587,23 @@ class Pipeline:
             raise ValueError("target_faces: this vertex decoder was not trained with a face-count condition")
         return torch.tensor([params.target_faces], device=self.device)
 
-    def _cell_grid(self, shape: Shape, unit: np.ndarray) -> torch.Tensor | None:
-        """(1, 128^3) cell log-odds of the input for a decoder that reads them (``models.cells``), else None.
+    def _cell_grid(self, frame: Frame) -> torch.Tensor | None:
+        """(1, 128^3) cell log-odds of the input in ``frame`` for a decoder that reads them (``models.cells``),
+        else None.
 
         Evidence about the input, not a random choice: drawn from one sample of fixed seed, so every
         candidate reads the same grid and candidate k stays exactly what seed + k gives alone.
         """
         if not self.vertex.cfg.evidence_cells:
             return None
-        pts, nrm = sample_surface(shape, self.cells.cfg.n_points, seed=CELL_SEED, vertices=unit)
+        pts, nrm = frame.samples(self.cells.cfg.n_points, CELL_SEED)
         return self.cells.grid(pts, nrm)[None].to(self.device)
 
-    def _encode(self, shape: Shape, unit: np.ndarray, seed: int, params: GenerateParams,
-                cells: torch.Tensor | None = None) -> tuple:
-        """The surface sample of ``seed`` (points, normals: (n, 3) float32 in the normalised frame ``unit``)
-        and the vertex decoder's condition on it: (points, normals, prefix (1, M, dim), evidence); ``cells``
-        from :meth:`_cell_grid`."""
-        pts, nrm = sample_surface(shape, self._n_points(), seed=seed, vertices=unit)
+    def _encode(self, frame: Frame, seed: int, params: GenerateParams, cells: torch.Tensor | None = None) -> tuple:
+        """The surface sample of ``seed`` in ``frame`` (points, normals: (n, 3) float32 in its unit cube) and the
+        vertex decoder's condition on it: (points, normals, prefix (1, M, dim), evidence); ``cells`` from
+        :meth:`_cell_grid`."""
+        pts, nrm = frame.samples(self._n_points(), seed)
         n_vp = self.vertex.cfg.encoder.n_points
         pts_t = torch.from_numpy(pts).to(self.device)[None, :n_vp]
         nrm_t = torch.from_numpy(nrm).to(self.device)[None, :n_vp]
@@ -634,22 +613,22 @@ class Pipeline:
             evidence = self.vertex.point_evidence(pts_t, nrm_t, cells, target)
         return pts, nrm, prefix, evidence
 
-    def _decode(self, frame: dict, params: GenerateParams, report: Callable[[float], None], should_cancel,
-                timings: dict) -> Generator[DecodeRequest, list[torch.Tensor], list[tuple]]:
+    def _decode(self, req: Request, frame: Frame, report: Callable[[float], None]
+                ) -> Generator[DecodeRequest, list[torch.Tensor], list[tuple]]:
         """Vertex tokens of the frame's candidates ``params.seed`` ... ``params.seed + n_cand - 1`` (its
         ``encoded`` conditions, from :meth:`_frame`), decoded as one batch.
 
         Candidate k reads its own surface sample (seed + k) and samples with seed + k: it is what that
         seed gives alone.  Yields the :class:`DecodeRequest` of the candidates and is sent their sequences
-        (:class:`fastmesh.batch.Batch` decodes it, adds the decoding time to ``timings`` and calls the request's
-        ``progress``, here ``report(share)`` of the vertices decoded); returns per candidate its (points, normals,
-        tokens).
+        (:class:`fastmesh.batch.Batch` decodes it, adds the decoding time to ``req.timings`` and calls the
+        request's ``progress``, here ``report(share)`` of the vertices decoded); returns per candidate its
+        (points, normals, tokens).
         """
-        _check(should_cancel)
-        samples = [(pts, nrm) for pts, nrm, _, _ in frame["encoded"]]
-        prefixes = [prefix for _, _, prefix, _ in frame["encoded"]]
-        evidence = [ev for _, _, _, ev in frame["encoded"]]
-        sampling = params.sampling(self.max_vertices)
+        req.check()
+        samples = [(pts, nrm) for pts, nrm, _, _ in frame.encoded]
+        prefixes = [prefix for _, _, prefix, _ in frame.encoded]
+        evidence = [ev for _, _, _, ev in frame.encoded]
+        sampling = req.params.sampling(self.max_vertices)
         max_v = sampling.max_vertices
 
         def on_step(n_vert: int) -> None:
@@ -657,47 +636,49 @@ class Pipeline:
 
         report(0.0)
         seqs = yield DecodeRequest(torch.cat(prefixes), None if evidence[0] is None else evidence, sampling,
-                                   [params.seed + k for k in range(len(prefixes))], on_step, should_cancel, timings)
+                                   [req.params.seed + k for k in range(len(prefixes))], on_step, req.should_cancel,
+                                   req.timings)
         return [(pts, nrm, seq.cpu().numpy()) for (pts, nrm), seq in zip(samples, seqs, strict=True)]
 
-    def vertex_cells(self, tokens: np.ndarray, cells: torch.Tensor | None, params: GenerateParams) -> np.ndarray:
+    def vertex_cells(self, tokens: np.ndarray, cells: torch.Tensor | None, params: GenerateParams,
+                     count: CountRule | None = None) -> np.ndarray:
         """(N, 3) int64 vertex cells of the decoder's ``tokens``, moved by the cell evidence ``cells`` (from
-        :meth:`_cell_grid`) where ``SamplingConfig.snap_margin`` says so (``models.cells.snap_to_cells``),
-        but not with a face-count target."""
+        :meth:`_cell_grid`) where ``SamplingConfig.snap_margin`` says so (``models.cells.snap_to_cells``) and
+        the face-count rule allows it (``count``, made from ``params`` when not given: not with a target)."""
         q = vt.decode(tokens, strict=True)
         margin = params.sampling(self.max_vertices).snap_margin
-        if cells is None or margin is None or params.target_faces is not None:
+        count = count or count_rule(params.target_faces)
+        if cells is None or margin is None or not count.snap:
             return q
         return snap_to_cells(q, cells[0].cpu(), margin)
 
-    def _fit(self, shape: Shape, unit: np.ndarray, positions: np.ndarray, seed: int) -> np.ndarray:
+    def _fit(self, frame: Frame, positions: np.ndarray, seed: int) -> np.ndarray:
         """``positions`` (N, 3) moved onto the planes of the input around them (``fitting.fit_to_planes``)."""
         from scipy.spatial import cKDTree
 
-        pts, nrm = fit_samples(shape, unit, self.fit_config, seed)
+        pts, nrm = fit_samples(frame.shape, frame.unit, self.fit_config, seed, draw=frame.samples)
         tree = cKDTree(pts)
         cfg = self.fit_config
         return fit_to_planes(positions, pts, nrm, fit_radius(cfg, pts, tree), cfg.rel, tree, cfg.reach)
 
-    def _positions(self, frame: dict, params: GenerateParams, k: int, should_cancel, timings: dict
-                   ) -> tuple | GenerationError:
+    def _positions(self, req: Request, frame: Frame, k: int) -> tuple | GenerationError:
         """Candidate ``k`` of the frame as vertex cells and positions in its unit cube: ``(cells (N, 3) int64,
         positions (N, 3), vertices decoded)``, or the GenerationError that stops it; timed as the enhancer."""
-        pts, nrm, tokens = frame["decoded"][k]
-        q = self.vertex_cells(tokens, frame["cells"], params)
+        pts, nrm, tokens = frame.decoded[k]
+        q = self.vertex_cells(tokens, frame.cells, req.params, req.count)
         if len(q) < 3:
             return GenerationError("no_vertices", f"the vertex decoder produced {len(q)} vertices; try another seed")
         decoded = len(q)
-        _check(should_cancel)
+        req.check()
         # Fidelity enhancer: continuous positions inside each cell.
-        with stage("enhancer", timings):
-            if params.enhancer:
+        with stage("enhancer", req.timings):
+            if req.params.enhancer:
                 n_ep = self.enhancer.cfg.encoder.n_points
                 positions = self.enhancer.refine(q, pts[:n_ep], nrm[:n_ep])
             else:
                 positions = dequantize(q)
             if self.fit_config.radius is not None:
-                positions = self._fit(frame["shape"], frame["unit"], positions, params.seed + k)
+                positions = self._fit(frame, positions, req.params.seed + k)
                 if self.fit_config.merge is not None:  # vertices fitted onto one point become one
                     keep = distinct(positions, self.fit_config.merge * CELL)
                     q, positions = q[keep], positions[keep]
@@ -706,33 +687,35 @@ class Pipeline:
                                                f"{len(q)} points of the surface; try another seed")
         return q, positions, decoded
 
-    def _faces(self, frame: dict, params: GenerateParams, k: int, close: bool, report: Callable[[float], None] | None,
-               should_cancel, timings: dict) -> dict | GenerationError:
-        """Candidate ``k``'s mesh in the frame's unit cube from its :meth:`_positions`, its holes closed with
-        ``close``, or the GenerationError that stopped it; ``report(share)`` follows the filtering passes (None
-        without filtering).  Adds its stage times to ``timings``."""
-        placed = frame["positions"][k]
+    def _faces(self, req: Request, frame: Frame, k: int, report: Callable[[float], None] | None
+               ) -> dict | GenerationError:
+        """Candidate ``k``'s mesh in the frame's unit cube from its :meth:`_positions`, its holes closed where
+        the request closes (``req.close``), or the GenerationError that stopped it; ``report(share)`` follows the
+        filtering passes (None without filtering).  Adds its stage times to ``req.timings``."""
+        placed = frame.positions[k]
         if isinstance(placed, GenerationError):
             return placed
         q, positions, decoded = placed
-        pts, nrm, tokens = frame["decoded"][k]
-        _check(should_cancel)
+        pts, nrm, tokens = frame.decoded[k]
+        timings = req.timings
+        req.check()
         # Stage II: edges in one bidirectional pass, then (optionally) filtered re-predictions.
         n_fp = self.face.cfg.encoder.n_points
         with stage("faces", timings):
             predict = self.face.predictor(q, pts[:n_fp], nrm[:n_fp])  # encodes the condition once
-        predict = _timed(predict, timings, report or (lambda share: None), should_cancel, self.filter_config.n_passes)
-        edges, logits = predict_edges(predict, len(q), self.filter_config, params.filtering)
+        predict = _timed(predict, timings, report or (lambda share: None), req.should_cancel,
+                         self.filter_config.n_passes)
+        edges, logits = predict_edges(predict, len(q), self.filter_config, req.params.filtering)
 
         # Triangles on the input surface, scored by the edge logits, kept a surface, holes closed, flat vertices
-        # removed (but not below a face-count target).
+        # removed (but not below a face-count target: ``req.count.remove_flat``).
         with stage("faces", timings):
-            tc = replace(self.triangle_config, close=close)
-            if params.target_faces is not None:  # the count asked for: flat regions keep their vertices
+            tc = replace(self.triangle_config, close=req.close)
+            if not req.count.remove_flat:  # the count asked for: flat regions keep their vertices
                 tc = replace(tc, flat_tol=None)
             surface = None
             if tc.support_tol is not None or tc.max_faces_per_edge is not None or tc.selection == "surface":
-                surface = input_surface(frame["shape"], frame["unit"], tc.support_points, params.seed + k)
+                surface = frame.surface(tc.support_points, req.params.seed + k)
             verts, faces = mesh_from_adjacency(positions, edges, tc, points=surface, logits=logits)
         if len(faces) == 0:
             return GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")

@@ -24,6 +24,7 @@ from fastmesh.io import Normalization
 from fastmesh.models.generate import StackedEvidence, generate
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
+from fastmesh.request import Frame
 
 pytestmark = pytest.mark.gpu
 CUDA = torch.cuda.is_available()
@@ -110,10 +111,10 @@ def test_a_batch_gives_each_job_what_it_gives_alone(pipe):
         assert all(_same(a, b) for a, b in zip(batched, alone, strict=True))
         return
     shape = smooth_cloud("wavy", 7)
-    unit = Normalization.fit(shape.vertices).apply(shape.vertices)
+    frame = Frame.of(shape)
     params = GenerateParams(seed=11, candidates=3)
-    cells = pipe._cell_grid(shape, unit)
-    encoded = [pipe._encode(shape, unit, params.seed + k, params, cells) for k in range(3)]
+    cells = pipe._cell_grid(frame)
+    encoded = [pipe._encode(frame, params.seed + k, params, cells) for k in range(3)]
     prefix, evidence = [e[2] for e in encoded], [e[3] for e in encoded]
     cfg = params.sampling(pipe.max_vertices)
     batched = generate(pipe.decoder, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))

@@ -1,0 +1,147 @@
+"""One generation request as its stages read it, made once by :meth:`fastmesh.pipeline.Pipeline.steps`.
+
+A :class:`Request` holds the input and its parameters, what a face-count target changes
+(``facecount.count_rule``), the closedness decision, the progress, cancellation and stage timings, and the
+input's own :class:`Frame`.  A :class:`Frame` is the input turned into a frame it is generated in, with its
+normalisation and the candidates' work; every stage draws its surface samples there through
+:meth:`Frame.samples`, which draws each (count, seed) once and shares it: the plane rebuild, the cell evidence
+and the whole step read one draw of ``PLANAR_SAMPLES`` at seed 0, the candidates' scoring and candidate 0's
+faces one draw at the request's seed.  Samples of other counts or seeds are other draws (each stage's count
+and seed were tuned with it), so results are those of a sample per stage.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from .canonical import rotate_shape
+from .facecount import CountRule, count_rule, input_samples
+from .io import Normalization, Shape, sample_surface
+from .models.generate import Cancelled
+from .params import GenerateParams
+from .progress import STAGES, Progress
+from .quality import input_pieces
+
+PLANAR_SAMPLES = 8192  # surface samples of a mesh input read by ``planar.polyhedron`` and the whole step
+
+
+@dataclass
+class Frame:
+    """The input turned by ``rotation`` (the shape as the stages of one frame see it), and their work.
+
+    Attributes
+    ----------
+    shape : Shape, turned (the input itself for the identity)
+    rotation : (3, 3) float64
+    norm : Normalization of the turned shape into the unit cube
+    unit : (N, 3) float64, the turned shape's vertices in the unit cube
+    reference : (M, 3) float32 or None, the input surface the candidates are scored against
+    cells : torch.Tensor or None, (1, 128^3) cell evidence (``Pipeline._cell_grid``)
+    encoded, decoded, positions, meshes : per candidate, what ``Pipeline`` made of it stage by stage
+    """
+
+    shape: Shape
+    rotation: np.ndarray
+    norm: Normalization
+    unit: np.ndarray
+    reference: np.ndarray | None = None
+    cells: object = None
+    encoded: list = field(default_factory=list)
+    decoded: list = field(default_factory=list)
+    positions: list = field(default_factory=list)
+    meshes: list = field(default_factory=list)
+    _drawn: dict = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def of(cls, shape: Shape, rotation: np.ndarray | None = None) -> Frame:
+        """``shape`` turned by ``rotation`` (3, 3) (default: its own frame) and normalised."""
+        rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+        if not np.array_equal(rotation, np.eye(3)):
+            shape = rotate_shape(shape, rotation)
+        norm = Normalization.fit(shape.vertices)
+        return cls(shape=shape, rotation=rotation, norm=norm, unit=norm.apply(shape.vertices))
+
+    def samples(self, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 3) float32 points and unit normals of the surface in the unit cube (``io.sample_surface``),
+        drawn once per (n, seed) and shared: callers read them, never write them."""
+        key = (int(n), int(seed))
+        if key not in self._drawn:
+            self._drawn[key] = sample_surface(self.shape, key[0], seed=key[1], vertices=self.unit)
+        return self._drawn[key]
+
+    def surface(self, n: int, seed: int) -> np.ndarray:
+        """(<= n, 3) points of the surface in the unit cube for the face support check (``io.input_surface``):
+        a point cloud of at most ``n`` points gives all of them (resampling would hide their spacing)."""
+        if self.shape.faces is None and len(self.unit) <= n:
+            return np.asarray(self.unit)
+        return self.samples(n, seed)[0]
+
+
+@dataclass
+class Request:
+    """One call of ``Pipeline.steps``: what every stage reads, made once.
+
+    Attributes
+    ----------
+    shape : Shape, the input in its own frame
+    params : GenerateParams, validated
+    count : CountRule, what the face-count target changes (``facecount.count_rule``)
+    report : Progress
+    should_cancel : callable or None
+    timings : dict, seconds per stage (``progress.STAGES``)
+    frame : Frame, the input's own (identity rotation)
+    close : bool, whether the result is closed (``closure.decide_closed``); ``reason`` says why
+    """
+
+    shape: Shape
+    params: GenerateParams
+    count: CountRule
+    report: Progress
+    should_cancel: Callable[[], bool] | None
+    timings: dict[str, float]
+    frame: Frame
+    close: bool = True
+    reason: str = "closed_points"
+
+    @classmethod
+    def start(cls, shape: Shape, params: GenerateParams, progress: Callable[[str, float], None] | None = None,
+              should_cancel: Callable[[], bool] | None = None) -> Request:
+        return cls(shape=shape, params=params, count=count_rule(params.target_faces),
+                   report=Progress(progress, params.filtering), should_cancel=should_cancel,
+                   timings={name: 0.0 for name, _, _ in STAGES}, frame=Frame.of(shape))
+
+    @property
+    def decision(self) -> dict:
+        return {"close": self.close, "reason": self.reason}
+
+    @property
+    def candidates(self) -> int:
+        """Candidates made per frame: ``params.candidates``, one with greedy decoding (one answer)."""
+        return self.params.candidates if self.params.temperature > 0 else 1
+
+    def check(self) -> None:
+        """Raise :class:`Cancelled` where the caller asks to stop."""
+        if self.should_cancel is not None and self.should_cancel():
+            raise Cancelled("generation cancelled")
+
+    @cached_property
+    def surface_points(self) -> np.ndarray:
+        """(M, 3) float64 points of the input surface in its own frame: a point cloud's own, a mesh's
+        ``PLANAR_SAMPLES`` samples at seed 0 (the draw the plane rebuild and the cell evidence read)."""
+        if self.shape.faces is None:
+            return np.asarray(self.shape.vertices, dtype=np.float64)
+        return self.frame.norm.invert(self.frame.samples(PLANAR_SAMPLES, 0)[0])
+
+    @cached_property
+    def count_samples(self) -> tuple[np.ndarray, np.ndarray]:
+        """(M, 3) points and normals of the input surface in its own frame for ``facecount.hold_count``."""
+        return input_samples(self.shape)
+
+    @cached_property
+    def pieces_in(self) -> int:
+        """The input's pieces (``quality.input_pieces``), read by the whole step and the report."""
+        return input_pieces(self.shape)

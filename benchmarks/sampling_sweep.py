@@ -45,7 +45,7 @@ def candidates(pipe: Pipeline, shape, params: GenerateParams) -> list[np.ndarray
     the vertices by the cell evidence, ``snap_margin``), stopped there."""
     req = Request.start(shape, params)
     frame = pipe._frame(req, np.eye(3))
-    steps = pipe._decode(req, frame, lambda share: None)
+    steps = pipe._decode(req, [frame], lambda share: None)
     (seqs,) = decode(pipe.decoder, [next(steps)])
     out = []
     for seq in seqs:

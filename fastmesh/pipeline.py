@@ -522,8 +522,9 @@ class Pipeline:
         for i, rotation in enumerate(rotations):
             report("encode", 0.0, i, len(rotations))
             frames.append(self._frame(req, rotation))
-        for i, frame in enumerate(frames):
-            frame.decoded = yield from self._decode(req, frame, report.part("vertices", i, len(frames)))
+        decoded = yield from self._decode(req, frames, report.part("vertices", 0, 1))
+        for frame in frames:
+            frame.decoded, decoded = decoded[:len(frame.encoded)], decoded[len(frame.encoded):]
         work = [(frame, k) for frame in frames for k in range(len(frame.decoded))]
         for j, (frame, k) in enumerate(work):
             report("enhancer", 0.0, j, len(work))
@@ -613,21 +614,23 @@ class Pipeline:
             evidence = self.vertex.point_evidence(pts_t, nrm_t, cells, target)
         return pts, nrm, prefix, evidence
 
-    def _decode(self, req: Request, frame: Frame, report: Callable[[float], None]
+    def _decode(self, req: Request, frames: list[Frame], report: Callable[[float], None]
                 ) -> Generator[DecodeRequest, list[torch.Tensor], list[tuple]]:
-        """Vertex tokens of the frame's candidates ``params.seed`` ... ``params.seed + n_cand - 1`` (its
-        ``encoded`` conditions, from :meth:`_frame`), decoded as one batch.
+        """Vertex tokens of every frame's candidates ``params.seed`` ... ``params.seed + n_cand - 1`` (their
+        ``encoded`` conditions, from :meth:`_frame`), decoded as one batch: a second frame's rows ride with the
+        first's instead of decoding after them.
 
-        Candidate k reads its own surface sample (seed + k) and samples with seed + k: it is what that
-        seed gives alone.  Yields the :class:`DecodeRequest` of the candidates and is sent their sequences
+        Candidate k of a frame reads its own surface sample (seed + k) and samples with seed + k: it is what that
+        seed gives alone, in whatever batch (``models.generate``: each row keeps its seed, evidence and grammar
+        state).  Yields the :class:`DecodeRequest` of the candidates and is sent their sequences
         (:class:`fastmesh.batch.Batch` decodes it, adds the decoding time to ``req.timings`` and calls the
-        request's ``progress``, here ``report(share)`` of the vertices decoded); returns per candidate its
-        (points, normals, tokens).
+        request's ``progress``, here ``report(share)`` of the vertices decoded); returns per candidate, frame
+        after frame, its (points, normals, tokens).
         """
         req.check()
-        samples = [(pts, nrm) for pts, nrm, _, _ in frame.encoded]
-        prefixes = [prefix for _, _, prefix, _ in frame.encoded]
-        evidence = [ev for _, _, _, ev in frame.encoded]
+        encoded = [e for frame in frames for e in frame.encoded]
+        seeds = [req.params.seed + k for frame in frames for k in range(len(frame.encoded))]
+        evidence = [ev for _, _, _, ev in encoded]
         sampling = req.params.sampling(self.max_vertices)
         max_v = sampling.max_vertices
 
@@ -635,10 +638,10 @@ class Pipeline:
             report(min(1.0, n_vert / max_v))
 
         report(0.0)
-        seqs = yield DecodeRequest(torch.cat(prefixes), None if evidence[0] is None else evidence, sampling,
-                                   [req.params.seed + k for k in range(len(prefixes))], on_step, req.should_cancel,
-                                   req.timings)
-        return [(pts, nrm, seq.cpu().numpy()) for (pts, nrm), seq in zip(samples, seqs, strict=True)]
+        seqs = yield DecodeRequest(torch.cat([prefix for _, _, prefix, _ in encoded]),
+                                   None if evidence[0] is None else evidence, sampling, seeds, on_step,
+                                   req.should_cancel, req.timings)
+        return [(pts, nrm, seq.cpu().numpy()) for (pts, nrm, _, _), seq in zip(encoded, seqs, strict=True)]
 
     def vertex_cells(self, tokens: np.ndarray, cells: torch.Tensor | None, params: GenerateParams,
                      count: CountRule | None = None) -> np.ndarray:

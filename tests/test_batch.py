@@ -78,8 +78,9 @@ def test_a_batch_gives_each_job_exactly_what_it_gives_alone(pipe, monkeypatch):
     batch = pipe.generate_batch([s for s, _ in jobs], [p for _, p in jobs])
     for got, want in zip(batch, alone, strict=True):
         _assert_same(got, want)
-    # Jobs 0, 1, 3 and 4 share their sampling settings: 2 + 2 + 1 + 2 candidates in one decoder batch.
-    assert max(spy.batches) == 7
+    # Jobs 0, 1, 3 and 4 share their sampling settings: 2 + 2 + 2 (job 3's one candidate in each of its two
+    # frames, decoded as one request) + 2 candidates in one decoder batch.
+    assert max(spy.batches) == 8
     assert set(batch[0].timings) == {name for name, _, _ in STAGES} and batch[0].timings["vertices"] > 0
 
 
@@ -96,7 +97,7 @@ def test_jobs_join_the_next_round_and_each_keeps_its_progress_and_timings(pipe):
 
     add(0)
     add(1)
-    batch.round()  # jobs 0 and 1 decode; job 3 then waits for its second frame
+    batch.round()  # jobs 0 and 1 decode; then jobs 2 and 3 (both of job 3's frames at once) in the next round
     add(2)
     add(3)
     rounds = 1
@@ -104,7 +105,7 @@ def test_jobs_join_the_next_round_and_each_keeps_its_progress_and_timings(pipe):
         batch.round()
         rounds += 1
     done = batch.pop_done()
-    assert sorted(done) == [0, 1, 2, 3] and rounds == 3 and batch.pop_done() == {}
+    assert sorted(done) == [0, 1, 2, 3] and rounds == 2 and batch.pop_done() == {}
     for i, want in enumerate(alone):
         _assert_same(done[i], want)
         fractions = [f for _, f in seen[i]]

@@ -1,6 +1,6 @@
 """What closing and making whole cost a job: seconds of ``Pipeline.generate`` and of its parts, on varied inputs.
 
-    python benchmarks/step8_cost.py [--n 12] [--seed 9] [--root DIR] [--threads 1]
+    python benchmarks/step8_cost.py [--n 12] [--seed 9] [--root DIR] [--threads 1] [--pairs 3]
 
 Runs ``generate`` on ``tests/gpu_inputs.varied(n, seed)`` (point clouds with and without a face-count
 target, artist meshes, posed primitives: made from seeds, nothing to download) and a turned 64-sided cylinder
@@ -9,7 +9,8 @@ target, artist meshes, posed primitives: made from seeds, nothing to download) a
 - ``decide``: deciding closedness (``closure.decide_closed``: winding numbers on a point cloud);
 - ``frame``: choosing the frame (``canonical.canonical_rotation`` with the normals it reads, and the choice
   between the two frames' results);
-- ``second_frame``: the job's time less the same job's made in its own frame only (inputs with two frames);
+- ``second_frame``: the job's time less the same job's made in its own frame only (inputs with two frames;
+  medians of ``--pairs`` alternated runs of each, the job's time their median too);
 - ``closure``: closing the loops hole filling leaves (``closure.close_loops``);
 - ``whole``: making the result whole (``pipeline._whole``: pinches, strays, far vertices, a low-poly input);
 - ``holes``: the face stage's hole filling (``holes.fill_holes``), reported beside them.
@@ -64,6 +65,7 @@ def main() -> int:
     ap.add_argument("--root", default=str(Path(__file__).resolve().parents[1]), metavar="DIR",
                     help="the checkout whose fastmesh runs (default: this one)")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--pairs", type=int, default=3, help="runs with and without the second frame, alternated")
     args = ap.parse_args()
     sys.path[:0] = [args.root, str(Path(args.root) / "tests")]
     import numpy as np
@@ -99,16 +101,23 @@ def main() -> int:
         t = time.perf_counter()
         pipe.generate(shape, params)
         jobs[name] = time.perf_counter() - t
-        if frames["n"] > 1:  # the same job in its own frame only: what the second frame adds
-            pipeline.canonical_rotation = lambda *a, **k: np.eye(3)
+        if frames["n"] > 1:  # what the second frame adds: medians of the job and of the job in its own frame only,
+            # alternated (a difference of two single runs is mostly the machine's drift)
             before = dict(spent)
-            t = time.perf_counter()
-            pipe.generate(shape, params)
-            alone = time.perf_counter() - t
+            both, alone = [jobs[name]], []
+            for _ in range(args.pairs):
+                pipeline.canonical_rotation = lambda *a, **k: np.eye(3)
+                t = time.perf_counter()
+                pipe.generate(shape, params)
+                alone.append(time.perf_counter() - t)
+                pipeline.canonical_rotation = turn
+                t = time.perf_counter()
+                pipe.generate(shape, params)
+                both.append(time.perf_counter() - t)
             spent.clear()
             spent.update(before)
-            pipeline.canonical_rotation = turn
-            spent["second_frame"] += jobs[name] - alone
+            jobs[name] = float(np.median(both))
+            spent["second_frame"] += jobs[name] - float(np.median(alone))
     total = sum(jobs.values())
     step8 = sum(spent[k] for k in STEP8)
     print(json.dumps({"root": args.root, "jobs": len(jobs), "seconds": round(total, 3),

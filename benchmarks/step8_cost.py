@@ -43,6 +43,45 @@ def _timed(fn, name: str, spent: dict):
     return run
 
 
+def _wrap_parts(pipeline, surface_triangles, Pipeline, spent: dict) -> dict:
+    """Time step 8's parts into ``spent`` by name; returns a counter of the frames each job makes (``n``)."""
+    pipeline.decide_closed = _timed(pipeline.decide_closed, "decide", spent)
+    for name in ("canonical_rotation", "frame_normals"):
+        setattr(pipeline, name, _timed(getattr(pipeline, name), "frame", spent))
+    Pipeline._nearest_frame = _timed(Pipeline._nearest_frame, "frame", spent)
+    pipeline._whole = _timed(pipeline._whole, "whole", spent)
+    surface_triangles.close_loops = _timed(surface_triangles.close_loops, "closure", spent)
+    surface_triangles.fill_holes = _timed(surface_triangles.fill_holes, "holes", spent)
+    frames = {"n": 0}
+    make_frame = Pipeline._frame
+
+    def counted(self, *a, **k):
+        frames["n"] += 1
+        return make_frame(self, *a, **k)
+
+    Pipeline._frame = counted
+    return frames
+
+
+def _with_and_without_turn(pipeline, pipe, shape, params, pairs: int, first: float) -> tuple[float, float]:
+    """Median seconds of the job (``first`` and ``pairs`` more runs) and of the job in its own frame only
+    (``pairs`` runs), alternated: a difference of two single runs is mostly the machine's drift."""
+    import numpy as np
+
+    turn = pipeline.canonical_rotation
+    both, alone = [first], []
+    for _ in range(pairs):
+        pipeline.canonical_rotation = lambda *a, **k: np.eye(3)
+        t = time.perf_counter()
+        pipe.generate(shape, params)
+        alone.append(time.perf_counter() - t)
+        pipeline.canonical_rotation = turn
+        t = time.perf_counter()
+        pipe.generate(shape, params)
+        both.append(time.perf_counter() - t)
+    return float(np.median(both)), float(np.median(alone))
+
+
 def _inputs(n: int, seed: int) -> list:
     import numpy as np
     import trimesh
@@ -74,23 +113,7 @@ def main() -> int:
     from fastmesh.pipeline import Pipeline
 
     spent: dict[str, float] = defaultdict(float)
-    pipeline.decide_closed = _timed(pipeline.decide_closed, "decide", spent)
-    for name in ("canonical_rotation", "frame_normals"):
-        setattr(pipeline, name, _timed(getattr(pipeline, name), "frame", spent))
-    Pipeline._nearest_frame = _timed(Pipeline._nearest_frame, "frame", spent)
-    pipeline._whole = _timed(pipeline._whole, "whole", spent)
-    surface_triangles.close_loops = _timed(surface_triangles.close_loops, "closure", spent)
-    surface_triangles.fill_holes = _timed(surface_triangles.fill_holes, "holes", spent)
-    frames = {"n": 0}
-    make_frame = Pipeline._frame
-
-    def counted(self, *a, **k):
-        frames["n"] += 1
-        return make_frame(self, *a, **k)
-
-    Pipeline._frame = counted
-    turn = pipeline.canonical_rotation
-
+    frames = _wrap_parts(pipeline, surface_triangles, Pipeline, spent)
     pipe = Pipeline.from_pretrained(threads=args.threads)
     items = _inputs(args.n, args.seed)
     pipe.generate(items[0][1], items[0][2])  # warm-up: first-call costs are not the pipeline's
@@ -101,23 +124,12 @@ def main() -> int:
         t = time.perf_counter()
         pipe.generate(shape, params)
         jobs[name] = time.perf_counter() - t
-        if frames["n"] > 1:  # what the second frame adds: medians of the job and of the job in its own frame only,
-            # alternated (a difference of two single runs is mostly the machine's drift)
+        if frames["n"] > 1:  # what the second frame adds
             before = dict(spent)
-            both, alone = [jobs[name]], []
-            for _ in range(args.pairs):
-                pipeline.canonical_rotation = lambda *a, **k: np.eye(3)
-                t = time.perf_counter()
-                pipe.generate(shape, params)
-                alone.append(time.perf_counter() - t)
-                pipeline.canonical_rotation = turn
-                t = time.perf_counter()
-                pipe.generate(shape, params)
-                both.append(time.perf_counter() - t)
+            jobs[name], alone = _with_and_without_turn(pipeline, pipe, shape, params, args.pairs, jobs[name])
             spent.clear()
             spent.update(before)
-            jobs[name] = float(np.median(both))
-            spent["second_frame"] += jobs[name] - float(np.median(alone))
+            spent["second_frame"] += jobs[name] - alone
     total = sum(jobs.values())
     step8 = sum(spent[k] for k in STEP8)
     print(json.dumps({"root": args.root, "jobs": len(jobs), "seconds": round(total, 3),

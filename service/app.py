@@ -13,17 +13,16 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from . import errors
+from . import errors, preview
 from .children import CappedPool, tune_malloc
 from .deps import ApiKeys
 from .forms import generation_defaults
 from .middleware import ApiKeyGate, BodyLimit, JsonCORS, RequestMetrics
-from .preview import DEFAULT_PREVIEW, preview_router
+from .preview import DEFAULT_PREVIEW, Previews
 from .reaper import reap_loop
 from .render_pool import RenderPool
-from .routes import ops
-from .routes.batches import batches_router
-from .routes.jobs import jobs_router
+from .routes import batches, jobs, ops
+from .routes.jobs import document_settings
 from .settings import Settings
 from .store import Store
 from .telemetry import Metrics
@@ -74,19 +73,24 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     app = FastAPI(title="FastMesh", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
                   openapi_tags=[{"name": "jobs", "description": "Submit, watch, download, cancel."},
                                 {"name": "ops", "description": "Health, readiness, metrics."}])
-    # Read by the dependencies of service.deps.
+    # Read by the dependencies of service.deps (and service.preview's); tests and benchmarks read the children
+    # of ``parses`` and ``renders``, and the render counts of ``previews``.
     app.state.settings, app.state.store, app.state.metrics, app.state.keys = settings, store, metrics, keys
+    app.state.parses, app.state.renders, app.state.previews = parses, renders, Previews(renders)
+    app.state.parse_slots = threading.BoundedSemaphore(settings.max_concurrent_parses)  # uploads read at once
     errors.install(app)
 
-    app.state.parses, app.state.renders = parses, renders  # tests and benchmarks read their children
-    slots = threading.BoundedSemaphore(settings.max_concurrent_parses)  # uploads read at once (service.submission)
-    jobs = jobs_router(settings, parses, slots)
-    app.include_router(jobs)
-    app.include_router(batches_router(settings, parses, slots, jobs))
-    app.include_router(ops.router)
-    app.state.previews = preview_router(store, renders)  # on state: tests read its ``renders`` count
-    app.include_router(app.state.previews)  # /v1/jobs/{id}/preview.png, .../input.ply
+    for router in (jobs.router, batches.router, ops.router, preview.router):
+        app.include_router(router)
     app.include_router(web_router(settings, generation_defaults()))  # the page at / (service/web)
+    openapi = app.openapi
+
+    def openapi_of_app() -> dict:  # the schema states this app's settings where routes take them
+        if app.openapi_schema is None:
+            document_settings(openapi(), settings)
+        return app.openapi_schema
+
+    app.openapi = openapi_of_app
 
     # Each add_middleware wraps the previous ones: CORS ends outermost, so 413s and 429s carry its headers too.
     app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes, idle_seconds=settings.body_timeout_seconds,

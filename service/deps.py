@@ -1,7 +1,9 @@
-"""What the routes depend on, as ``Annotated`` aliases: the app's settings, store and metrics, and who is asking.
+"""What the routes depend on, as ``Annotated`` aliases: the app's settings, store, metrics and upload parsers,
+and who is asking.
 
 ``create_app`` keeps the app's objects on ``app.state``; the aliases read them from the request, so the
-routers hold no state of their own and one process can serve several differently configured apps.
+routers are module-level, hold no state of their own, and one process can serve several differently
+configured apps.
 """
 
 from __future__ import annotations
@@ -9,11 +11,13 @@ from __future__ import annotations
 import hashlib
 import hmac
 import re
+import threading
 from typing import Annotated
 
 from fastapi import Depends, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from .children import CappedPool
 from .errors import ApiError
 from .settings import Settings
 from .store import Store
@@ -55,9 +59,21 @@ def get_metrics(request: Request) -> Metrics:
     return request.app.state.metrics
 
 
+def get_parses(request: Request) -> CappedPool:
+    return request.app.state.parses
+
+
+def get_parse_slots(request: Request) -> threading.BoundedSemaphore:
+    return request.app.state.parse_slots
+
+
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 StoreDep = Annotated[Store, Depends(get_store)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+# Uploads are parsed in these capped child processes (``settings.max_concurrent_parses`` of them) ...
+Parses = Annotated[CappedPool, Depends(get_parses)]
+# ... while holding one of these slots (service.submission.parse_slot), shared by POST /v1/jobs and /v1/batches.
+ParseSlots = Annotated[threading.BoundedSemaphore, Depends(get_parse_slots)]
 
 
 def get_owner(request: Request, settings: SettingsDep, store: StoreDep,

@@ -5,15 +5,15 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import functools
-import inspect
 import math
 import re
 import sys
 import typing
 import unicodedata
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 
 from fastapi import Request, params
+from fastapi.routing import APIRoute
 from starlette.datastructures import FormData
 
 from fastmesh.io import EXPORT_FORMATS
@@ -71,21 +71,16 @@ def check_spelling(raw: Mapping[str, object]) -> None:
 
 
 @functools.lru_cache(maxsize=64)
-def declared_fields(endpoint: Callable) -> dict[str, bool]:
-    """The form and file fields a route's function declares (by their name on the wire), each with whether it
-    may be sent more than once (a list)."""
-    try:
-        sig = inspect.signature(endpoint, eval_str=True)
-    except (NameError, TypeError):  # an annotation names something local: lists are then not recognised
-        sig = inspect.signature(endpoint)
-    out = {}
-    for p in sig.parameters.values():
-        info = p.default if isinstance(p.default, params.Form) else next(
-            (m for m in typing.get_args(p.annotation)[1:] if isinstance(m, params.Form)), None)
-        if info is not None:  # File is a kind of Form
-            hint = typing.get_args(p.annotation)[0] if typing.get_origin(p.annotation) is typing.Annotated \
-                else p.annotation
-            out[info.alias or p.name] = typing.get_origin(hint) is list
+def declared_fields(route: APIRoute) -> dict[str, bool]:
+    """The form and file fields a route takes, its dependencies' included (by their name on the wire), each
+    with whether it may be sent more than once (a list)."""
+    out, dependants = {}, [route.dependant]
+    while dependants:
+        dependant = dependants.pop()
+        for field in dependant.body_params:
+            if isinstance(field.field_info, params.Form):  # File is a kind of Form
+                out[field.alias] = typing.get_origin(field.field_info.annotation) is list
+        dependants.extend(dependant.dependencies)
     return out
 
 
@@ -114,7 +109,7 @@ async def strict_form(request: Request) -> None:
     """Dependency of the form routes: :func:`check_known` and :func:`check_spelling` on the form as sent (the
     form is parsed once; this reads Starlette's parsed copy)."""
     form = await request.form()
-    check_known(form, declared_fields(request.scope["route"].endpoint))
+    check_known(form, declared_fields(request.scope["route"]))
     check_spelling(form)
 
 

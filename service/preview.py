@@ -16,19 +16,21 @@ pending than ``max_pending``, a request is answered 503 + Retry-After at once.  
 the other ``/v1`` routes: the same :data:`service.deps.Owner` dependency (API key, rate limit) and
 :func:`service.deps.owned_job` lookup (another key's job is a 404).
 
-Installed by ``create_app`` with ``app.include_router(preview_router(store, pool))``.
+The routes are :data:`router`'s; ``create_app`` includes it and keeps the app's :class:`Previews` (the render
+pool, the renders pending) on ``app.state.previews``, which the routes reach through :data:`PreviewsDep`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import anyio
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
 
 from .children import ChildFailed, ChildShapeError
-from .deps import JobId, Owner, owned_job
+from .deps import JobId, Owner, StoreDep, owned_job
 from .errors import ApiError
 from .render_pool import RenderPool
 from .schemas import error_responses
@@ -117,76 +119,59 @@ class _Flight:
         self.error: ApiError | None = None
 
 
-def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAULT_PREVIEW) -> APIRouter:
-    """Routes for previews of the jobs in ``store``; ``pool`` holds the render processes
-    (``config.max_concurrent_renders`` of them)."""
-    router = APIRouter(tags=["jobs"])
-    # The route is async and its waiting is on the event loop: requests queued for a render hold no
-    # thread of the pool that every other route (and /healthz) runs in.  Event-loop state only.
-    flights: dict[str, _Flight] = {}
-    slots: list[anyio.Semaphore] = []  # made on first use, inside the event loop
-    router.renders = 0  # renders started, for tests and the benchmark
-    router.samples = 0  # input.ply samples started, likewise
+def busy(why: str) -> ApiError:
+    return ApiError(503, "busy", f"{why}; retry shortly", {"Retry-After": "2"})
 
-    def busy(why: str) -> ApiError:
-        return ApiError(503, "busy", f"{why}; retry shortly", {"Retry-After": "2"})
 
-    def render_and_cache(job: dict, size: int, wireframe: bool) -> tuple[str, bytes]:
-        """(what, PNG) of ``job`` rendered by the pool, and cached.  Runs in a thread, holding a render slot."""
-        of, blob = preview_blob(store, job)  # read only now: waiting requests hold no input in memory
-        router.renders += 1
-        try:
-            png = pool.render(of, blob, size, wireframe, config.render_wait_seconds)
-        except (ChildShapeError, ChildFailed) as e:
-            raise child_error(e, "cannot render a preview") from None
-        del blob
-        ttl = max(1, min(config.cache_seconds, store.ttl_of(job["id"])))
-        store.redis.eval(_CACHE_IF_JOB, 2, store.k_job(job["id"]), cache_key(store, job["id"]),
-                         cache_field(of, size, wireframe), png, ttl)
-        return of, png
+def child_error(e: Exception, what: str) -> ApiError:
+    """The answer to a render or sample that failed in its child process."""
+    if isinstance(e, ChildShapeError):
+        return ApiError(422, e.code, f"{what}: {e.message}")
+    if e.reason == "memory":
+        return ApiError(413, "too_large", f"{what}: the input needs more memory than a render may use")
+    return busy(f"{what} in time" if e.reason == "deadline" else f"{what} now")
 
-    def child_error(e: Exception, what: str) -> ApiError:
-        """The answer to a render or sample that failed in its child process."""
-        if isinstance(e, ChildShapeError):
-            return ApiError(422, e.code, f"{what}: {e.message}")
-        if e.reason == "memory":
-            return ApiError(413, "too_large", f"{what}: the input needs more memory than a render may use")
-        return busy(f"{what} in time" if e.reason == "deadline" else f"{what} now")
 
-    async def slot() -> anyio.Semaphore:
+class Previews:
+    """An app's previews in the making: ``pool`` holds the render processes (``config.max_concurrent_renders``
+    of them), and the renders and samples pending are shared by the requests that ask for the same one.
+
+    The routes are async and their waiting is on the event loop: requests queued for a render hold no thread
+    of the pool that every other route (and /healthz) runs in.  Event-loop state only.
+    """
+
+    def __init__(self, pool: RenderPool, config: PreviewConfig = DEFAULT_PREVIEW):
+        self.pool, self.config = pool, config
+        self.flights: dict[str, _Flight] = {}
+        self._slots: anyio.Semaphore | None = None  # made on first use, inside the event loop
+        self.renders = 0  # renders started, for tests and the benchmark
+        self.samples = 0  # input.ply samples started, likewise
+
+    async def slot(self) -> anyio.Semaphore:
         """A render slot, acquired: 503 busy when none frees up within ``render_wait_seconds``."""
-        if not slots:
-            slots.append(anyio.Semaphore(config.max_concurrent_renders))
-        with anyio.move_on_after(config.render_wait_seconds) as waited:
-            await slots[0].acquire()
+        if self._slots is None:
+            self._slots = anyio.Semaphore(self.config.max_concurrent_renders)
+        with anyio.move_on_after(self.config.render_wait_seconds) as waited:
+            await self._slots.acquire()
         if waited.cancelled_caught:
             raise busy("too many previews are being rendered")
-        return slots[0]
+        return self._slots
 
-    async def shared(name: str, work):
+    async def shared(self, name: str, work):
         """``work()``'s value, run in a thread holding a render slot, once for all the requests that ask for
         ``name`` meanwhile (single flight); 503 busy when ``max_pending`` others are pending."""
-        flight = flights.get(name)
+        flight = self.flights.get(name)
         if flight is None:  # no await between the look-up and the claim: one leader per name
-            if len(flights) >= config.max_pending:
-                raise busy(f"{len(flights)} previews are waiting to be rendered")
-            flight = flights[name] = _Flight()
+            if len(self.flights) >= self.config.max_pending:
+                raise busy(f"{len(self.flights)} previews are waiting to be rendered")
+            flight = self.flights[name] = _Flight()
             try:
-                held = await slot()
-                try:
-                    flight.value = await anyio.to_thread.run_sync(work)
-                finally:
-                    held.release()
-            except ApiError as e:
-                flight.error = e
-            except Exception:  # Redis trouble: the waiting requests get an answer too, the leader the error
-                flight.error = busy("the preview failed")
-                raise
+                await self._lead(flight, work)
             finally:
-                flights.pop(name, None)
+                self.flights.pop(name, None)
                 flight.done.set()
         else:
-            with anyio.move_on_after(config.render_wait_seconds) as waited:
+            with anyio.move_on_after(self.config.render_wait_seconds) as waited:
                 await flight.done.wait()
             if waited.cancelled_caught:
                 raise busy("the preview is still being rendered")
@@ -194,60 +179,98 @@ def preview_router(store: Store, pool: RenderPool, config: PreviewConfig = DEFAU
             raise flight.error
         return flight.value
 
-    def overlay(job_id: str, points: int) -> bytes:
+    async def _lead(self, flight: _Flight, work) -> None:
+        """Run ``work`` for ``flight``, leaving its value or the error its waiting requests are answered."""
+        try:
+            held = await self.slot()
+            try:
+                flight.value = await anyio.to_thread.run_sync(work)
+            finally:
+                held.release()
+        except ApiError as e:
+            flight.error = e
+        except Exception:  # Redis trouble: the waiting requests get an answer too, the leader the error
+            flight.error = busy("the preview failed")
+            raise
+
+    def render_and_cache(self, store: Store, job: dict, size: int, wireframe: bool) -> tuple[str, bytes]:
+        """(what, PNG) of ``job`` rendered by the pool, and cached.  Runs in a thread, holding a render slot."""
+        of, blob = preview_blob(store, job)  # read only now: waiting requests hold no input in memory
+        self.renders += 1
+        try:
+            png = self.pool.render(of, blob, size, wireframe, self.config.render_wait_seconds)
+        except (ChildShapeError, ChildFailed) as e:
+            raise child_error(e, "cannot render a preview") from None
+        del blob
+        ttl = max(1, min(self.config.cache_seconds, store.ttl_of(job["id"])))
+        store.redis.eval(_CACHE_IF_JOB, 2, store.k_job(job["id"]), cache_key(store, job["id"]),
+                         cache_field(of, size, wireframe), png, ttl)
+        return of, png
+
+    def overlay(self, store: Store, job_id: str, points: int) -> bytes:
         """``input.ply`` made by the pool.  Runs in a thread holding a render slot: the stored input is read
         only then, so requests waiting for a slot hold nothing."""
         blob = store.get_input(job_id)
         if blob is None:
             raise ApiError(404, "not_found", "the job's input is no longer stored")
-        router.samples += 1
+        self.samples += 1
         try:
-            return pool.overlay(blob, points, config.render_wait_seconds)
+            return self.pool.overlay(blob, points, self.config.render_wait_seconds)
         except (ChildShapeError, ChildFailed) as e:
             raise child_error(e, "cannot sample the input") from None
 
-    @router.get("/v1/jobs/{job_id}/preview.png", response_class=Response,
-                summary="PNG preview: the result mesh, or the input before the result exists",
-                description=f"The image is `size` px square, one of {', '.join(map(str, config.sizes))} (a few "
-                            "sizes keep the cache small; another is refused with 422).",
-                responses={**error_responses(401, 404, 422, 429, 503),
-                           200: {"description": "The preview; `X-Preview-Of` says whether it shows the `result` "
-                                                "or the `input`",
-                                 "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
-                                 "headers": {"X-Preview-Of": {"schema": {"type": "string",
-                                                                         "enum": ["result", "input"]}}}}})
-    async def preview(job_id: JobId, who: Owner,
-                      size: int = Query(config.default_size, ge=config.min_size, le=config.max_size,
-                                        description="Image side in pixels: "
-                                                    f"{', '.join(map(str, config.sizes))}.",
-                                        examples=[512]),
-                      wireframe: bool = Query(False, description="Overlay the edges of the visible faces.",
-                                              examples=[True])) -> Response:
-        size = check_size(size, config.sizes)
-        job = await anyio.to_thread.run_sync(owned_job, store, job_id, who)
-        of = "result" if job["status"] == "succeeded" else "input"
-        field = cache_field(of, size, wireframe)
-        png = await anyio.to_thread.run_sync(store.redis.hget, cache_key(store, job_id), field)
-        if png is None:
-            of, png = await shared(f"{job_id}|{field}", lambda: render_and_cache(job, size, wireframe))
-        # A result preview never changes; an input preview turns into the result's at the same URL.
-        cache = "private, max-age=86400" if of == "result" else "no-cache"
-        return Response(png, media_type="image/png", headers={"Cache-Control": cache, "X-Preview-Of": of})
 
-    @router.get("/v1/jobs/{job_id}/input.ply", response_class=Response,
-                summary="The input as points (PLY), to overlay on the result",
-                responses={**error_responses(401, 404, 422, 429, 503),
-                           200: {"description": "Binary PLY point cloud in the input's original frame",
-                                 "content": {"application/ply": {"schema": {"type": "string",
-                                                                            "format": "binary"}}}}})
-    async def input_points(job_id: JobId, who: Owner,
-                           points: int = Query(config.overlay_points, ge=1, le=config.max_overlay_points,
-                                               description="At most this many points (evenly picked or sampled).")
-                           ) -> Response:
-        await anyio.to_thread.run_sync(owned_job, store, job_id, who)
-        ply = await shared(f"{job_id}|input.ply|{points}", lambda: overlay(job_id, points))
-        return Response(ply, media_type="application/ply",
-                        headers={"Cache-Control": "private, max-age=86400",
-                                 "Content-Disposition": f'inline; filename="{job_id}-input.ply"'})
+def get_previews(request: Request) -> Previews:
+    return request.app.state.previews
 
-    return router
+
+PreviewsDep = Annotated[Previews, Depends(get_previews)]
+SIZES = ", ".join(map(str, DEFAULT_PREVIEW.sizes))
+
+router = APIRouter(tags=["jobs"])
+
+
+@router.get("/v1/jobs/{job_id}/preview.png", response_class=Response,
+            summary="PNG preview: the result mesh, or the input before the result exists",
+            description=f"The image is `size` px square, one of {SIZES} (a few sizes keep the cache small; another "
+                        "is refused with 422).",
+            responses={**error_responses(401, 404, 422, 429, 503),
+                       200: {"description": "The preview; `X-Preview-Of` says whether it shows the `result` or "
+                                            "the `input`",
+                             "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
+                             "headers": {"X-Preview-Of": {"schema": {"type": "string",
+                                                                     "enum": ["result", "input"]}}}}})
+async def preview(job_id: JobId, who: Owner, store: StoreDep, previews: PreviewsDep,
+                  size: int = Query(DEFAULT_PREVIEW.default_size, ge=DEFAULT_PREVIEW.min_size,
+                                    le=DEFAULT_PREVIEW.max_size, description=f"Image side in pixels: {SIZES}.",
+                                    examples=[512]),
+                  wireframe: bool = Query(False, description="Overlay the edges of the visible faces.",
+                                          examples=[True])) -> Response:
+    size = check_size(size, previews.config.sizes)
+    job = await anyio.to_thread.run_sync(owned_job, store, job_id, who)
+    of = "result" if job["status"] == "succeeded" else "input"
+    field = cache_field(of, size, wireframe)
+    png = await anyio.to_thread.run_sync(store.redis.hget, cache_key(store, job_id), field)
+    if png is None:
+        of, png = await previews.shared(f"{job_id}|{field}",
+                                        lambda: previews.render_and_cache(store, job, size, wireframe))
+    # A result preview never changes; an input preview turns into the result's at the same URL.
+    cache = "private, max-age=86400" if of == "result" else "no-cache"
+    return Response(png, media_type="image/png", headers={"Cache-Control": cache, "X-Preview-Of": of})
+
+
+@router.get("/v1/jobs/{job_id}/input.ply", response_class=Response,
+            summary="The input as points (PLY), to overlay on the result",
+            responses={**error_responses(401, 404, 422, 429, 503),
+                       200: {"description": "Binary PLY point cloud in the input's original frame",
+                             "content": {"application/ply": {"schema": {"type": "string", "format": "binary"}}}}})
+async def input_points(job_id: JobId, who: Owner, store: StoreDep, previews: PreviewsDep,
+                       points: int = Query(DEFAULT_PREVIEW.overlay_points, ge=1,
+                                           le=DEFAULT_PREVIEW.max_overlay_points,
+                                           description="At most this many points (evenly picked or sampled).")
+                       ) -> Response:
+    await anyio.to_thread.run_sync(owned_job, store, job_id, who)
+    ply = await previews.shared(f"{job_id}|input.ply|{points}", lambda: previews.overlay(store, job_id, points))
+    return Response(ply, media_type="application/ply",
+                    headers={"Cache-Control": "private, max-age=86400",
+                             "Content-Disposition": f'inline; filename="{job_id}-input.ply"'})

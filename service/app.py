@@ -8,7 +8,9 @@ are delivered by a thread :func:`service.webhooks.dispatch_loop` beside the reap
 
 from __future__ import annotations
 
+import functools
 import threading
+from collections.abc import Callable
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
@@ -42,6 +44,31 @@ When the server has API keys, send `Authorization: Bearer <key>`; a key sees onl
 Every error is JSON `{"error": {"code", "message"}}`."""
 
 
+@asynccontextmanager
+async def lifespan(app: FastAPI):
+    store, parses, renders = app.state.store, app.state.parses, app.state.renders
+    # Jobs of dead workers are requeued by this process too, so they are even when no worker is alive.
+    stop = threading.Event()
+    threading.Thread(target=reap_loop, args=(store, stop), name="fastmesh-reaper", daemon=True).start()
+    # Webhooks are delivered from here, never from a worker (service.webhooks).
+    threading.Thread(target=dispatch_loop, args=(store, stop), name="fastmesh-webhooks", daemon=True).start()
+    # Parsing and render processes take a second or two to start (longer at their lower priority on a busy
+    # machine): started now, the first uploads, previews and input points do not wait for that.
+    threading.Thread(target=parses.warm, name="fastmesh-parse-warm", daemon=True).start()
+    threading.Thread(target=renders.warm, name="fastmesh-render-warm", daemon=True).start()
+    yield
+    stop.set()
+    renders.close()
+    parses.close()
+
+
+def openapi_of(app: FastAPI, build: Callable[[], dict]) -> dict:
+    """``app``'s OpenAPI schema as ``build`` makes it, stating the app's settings where its routes take them."""
+    if app.openapi_schema is None:
+        document_settings(build(), app.state.settings)
+    return app.openapi_schema
+
+
 def create_app(settings: Settings | None = None, store: Store | None = None) -> FastAPI:
     settings = settings or Settings()
     # Uploads and stored inputs pass through in blocks of MBs: in pages of their own, they go back to the system
@@ -53,22 +80,6 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     cap = settings.child_memory_mb * 1024 * 1024
     renders = RenderPool(DEFAULT_PREVIEW.max_concurrent_renders, cap)
     parses = CappedPool(settings.max_concurrent_parses, cap, name="fastmesh-parse")
-
-    @asynccontextmanager
-    async def lifespan(app: FastAPI):
-        # Jobs of dead workers are requeued by this process too, so they are even when no worker is alive.
-        stop = threading.Event()
-        threading.Thread(target=reap_loop, args=(store, stop), name="fastmesh-reaper", daemon=True).start()
-        # Webhooks are delivered from here, never from a worker (service.webhooks).
-        threading.Thread(target=dispatch_loop, args=(store, stop), name="fastmesh-webhooks", daemon=True).start()
-        # Parsing and render processes take a second or two to start (longer at their lower priority on a busy
-        # machine): started now, the first uploads, previews and input points do not wait for that.
-        threading.Thread(target=parses.warm, name="fastmesh-parse-warm", daemon=True).start()
-        threading.Thread(target=renders.warm, name="fastmesh-render-warm", daemon=True).start()
-        yield
-        stop.set()
-        renders.close()
-        parses.close()
 
     app = FastAPI(title="FastMesh", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
                   openapi_tags=[{"name": "jobs", "description": "Submit, watch, download, cancel."},
@@ -83,14 +94,7 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     for router in (jobs.router, batches.router, ops.router, preview.router):
         app.include_router(router)
     app.include_router(web_router(settings, generation_defaults()))  # the page at / (service/web)
-    openapi = app.openapi
-
-    def openapi_of_app() -> dict:  # the schema states this app's settings where routes take them
-        if app.openapi_schema is None:
-            document_settings(openapi(), settings)
-        return app.openapi_schema
-
-    app.openapi = openapi_of_app
+    app.openapi = functools.partial(openapi_of, app, app.openapi)
 
     # Each add_middleware wraps the previous ones: CORS ends outermost, so 413s and 429s carry its headers too.
     app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes, idle_seconds=settings.body_timeout_seconds,

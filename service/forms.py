@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-import functools
 import math
 import re
 import sys
@@ -70,7 +69,6 @@ def check_spelling(raw: Mapping[str, object]) -> None:
             raise ApiError(422, "invalid_parameter", f"{name}: '{value[:30]}' is not {what}")
 
 
-@functools.lru_cache(maxsize=64)
 def declared_fields(route: APIRoute) -> dict[str, bool]:
     """The form and file fields a route takes, its dependencies' included (by their name on the wire), each
     with whether it may be sent more than once (a list)."""

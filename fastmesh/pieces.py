@@ -56,6 +56,34 @@ def split_pinches(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     return np.concatenate([v, v[pairs[~first, 0]]]), out
 
 
+def thin_crowded_edges(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``faces`` with at most two on any edge: where more meet (after vertices were made one), the largest two stay.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float
+    faces : (F, 3) int
+
+    Returns
+    -------
+    (G, 3) int64, the faces kept in their order
+    """
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(f) == 0:
+        return f
+    p = np.asarray(vertices, dtype=np.float64)[f]
+    area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    sides = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    face = np.tile(np.arange(len(f)), 3)
+    _, edge = np.unique(sides, axis=0, return_inverse=True)
+    edge = edge.reshape(-1)
+    order = np.lexsort((-area[face], edge))  # per edge, the largest face first
+    rank = np.arange(len(order)) - np.searchsorted(edge[order], edge[order])
+    keep = np.ones(len(f), dtype=bool)
+    keep[face[order][rank >= 2]] = False
+    return f[keep]
+
+
 def drop_strays(vertices: np.ndarray, faces: np.ndarray, keep: int) -> np.ndarray:
     """``faces`` without their stray pieces (at most ``STRAY_FACES`` faces or ``STRAY_AREA`` of the area, and
     ``STRAY_SPAN`` of the size), smallest first, while more than ``keep`` pieces remain; the largest piece
@@ -94,7 +122,7 @@ def drop_strays(vertices: np.ndarray, faces: np.ndarray, keep: int) -> np.ndarra
     return f[~np.isin(labels, order)]
 
 
-def pull_in(vertices: np.ndarray, surface: np.ndarray, limit: float) -> tuple[np.ndarray, int]:
+def pull_in(vertices: np.ndarray, surface: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
     """Vertices farther than ``limit`` from every surface sample moved onto the nearest sample.
 
     Parameters
@@ -105,19 +133,20 @@ def pull_in(vertices: np.ndarray, surface: np.ndarray, limit: float) -> tuple[np
 
     Returns
     -------
-    (N, 3) float64 vertices, the connectivity unchanged, and how many moved
+    vertices : (N, 3) float64, the connectivity unchanged
+    moved : (N,) bool, the vertices moved
     """
     v = np.asarray(vertices, dtype=np.float64).copy()
     surface = np.asarray(surface, dtype=np.float64)
     if len(v) == 0 or len(surface) == 0:
-        return v, 0
+        return v, np.zeros(len(v), dtype=bool)
     # Measured in the surface's unit cube: squared distances of coordinates near 1e155 would overflow to inf,
     # and the tree answers "no neighbour" (index len(surface)) for an infinite distance.
     norm = Normalization.fit(surface)
     dist, nearest = cKDTree(norm.apply(surface)).query(norm.apply(v))
     far = (dist > limit * norm.scale) & (nearest < len(surface))
     v[far] = surface[nearest[far]]
-    return v, int(far.sum())
+    return v, far
 
 
 def far_limit(shape_vertices: np.ndarray) -> float:

@@ -57,7 +57,7 @@ from .models.generate import Cancelled
 from .models.onnx_decode import choose_decoder
 from .output import MeshOut, finish
 from .params import GenerateParams
-from .pieces import drop_strays, far_limit, pull_in, split_pinches
+from .pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
 from .planar import polyhedron
 from .progress import STAGES
 from .quads import EdgeEvidence
@@ -140,14 +140,17 @@ def _whole(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nd
     vertices, faces = split_pinches(vertices, faces)
     vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, req.pieces_in))[:2]
     vertices, pulled = pull_in(vertices, req.surface_points, far_limit(shape.vertices))
-    if pulled:
-        # Vertices pulled onto one sample coincide: made one, the faces between them (no area) dropped.
-        vertices, faces = remove_unreferenced(*weld(vertices, faces, tol=1e-12))[:2]
+    if pulled.any():
+        # Vertices pulled onto one sample coincide: made one, the faces between them (no area) dropped.  Only
+        # those: the copies of a pinched vertex coincide too, and stay apart.  Pulled vertices made one can
+        # crowd an edge with faces and pinch the surface again.
+        vertices, faces = remove_unreferenced(*weld(vertices, faces, tol=1e-12, among=pulled))[:2]
+        vertices, faces = remove_unreferenced(*split_pinches(vertices, thin_crowded_edges(vertices, faces)))[:2]
     # In the unit cube: the areas of a shape 1e-200 across underflow to 0 in its own units.
     if not len(faces) or not triangle_areas(req.frame.norm.apply(vertices), faces).any():
         raise GenerationError("no_faces", "every face of the result collapsed onto the input surface")
     low = _low_poly(shape, len(faces)) if req.count.low_poly_input else None
-    return (vertices, faces, "model", pulled) if low is None else (*low, "input", 0)
+    return (vertices, faces, "model", int(pulled.sum())) if low is None else (*low, "input", 0)
 
 
 def _low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:

@@ -133,7 +133,7 @@ def test_pipeline_candidates_are_each_seed_alone(monkeypatch):
     import fastmesh.pipeline as fp
 
     # Candidates are scored before the whole step; the random networks' strays would be pulled in after it.
-    monkeypatch.setattr(fp, "pull_in", lambda vertices, surface, limit: (vertices, 0))
+    monkeypatch.setattr(fp, "pull_in", lambda vertices, surface, limit: (vertices, np.zeros(len(vertices), bool)))
     pipe = Pipeline.random(seed=0)
     shape = point_cloud(primitive("l_block"), 4000)  # its points: the block's own 20 faces would come back
     # Open: a closed block's points are rebuilt from its planes, with no candidates decoded.

@@ -69,8 +69,8 @@ def test_vertices_far_from_the_input_are_pulled_onto_it_and_only_those():
     limit = far_limit(surface)
     assert np.isclose(limit, FAR_CELLS * CELL * np.ptp(surface, axis=0).max())
     vertices = np.array([[5.0, 5.0, 0.5 * limit], [2.0, 3.0, 1.5 * limit], [8.0, 8.0, -3 * limit]])
-    moved, count = pull_in(vertices, surface, limit)
-    assert count == 2 and np.array_equal(moved[0], vertices[0])
+    moved, which = pull_in(vertices, surface, limit)
+    assert which.tolist() == [False, True, True] and np.array_equal(moved[0], vertices[0])
     assert (moved[1:, 2] == 0).all() and np.linalg.norm(moved[1:, :2] - vertices[1:, :2], axis=1).max() < 0.5
 
 
@@ -83,7 +83,39 @@ def test_pulling_in_works_at_any_scale(scale):
     surface = np.c_[rng.uniform(0, 10, (200, 2)), np.zeros(200)] * scale
     limit = far_limit(surface)
     vertices = np.array([[5.0, 5.0, 0.0], [2.0, 3.0, 20.0]]) * scale
-    moved, count = pull_in(vertices, surface, limit)
-    assert count == 1 and np.array_equal(moved[0], vertices[0])
+    moved, which = pull_in(vertices, surface, limit)
+    assert which.tolist() == [False, True] and np.array_equal(moved[0], vertices[0])
     assert moved[1, 2] == 0 and any((moved[1] == s).all() for s in surface)
 
+
+
+def test_an_edge_crowded_with_faces_keeps_its_two_largest():
+    """Four faces on the edge 0-1 (vertices made one can do that): the two largest stay, the others' edges too."""
+    from fastmesh.pieces import thin_crowded_edges
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0.5, 3, 0], [0.5, -2, 0], [0.5, 0, 1], [0.5, 0, -0.5]], dtype=float)
+    f = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4], [1, 0, 5], [1, 2, 4]])
+    kept = thin_crowded_edges(v, f)
+    assert kept.tolist() == [[0, 1, 2], [1, 0, 3], [1, 2, 4]]
+    assert topology(kept)["non_manifold_edges"] == 0
+
+
+def test_making_whole_keeps_a_split_pinch_apart_when_it_welds_pulled_vertices():
+    """A bowtie (two fans at one vertex) and a vertex far above the input's square: the pinch is split, the far
+    vertex pulled onto the square, and the welding of pulled vertices leaves the pinch's two copies apart."""
+    from types import SimpleNamespace
+
+    from fastmesh.io import Normalization, Shape
+    from fastmesh.pipeline import _whole
+
+    rng = np.random.default_rng(0)
+    square = np.c_[rng.uniform(-2, 2, (4000, 2)), np.zeros(4000)]
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [-1, 0, 0], [-1, -1, 0], [2, 0.5, 5.0]], dtype=float)
+    f = np.array([[0, 1, 2], [0, 3, 4], [1, 5, 2]])
+    req = SimpleNamespace(shape=Shape(vertices=square), surface_points=square, pieces_in=2,
+                          frame=SimpleNamespace(norm=Normalization.fit(square)),
+                          count=SimpleNamespace(low_poly_input=False))
+    vertices, faces, source, pulled = _whole(req, v, f)
+    assert pulled == 1 and source == "model" and len(faces) == 3
+    t = topology(faces)
+    assert t["non_manifold_vertices"] == 0 and t["non_manifold_edges"] == 0 and t["pieces"] == 2

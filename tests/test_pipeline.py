@@ -215,7 +215,7 @@ def test_candidates_return_the_one_nearest_the_input(pipe, monkeypatch):
     import fastmesh.pipeline as fp
 
     # Candidates are scored before the whole step; the random networks' strays would be pulled in after it.
-    monkeypatch.setattr(fp, "pull_in", lambda vertices, surface, limit: (vertices, 0))
+    monkeypatch.setattr(fp, "pull_in", lambda vertices, surface, limit: (vertices, np.zeros(len(vertices), bool)))
     shape = _sphere()
     many = pipe.generate(shape, GenerateParams(seed=5, max_vertices=24, temperature=1.0, candidates=4))
     fits = many.info["fits"]

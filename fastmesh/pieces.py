@@ -57,7 +57,10 @@ def split_pinches(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
 
 
 def thin_crowded_edges(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """``faces`` with at most two on any edge: where more meet (after vertices were made one), the largest two stay.
+    """``faces`` with at most two on any edge (vertices made one can crowd an edge), and no vertex triple twice.
+
+    The faces on crowded edges are taken largest first, each where its edges still have room: greedy, so a face
+    kept is never dropped for a later one and every edge ends with at most two.
 
     Parameters
     ----------
@@ -71,16 +74,21 @@ def thin_crowded_edges(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if len(f) == 0:
         return f
+    f = f[np.sort(np.unique(np.sort(f, axis=1), axis=0, return_index=True)[1])]
+    sides = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    edges = np.unique(sides, axis=0, return_inverse=True)[1].reshape(3, -1).T  # (F, 3) edge ids of each face
+    crowded = (np.bincount(edges.ravel())[edges] > 2).any(axis=1)
+    if not crowded.any():
+        return f
+    used = np.bincount(edges[~crowded].ravel(), minlength=int(edges.max()) + 1)
     p = np.asarray(vertices, dtype=np.float64)[f]
     area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-    sides = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    face = np.tile(np.arange(len(f)), 3)
-    _, edge = np.unique(sides, axis=0, return_inverse=True)
-    edge = edge.reshape(-1)
-    order = np.lexsort((-area[face], edge))  # per edge, the largest face first
-    rank = np.arange(len(order)) - np.searchsorted(edge[order], edge[order])
-    keep = np.ones(len(f), dtype=bool)
-    keep[face[order][rank >= 2]] = False
+    keep = ~crowded
+    candidates = np.flatnonzero(crowded)
+    for i in candidates[np.argsort(-area[candidates], kind="stable")]:
+        if (used[edges[i]] < 2).all():
+            keep[i] = True
+            used[edges[i]] += 1
     return f[keep]
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import trimesh
@@ -98,6 +100,11 @@ def test_an_edge_crowded_with_faces_keeps_its_two_largest():
     kept = thin_crowded_edges(v, f)
     assert kept.tolist() == [[0, 1, 2], [1, 0, 3], [1, 2, 4]]
     assert topology(kept)["non_manifold_edges"] == 0
+    rng = np.random.default_rng(0)  # every triple of 6 points, twice: every edge crowded, every face a duplicate
+    points, every = rng.normal(size=(6, 3)), np.array(list(itertools.combinations(range(6), 3)))
+    kept = thin_crowded_edges(points, np.r_[every, every[:, ::-1]])
+    assert 4 <= len(kept) and topology(kept)["non_manifold_edges"] == 0
+    assert len({tuple(sorted(t)) for t in kept.tolist()}) == len(kept)
 
 
 def test_making_whole_keeps_a_split_pinch_apart_when_it_welds_pulled_vertices():

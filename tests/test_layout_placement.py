@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 import trimesh
-from test_layout import glb_json, textured_box_glb
+from test_uv_layout import glb_json, textured_box_glb
 from test_quads import read_obj, read_ply
 
 from fastmesh import layout

@@ -24,11 +24,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fastmesh.io import Normalization  # noqa: E402
 from fastmesh.metrics import vertex_metrics  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
 from fastmesh.primitives import LADDER, point_cloud, primitive  # noqa: E402
+from fastmesh.shapes.io import Normalization  # noqa: E402
 
 TARGET_RECALL = 0.9
 TARGET_COUNT = 1.5

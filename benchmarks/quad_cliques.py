@@ -21,9 +21,9 @@ import trimesh
 
 import fastmesh.output
 from fastmesh import quads
-from fastmesh.io import Shape, load_shape
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
+from fastmesh.shapes.io import Shape, load_shape
 
 
 def worst_corner(vertices: np.ndarray, faces: np.ndarray, pairs: np.ndarray) -> float | None:

@@ -23,11 +23,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fastmesh.io import Normalization  # noqa: E402
 from fastmesh.metrics import vertex_metrics  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
 from fastmesh.primitives import RANDOM_KINDS, point_cloud, posed, random_shape  # noqa: E402
+from fastmesh.shapes.io import Normalization  # noqa: E402
 
 
 def run_one(pipe: Pipeline, kind: str, rng: np.random.Generator, given: str, pose: str) -> dict:

@@ -87,9 +87,9 @@ def _inputs(n: int, seed: int) -> list:
     import trimesh
     from gpu_inputs import varied
 
-    from fastmesh.io import Shape
     from fastmesh.params import GenerateParams
     from fastmesh.primitives import posed
+    from fastmesh.shapes.io import Shape
 
     cylinder = trimesh.creation.cylinder(0.3, 0.8, sections=64)
     turned = posed(Shape(vertices=np.asarray(cylinder.vertices), faces=np.asarray(cylinder.faces)),

@@ -29,11 +29,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fastmesh.facecount import TOLERANCE, hold_count, input_samples  # noqa: E402
-from fastmesh.io import SUPPORTED_FORMATS, load_shape  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
 from fastmesh.primitives import CURVED_KINDS, coarse_copy, curved_input  # noqa: E402
 from fastmesh.quality import topology  # noqa: E402
+from fastmesh.shapes.io import SUPPORTED_FORMATS, load_shape  # noqa: E402
 
 GIVEN = ("mesh", "points")
 TARGETS = (100, 8000)

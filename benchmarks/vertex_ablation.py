@@ -35,12 +35,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fastmesh.eval import pair_inputs  # noqa: E402
-from fastmesh.io import Normalization, load_shape, sample_surface  # noqa: E402
 from fastmesh.metrics import vertex_metrics  # noqa: E402
 from fastmesh.models.cells import select_cells  # noqa: E402
 from fastmesh.models.checkpoint import load_model  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import CELL_SEED, Pipeline  # noqa: E402
+from fastmesh.shapes.io import Normalization, load_shape, sample_surface  # noqa: E402
 from fastmesh.tokenizer import dequantize  # noqa: E402
 
 KEYS = ("precision_1", "recall_1", "precision_2", "recall_2", "on_surface", "count_ratio")

@@ -23,9 +23,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .holes import WHOLE_LOOP_MAX, _best_triangulation, _close_loop, _simple_loops, _walk_loops
-from .io import Normalization, Shape
 from .params import CLOSED_CHOICES
 from .quality import edge_face_counts, weld
+from .shapes.io import Normalization, Shape
 from .support import SupportCache, face_samples
 from .triangles import orient_faces
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import MESH_FORMATS, Normalization, ShapeError, load_shape
+from .shapes.io import MESH_FORMATS, Normalization, ShapeError, load_shape
 from .tokenizer import dequantize, quantize_mesh, vertex
 from .tokenizer.grid import LEVELS
 
@@ -180,8 +180,8 @@ def one_thread() -> None:
 
 def _score_mesh(i: int) -> tuple[np.ndarray, np.ndarray]:
     """Flat indices (int32) and log-odds (float16) of mesh ``i``'s cells at or above ``CELL_KEEP``."""
-    from .io import sample_triangles
     from .models.cells import flat_index
+    from .shapes.io import sample_triangles
 
     ds, net, seed = _CELL_JOB["ds"], _CELL_JOB["net"], _CELL_JOB["seed"]
     rec = ds[int(i)]

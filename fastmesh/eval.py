@@ -25,7 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import (
+from .metrics import edge_metrics, edges_from_faces, mesh_topology, surface_distance, vertex_metrics
+from .quality import topology, weld
+from .shapes.io import (
     SUPPORTED_FORMATS,
     Normalization,
     Shape,
@@ -35,8 +37,6 @@ from .io import (
     sample_surface,
     write_mesh,
 )
-from .metrics import edge_metrics, edges_from_faces, mesh_topology, surface_distance, vertex_metrics
-from .quality import topology, weld
 from .surface_triangles import restricted_delaunay_mesh
 from .tokenizer import dequantize, quantize_mesh
 from .triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced

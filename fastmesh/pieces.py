@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .io import Normalization
 from .quality import corner_fans, piece_labels
+from .shapes.io import Normalization
 from .tokenizer.grid import CELL
 
 # A piece is a stray when it has at most this many faces or this share of the result's area, and spans at most

@@ -43,13 +43,11 @@ import numpy as np
 import torch
 
 from .batch import DecodeRequest
-from .canonical import canonical_rotation, frame_normals, turned_degrees
 from .closure import decide_closed
 from .facecount import TOLERANCE as COUNT_TOLERANCE
 from .facecount import CountRule, count_rule, hold_count
 from .filtering import FilterConfig, Predictor, predict_edges
 from .fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
-from .io import Shape
 from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model
 from .models.encoder import EncoderConfig
@@ -58,11 +56,13 @@ from .models.onnx_decode import choose_decoder
 from .output import MeshOut, finish
 from .params import GenerateParams
 from .pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
-from .planar import polyhedron
 from .progress import STAGES
 from .quads import EdgeEvidence
 from .quality import edge_face_counts, mesh_quality, weld
 from .request import PLANAR_SAMPLES, Frame, Request
+from .shapes.canonical import canonical_rotation, frame_normals, turned_degrees
+from .shapes.io import Shape
+from .shapes.planar import polyhedron
 from .support import surface_fit
 from .tokenizer import dequantize
 from .tokenizer import vertex as vt

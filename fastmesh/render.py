@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fastmesh.io import ShapeError
 from fastmesh.png import to_png  # re-exported: render + encode in one import
+from fastmesh.shapes.io import ShapeError
 
 _EMPTY = np.iinfo(np.int64).max  # z-buffer value of a pixel no fragment reached
 _DEPTH_LEVELS = (1 << 31) - 1  # depth quantisation: fits above a 32-bit id in a positive int64
@@ -491,7 +491,8 @@ def render_points(points, normals=None, size: int = 512, alpha: bool = False,
 
 def render_shape(shape, size: int = 512, wireframe: bool = False, alpha: bool = False,
                  config: RenderConfig = DEFAULT_CONFIG) -> np.ndarray:
-    """Render a :class:`fastmesh.io.Shape`: a mesh with :func:`render_mesh`, points with :func:`render_points`."""
+    """Render a :class:`fastmesh.shapes.io.Shape`: a mesh with :func:`render_mesh`, points with
+    :func:`render_points`."""
     if shape.faces is not None:
         return render_mesh(shape.vertices, shape.faces, size=size, wireframe=wireframe, alpha=alpha, config=config)
     return render_points(shape.vertices, shape.normals, size=size, alpha=alpha, config=config)

@@ -5,7 +5,7 @@ This module imports no web framework: it is what a child imports.
 
 from __future__ import annotations
 
-from fastmesh.io import Shape, load_shape
+from fastmesh.shapes.io import Shape, load_shape
 
 
 def input_info(filename: str, shape: Shape) -> dict:
@@ -19,7 +19,7 @@ def input_info(filename: str, shape: Shape) -> dict:
 
 def parse_upload(data: bytes, filename: str, max_points: int, max_faces: int, texture: bool = False
                  ) -> tuple[dict, bytes]:
-    """``(input facts, stored input bytes)`` of an upload; raises :class:`fastmesh.io.ShapeError`.
+    """``(input facts, stored input bytes)`` of an upload; raises :class:`fastmesh.shapes.io.ShapeError`.
 
     A point cloud's normals are left as the file gives them: estimating them takes seconds for a large
     cloud and is the worker's.  ``texture``: keep a glTF's base-colour texture (``bake``).

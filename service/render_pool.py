@@ -22,7 +22,7 @@ def render_blob(blob: bytes, of: str, size: int, wireframe: bool) -> bytes:
     """PNG bytes of a stored result (``of == "result"``: npz of vertices and faces) or input (a Shape's npz).
 
     A result without faces (a degenerate generation) is drawn as its vertices, so the preview still
-    shows what came out.  Raises :class:`fastmesh.io.ShapeError` when there is nothing drawable.
+    shows what came out.  Raises :class:`fastmesh.shapes.io.ShapeError` when there is nothing drawable.
     """
     from fastmesh.render import render_mesh, render_points, render_shape, to_png
 
@@ -41,7 +41,7 @@ def render_blob(blob: bytes, of: str, size: int, wireframe: bool) -> bytes:
 def overlay_points(shape, n: int) -> np.ndarray:
     """Up to ``n`` points of an input shape, (n, 3) float32, input frame: evenly picked points of a cloud,
     area-weighted surface samples of a mesh (its vertices cluster where detail is, not where the surface is)."""
-    from fastmesh.io import sample_triangles
+    from fastmesh.shapes.io import sample_triangles
 
     if shape.faces is None:
         v = shape.vertices

@@ -43,7 +43,7 @@ import redis
 from rq import Queue
 
 from fastmesh.bake import SurfaceTexture
-from fastmesh.io import EXPORT_FORMATS, Normalization, Shape
+from fastmesh.shapes.io import EXPORT_FORMATS, Normalization, Shape
 
 from .settings import Settings
 

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fastmesh.io import Shape, load_shape
 from fastmesh.params import GenerateParams
 from fastmesh.primitives import RANDOM_KINDS, posed, random_shape
+from fastmesh.shapes.io import Shape, load_shape
 
 SMOOTH = ("ellipsoid", "torus", "wavy", "superellipsoid")
 CORPUS = Path(__file__).parent / "data" / "corpus"

@@ -8,9 +8,9 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from fastmesh.closure import _winding, close_loops, decide_closed, mesh_open_share, winding_closed_share
-from fastmesh.io import Shape, sample_surface
 from fastmesh.primitives import point_cloud
 from fastmesh.quality import topology
+from fastmesh.shapes.io import Shape, sample_surface
 from fastmesh.support import support_limit
 from fastmesh.surface_triangles import _Selection, vertex_frames
 from fastmesh.triangles import orient_faces

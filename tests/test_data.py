@@ -11,7 +11,7 @@ import trimesh
 from testdata import TEST_CORPUS, manifest
 
 from fastmesh.data import build_dataset, dataset_stats, in_validation, load_dataset
-from fastmesh.io import Normalization, load_shape
+from fastmesh.shapes.io import Normalization, load_shape
 from fastmesh.tokenizer import quantize_mesh
 
 # The committed base meshes with animation poses (a pose shares its base's group).

@@ -8,9 +8,9 @@ import torch
 import trimesh
 
 from fastmesh.eval import artist_vertices, evaluate_end_to_end, pair_inputs
-from fastmesh.io import load_shape, sample_surface
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
+from fastmesh.shapes.io import load_shape, sample_surface
 
 torch.set_num_threads(1)
 

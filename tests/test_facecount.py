@@ -13,11 +13,11 @@ import trimesh
 from fastmesh.cli import main
 from fastmesh.cli.generate import faces_text
 from fastmesh.facecount import KEEP, TOLERANCE, decimate, hold_count, input_samples, split_longest
-from fastmesh.io import Shape
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.primitives import CURVED_KINDS, coarse_copy, curved_input, point_cloud
 from fastmesh.quality import mesh_quality, topology
+from fastmesh.shapes.io import Shape
 from fastmesh.triangles import TriangleConfig
 
 torch.set_num_threads(1)

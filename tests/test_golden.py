@@ -20,10 +20,10 @@ import torch
 import trimesh
 
 from fastmesh.batch import decode
-from fastmesh.io import Shape, sample_surface
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.primitives import box, torus
+from fastmesh.shapes.io import Shape, sample_surface
 
 GOLDEN = Path(__file__).parent / "data" / "golden.npz"
 

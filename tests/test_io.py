@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.io import (
+from fastmesh.shapes.io import (
     EXPORT_FORMATS,
     Normalization,
     Shape,

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import trimesh
 from stack import assert_error, make_settings, post, wait_final, wp
-from test_uv_layout import COLOURS, glb_json, side_of, textured_box_glb
 from test_quads import read_obj, read_ply
+from test_uv_layout import COLOURS, glb_json, side_of, textured_box_glb
 
 from fastmesh.bake import sample
 from fastmesh.layout import overlap_share

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.io import ShapeError, sample_triangles
 from fastmesh.metrics import (
     CELL,
     chamfer,
@@ -19,6 +18,7 @@ from fastmesh.metrics import (
     surface_distance,
     vertex_metrics,
 )
+from fastmesh.shapes.io import ShapeError, sample_triangles
 
 
 def _box(extents=(1.0, 1.0, 1.0)):

@@ -66,9 +66,9 @@ def test_shipped_weights_give_the_flat_rungs_back_small_and_closed(name):
     within one 7-bit cell of each of its own."""
     from scipy.spatial import cKDTree
 
-    from fastmesh.io import Normalization
     from fastmesh.params import GenerateParams
     from fastmesh.pipeline import Pipeline
+    from fastmesh.shapes.io import Normalization
     from fastmesh.tokenizer.grid import CELL
 
     mesh = primitive(name)

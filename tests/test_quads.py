@@ -10,11 +10,11 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from fastmesh.io import Shape
 from fastmesh.output import MeshOut
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.quads import QuadConfig, interior_pairs, pair_triangles, quad_corners, quad_share
+from fastmesh.shapes.io import Shape
 
 
 @pytest.fixture(scope="module")

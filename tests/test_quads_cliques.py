@@ -10,11 +10,11 @@ import trimesh
 from testdata import committed_meshes
 
 import fastmesh.output
-from fastmesh.io import Shape, load_shape
 from fastmesh.output import finish
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.quads import EdgeEvidence, QuadConfig, flat_cliques, pair_triangles, quad_corners
+from fastmesh.shapes.io import Shape, load_shape
 
 SURE = 9.0  # a logit the model is sure of: probability 0.9999
 

@@ -7,10 +7,10 @@ import pytest
 import trimesh
 from trimesh.grouping import group_rows
 
-from fastmesh.io import Shape, sample_surface
 from fastmesh.metrics import surface_distance
 from fastmesh.primitives import point_cloud
 from fastmesh.quality import input_pieces, mesh_quality, topology
+from fastmesh.shapes.io import Shape, sample_surface
 
 KEYS = {"cd", "hd", "boundary_edges", "non_manifold_edges", "non_manifold_vertices", "components", "pieces",
         "watertight", "input_pieces"}

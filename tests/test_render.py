@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.io import Shape, ShapeError
 from fastmesh.render import (
     DEFAULT_CONFIG,
     RenderConfig,
@@ -20,6 +19,7 @@ from fastmesh.render import (
     render_shape,
     to_png,
 )
+from fastmesh.shapes.io import Shape, ShapeError
 
 SIZE = 96
 BG = np.rint(np.asarray(DEFAULT_CONFIG.background) * 255).astype(np.uint8)

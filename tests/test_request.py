@@ -10,10 +10,10 @@ import trimesh
 
 from fastmesh import request as request_module
 from fastmesh.facecount import count_rule
-from fastmesh.io import Shape, sample_surface
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.request import PLANAR_SAMPLES, Frame, Request
+from fastmesh.shapes.io import Shape, sample_surface
 
 
 @pytest.fixture(scope="module")

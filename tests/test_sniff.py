@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.io import ShapeError, load_shape
-from fastmesh.sniff import sniff_format
+from fastmesh.shapes.io import ShapeError, load_shape
+from fastmesh.shapes.sniff import sniff_format
 
 NOTE = b"Shapes for the chair project.\nAsk Ana before changing them.\n"
 

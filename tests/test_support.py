@@ -3,8 +3,8 @@
 import numpy as np
 import trimesh
 
-from fastmesh.io import Shape, input_surface, sample_triangles
 from fastmesh.metrics import edges_from_faces
+from fastmesh.shapes.io import Shape, input_surface, sample_triangles
 from fastmesh.support import SupportCache, drop_unsupported, support_distance, surface_fit
 from fastmesh.triangles import TriangleConfig, mesh_from_adjacency
 

@@ -14,8 +14,8 @@ from scipy.spatial import cKDTree
 from fastmesh import holes
 from fastmesh import surface_triangles as sf
 from fastmesh.cli import main
-from fastmesh.io import Normalization
 from fastmesh.metrics import mesh_topology
+from fastmesh.shapes.io import Normalization
 from fastmesh.support import SupportCache, support_distance, support_limit
 from fastmesh.tokenizer import dequantize, quantize_mesh
 from fastmesh.triangles import TriangleConfig, mesh_from_adjacency

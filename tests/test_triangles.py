@@ -11,8 +11,8 @@ import trimesh
 from testdata import committed_meshes, shared_corpus_sample
 
 from fastmesh import triangles as fm
-from fastmesh.io import Normalization, load_shape
 from fastmesh.metrics import edges_from_faces
+from fastmesh.shapes.io import Normalization, load_shape
 from fastmesh.tokenizer import dequantize, quantize_mesh
 
 

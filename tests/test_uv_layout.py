@@ -16,11 +16,11 @@ from trimesh.visual import TextureVisuals
 from trimesh.visual.material import PBRMaterial
 
 from fastmesh.bake import SurfaceTexture, closest_on_triangles, sample
-from fastmesh.io import Shape, load_shape
 from fastmesh.layout import overlap_share, rasterize, uv_layout
 from fastmesh.output import MeshOut
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
+from fastmesh.shapes.io import Shape, load_shape
 
 # The six sides of the textured box, in the order textured_box_glb makes them: -X, +X, -Y, +Y, -Z, +Z.
 COLOURS = np.array([[230, 20, 20], [20, 230, 20], [20, 20, 230], [230, 230, 20], [20, 230, 230], [230, 20, 230]])

@@ -15,9 +15,9 @@ from stack import flushed_redis
 from test_service_api import sphere_xyz, submit, wait_final
 from test_worker import DB, DOOMED, SLOW, Env, job, wait_running
 
-from fastmesh.io import with_normals
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
+from fastmesh.shapes.io import with_normals
 from service.processes import wait_for
 from service.store import mesh_from_bytes, shape_from_bytes
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import redis
 from rq.timeouts import JobTimeoutException
 
-from fastmesh.io import ShapeError, with_normals
+from fastmesh.shapes.io import ShapeError, with_normals
 from service.processes import wait_for
 from service.settings import Settings
 from service.store import Store, mesh_to_bytes, shape_from_bytes, timeout_error
@@ -231,7 +231,7 @@ class Job:
     params: object  # GenerateParams
     formats: list[str]
     timings: dict[str, float]
-    shape: object = None  # fastmesh.io.Shape
+    shape: object = None  # fastmesh.shapes.io.Shape
     error: Exception | None = None
     device_errors: int = 0  # device errors it met on earlier attempts
 

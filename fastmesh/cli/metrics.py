@@ -16,8 +16,8 @@ def register(sub) -> None:
 
 
 def _run(args) -> int:
-    from fastmesh.io import ShapeError, load_shape
     from fastmesh.metrics import surface_distance
+    from fastmesh.shapes.io import ShapeError, load_shape
 
     if args.samples < 1:
         raise ValueError("--samples must be positive")

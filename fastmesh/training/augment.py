@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..io import sample_triangles
+from ..shapes.io import sample_triangles
 from ..tokenizer import dequantize, quantize_mesh
 from ..tokenizer.grid import LEVELS
 

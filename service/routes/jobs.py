@@ -19,8 +19,8 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import Field, TypeAdapter, ValidationError
 
-from fastmesh.io import EXPORT_FORMATS
 from fastmesh.output import MeshOut
+from fastmesh.shapes.io import EXPORT_FORMATS
 
 from ..children import CappedPool, ChildFailed, ChildShapeError
 from ..deps import JobId, Owner, Parses, ParseSlots, SettingsDep, StoreDep, owned_job

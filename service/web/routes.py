@@ -17,8 +17,8 @@ from fastapi import APIRouter
 from fastapi.responses import FileResponse, JSONResponse, Response
 
 from fastmesh.facecount import TOLERANCE
-from fastmesh.io import EXPORT_FORMATS, SUPPORTED_FORMATS
 from fastmesh.params import BOUNDS
+from fastmesh.shapes.io import EXPORT_FORMATS, SUPPORTED_FORMATS
 
 from ..errors import ApiError
 from ..settings import Settings

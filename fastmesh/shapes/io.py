@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from .bake import SurfaceTexture
+    from ..bake import SurfaceTexture
 
 MESH_FORMATS = ("obj", "glb", "gltf", "ply", "stl", "off")
 POINT_FORMATS = ("xyz", "txt", "npy", "npz")  # plus ply without faces
@@ -125,7 +125,7 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
     ----------
     source : path or bytes
         The file, or its content (then ``filename`` gives the format by extension; without it the content
-        does, where it can: :func:`fastmesh.sniff.sniff_format`).
+        does, where it can: :func:`fastmesh.shapes.sniff.sniff_format`).
     filename : str, optional
         Name used for the format when ``source`` is bytes.
     max_points, max_faces : int
@@ -185,7 +185,7 @@ def too_many(n: int, limit: int, what: str = "points/vertices") -> ShapeError:
 
 
 def _precheck_mesh(data: bytes, ext: str, max_points: int, max_faces: int) -> None:
-    """Refuse what the parser would choke on, before parsing (see :mod:`fastmesh.precheck`)."""
+    """Refuse what the parser would choke on, before parsing (see :mod:`fastmesh.shapes.precheck`)."""
     from .precheck import check_gltf, check_obj, check_off, check_ply, check_stl
 
     if ext == "obj":
@@ -211,7 +211,7 @@ def _load_trimesh(data: bytes, ext: str, texture: bool = False) -> Shape:
     found = None
     texture = texture and ext in ("glb", "gltf")
     if isinstance(loaded, trimesh.Scene):
-        from .bake import drop_unreadable, texture_of
+        from ..bake import drop_unreadable, texture_of
 
         for g in loaded.geometry.values():  # dump() copies visuals: a textured one decodes its images
             if isinstance(g, trimesh.Trimesh) and texture:

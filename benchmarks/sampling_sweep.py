@@ -29,8 +29,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fastmesh.batch import decode  # noqa: E402
-from fastmesh.eval import artist_vertices, pair_inputs  # noqa: E402
-from fastmesh.metrics import vertex_metrics  # noqa: E402
+from fastmesh.evaluation.eval import artist_vertices, pair_inputs  # noqa: E402
+from fastmesh.evaluation.metrics import vertex_metrics  # noqa: E402
 from fastmesh.params import GenerateParams, TunedParams  # noqa: E402
 from fastmesh.pipeline import Pipeline  # noqa: E402
 from fastmesh.request import Request  # noqa: E402

@@ -87,8 +87,8 @@ def _inputs(n: int, seed: int) -> list:
     import trimesh
     from gpu_inputs import varied
 
+    from fastmesh.evaluation.primitives import posed
     from fastmesh.params import GenerateParams
-    from fastmesh.primitives import posed
     from fastmesh.shapes.io import Shape
 
     cylinder = trimesh.creation.cylinder(0.3, 0.8, sections=64)

@@ -22,9 +22,9 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .evaluation.quality import edge_face_counts, weld
 from .holes import WHOLE_LOOP_MAX, _best_triangulation, _close_loop, _simple_loops, _walk_loops
 from .params import CLOSED_CHOICES
-from .quality import edge_face_counts, weld
 from .shapes.io import Normalization, Shape
 from .support import SupportCache, face_samples
 from .triangles import orient_faces
@@ -86,7 +86,7 @@ def decide_closed(shape: Shape, closed: str = "auto") -> tuple[bool, str]:
 
 def mesh_open_share(vertices: np.ndarray, faces: np.ndarray) -> float:
     """The share in [0, 1] of the edges of a mesh ((N, 3) ``vertices``, (F, 3) ``faces``) that have one face,
-    its vertices welded first (:func:`fastmesh.quality.weld`: seams are not openings); 1 without faces."""
+    its vertices welded first (:func:`fastmesh.evaluation.quality.weld`: seams are not openings); 1 without faces."""
     weld_f = weld(vertices, faces)[1]
     if len(weld_f) == 0:
         return 1.0

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .quality import corner_fans, piece_labels
+from .evaluation.quality import corner_fans, piece_labels
 from .shapes.io import Normalization
 from .tokenizer.grid import CELL
 

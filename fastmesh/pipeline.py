@@ -44,6 +44,7 @@ import torch
 
 from .batch import DecodeRequest
 from .closure import decide_closed
+from .evaluation.quality import edge_face_counts, mesh_quality, weld
 from .facecount import TOLERANCE as COUNT_TOLERANCE
 from .facecount import CountRule, count_rule, hold_count
 from .filtering import FilterConfig, Predictor, predict_edges
@@ -58,7 +59,6 @@ from .params import GenerateParams
 from .pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
 from .progress import STAGES
 from .quads import EdgeEvidence
-from .quality import edge_face_counts, mesh_quality, weld
 from .request import PLANAR_SAMPLES, Frame, Request
 from .shapes.canonical import canonical_rotation, frame_normals, turned_degrees
 from .shapes.io import Shape
@@ -182,7 +182,7 @@ class GenerateResult:
     faces : (F, 3) int64
     tokens : int, vertex tokens generated (BOS/EOS included)
     timings : dict, seconds per stage: encode, vertices, enhancer, faces, filtering
-    quality : dict, distance to the input and topology (:func:`fastmesh.quality.mesh_quality`): cd, hd (% of
+    quality : dict, distance to the input and topology (:func:`fastmesh.evaluation.quality.mesh_quality`): cd, hd (% of
         the input's size), boundary_edges, non_manifold_edges, components, watertight; and faces, target_faces,
         target_met (faces within ``facecount.TOLERANCE`` of the target; None without one) and count_step
         (``facecount.hold_count``'s: kept, simplified or split; None without a target); quads and quad_share

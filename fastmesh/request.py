@@ -18,11 +18,11 @@ from functools import cached_property
 
 import numpy as np
 
+from .evaluation.quality import input_pieces
 from .facecount import CountRule, count_rule, input_samples
 from .models.generate import Cancelled
 from .params import GenerateParams
 from .progress import STAGES, Progress
-from .quality import input_pieces
 from .shapes.canonical import rotate_shape
 from .shapes.io import Normalization, Shape, sample_surface
 

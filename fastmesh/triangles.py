@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .metrics import normalize_edges
+from .evaluation.metrics import normalize_edges
 from .simplify import collapse_flat
 from .support import support_distance, supported
 from .tokenizer.grid import CELL
@@ -262,7 +262,7 @@ def drop_coplanar_diagonals(vertices: np.ndarray, faces: np.ndarray, coplanar_to
         Which cliques to resolve: ``"convex"`` quads (drop the longer diagonal) and/or
         ``"inner"`` ones (a point inside the others' triangle: drop that outer triangle).
     """
-    from .metrics import edges_from_faces
+    from .evaluation.metrics import edges_from_faces
 
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     v = np.asarray(vertices, dtype=np.float64)

@@ -10,11 +10,11 @@ import trimesh
 from test_batched_decode import _inputs, _model, _Spy
 
 from fastmesh.batch import Batch
+from fastmesh.evaluation.primitives import point_cloud, primitive
 from fastmesh.models.generate import Cancelled, SamplingConfig, StackedEvidence, generate
 from fastmesh.models.onnx_decode import OrtDecoder
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import STAGES, Pipeline
-from fastmesh.primitives import point_cloud, primitive
 from fastmesh.shapes.io import Shape
 from fastmesh.tokenizer import vertex as vt
 

@@ -7,6 +7,7 @@ import pytest
 import torch
 from test_cells import _cell_grids
 
+from fastmesh.evaluation.primitives import point_cloud, primitive
 from fastmesh.models.cells import flat_index
 from fastmesh.models.encoder import EncoderConfig
 from fastmesh.models.evidence import GAIN
@@ -15,7 +16,6 @@ from fastmesh.models.onnx_decode import NumpyCache, OrtDecoder
 from fastmesh.models.vertex import VertexConfig, VertexDecoder
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.primitives import point_cloud, primitive
 from fastmesh.shapes.io import Normalization, input_surface
 from fastmesh.support import surface_fit
 from fastmesh.tokenizer import vertex as vt

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.primitives import point_cloud
+from fastmesh.evaluation.primitives import point_cloud
 from fastmesh.shapes import canonical
 from fastmesh.shapes.canonical import (
     aligned_share,

@@ -8,8 +8,8 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from fastmesh.closure import _winding, close_loops, decide_closed, mesh_open_share, winding_closed_share
-from fastmesh.primitives import point_cloud
-from fastmesh.quality import topology
+from fastmesh.evaluation.primitives import point_cloud
+from fastmesh.evaluation.quality import topology
 from fastmesh.shapes.io import Shape, sample_surface
 from fastmesh.support import support_limit
 from fastmesh.surface_triangles import _Selection, vertex_frames

@@ -12,11 +12,11 @@ import trimesh
 
 from fastmesh.cli import main
 from fastmesh.cli.generate import faces_text
+from fastmesh.evaluation.primitives import CURVED_KINDS, coarse_copy, curved_input, point_cloud
+from fastmesh.evaluation.quality import mesh_quality, topology
 from fastmesh.facecount import KEEP, TOLERANCE, decimate, hold_count, input_samples, split_longest
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.primitives import CURVED_KINDS, coarse_copy, curved_input, point_cloud
-from fastmesh.quality import mesh_quality, topology
 from fastmesh.shapes.io import Shape
 from fastmesh.triangles import TriangleConfig
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fastmesh.evaluation.metrics import edge_metrics, edges_from_faces
 from fastmesh.filtering import (
     FilterConfig,
     adjacency_bandwidth,
@@ -15,7 +16,6 @@ from fastmesh.filtering import (
     predict_edges,
     rcm_order,
 )
-from fastmesh.metrics import edge_metrics, edges_from_faces
 
 
 def _shuffled_grid(k: int, seed: int):

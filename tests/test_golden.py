@@ -20,9 +20,9 @@ import torch
 import trimesh
 
 from fastmesh.batch import decode
+from fastmesh.evaluation.primitives import box, torus
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.primitives import box, torus
 from fastmesh.shapes.io import Shape, sample_surface
 
 GOLDEN = Path(__file__).parent / "data" / "golden.npz"

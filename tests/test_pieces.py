@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
+from fastmesh.evaluation.quality import topology
 from fastmesh.pieces import drop_strays, split_pinches
-from fastmesh.quality import topology
 
 
 def _boxes(offsets, sizes=None) -> trimesh.Trimesh:

@@ -14,12 +14,12 @@ import pytest
 import torch
 import trimesh
 
+from fastmesh.evaluation.primitives import point_cloud
+from fastmesh.evaluation.quality import mesh_quality
 from fastmesh.filtering import FilterConfig
 from fastmesh.fitting import FitConfig
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weights_dir
-from fastmesh.primitives import point_cloud
-from fastmesh.quality import mesh_quality
 from fastmesh.shapes.io import Shape, load_shape, sample_surface
 from fastmesh.support import surface_fit
 from fastmesh.tokenizer.grid import CELL
@@ -154,7 +154,7 @@ def test_vertices_fitted_onto_one_point_become_one(monkeypatch):
     from scipy.spatial import cKDTree
 
     import fastmesh.pipeline as pipeline_module
-    from fastmesh.primitives import point_cloud, primitive
+    from fastmesh.evaluation.primitives import point_cloud, primitive
 
     seen = []
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import trimesh
 
+from fastmesh.evaluation.primitives import point_cloud, posed, random_shape
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.primitives import point_cloud, posed, random_shape
 from fastmesh.shapes.io import Normalization, Shape
 from fastmesh.shapes.planar import polyhedron
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.primitives import LADDER, N_POINTS, point_cloud, primitive, prism
+from fastmesh.evaluation.primitives import LADDER, N_POINTS, point_cloud, primitive, prism
 
 # name: (vertices, faces, volume)
 EXPECTED = {

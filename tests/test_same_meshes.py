@@ -18,9 +18,9 @@ import pytest
 import trimesh
 from gpu_inputs import varied
 
+from fastmesh.evaluation.primitives import posed
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.primitives import posed
 from fastmesh.shapes.io import Shape
 
 STORED = Path(__file__).parent / "data" / "same_meshes.npz"

@@ -3,7 +3,7 @@
 import numpy as np
 import trimesh
 
-from fastmesh.metrics import edges_from_faces
+from fastmesh.evaluation.metrics import edges_from_faces
 from fastmesh.shapes.io import Shape, input_surface, sample_triangles
 from fastmesh.support import SupportCache, drop_unsupported, support_distance, surface_fit
 from fastmesh.triangles import TriangleConfig, mesh_from_adjacency

@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from fastmesh import holes
 from fastmesh import surface_triangles as sf
 from fastmesh.cli import main
-from fastmesh.metrics import mesh_topology
+from fastmesh.evaluation.metrics import mesh_topology
 from fastmesh.shapes.io import Normalization
 from fastmesh.support import SupportCache, support_distance, support_limit
 from fastmesh.tokenizer import dequantize, quantize_mesh

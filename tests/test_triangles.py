@@ -11,7 +11,7 @@ import trimesh
 from testdata import committed_meshes, shared_corpus_sample
 
 from fastmesh import triangles as fm
-from fastmesh.metrics import edges_from_faces
+from fastmesh.evaluation.metrics import edges_from_faces
 from fastmesh.shapes.io import Normalization, load_shape
 from fastmesh.tokenizer import dequantize, quantize_mesh
 

@@ -105,7 +105,7 @@ def _cells(args) -> int:
 
 def _eval_set(args) -> int:
     from fastmesh.data import load_dataset
-    from fastmesh.eval import export_eval_set
+    from fastmesh.evaluation.eval import export_eval_set
 
     n = export_eval_set(load_dataset(args.file), args.source, args.out, split=args.split, n_points=args.points,
                         max_vertices=args.max_vertices or None, per_package=args.per_package or None,

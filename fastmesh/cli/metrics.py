@@ -16,7 +16,7 @@ def register(sub) -> None:
 
 
 def _run(args) -> int:
-    from fastmesh.metrics import surface_distance
+    from fastmesh.evaluation.metrics import surface_distance
     from fastmesh.shapes.io import ShapeError, load_shape
 
     if args.samples < 1:

@@ -28,8 +28,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ..shapes.io import Normalization, Shape
 from .metrics import N_SAMPLES, SEED, surface_distance
-from .shapes.io import Normalization, Shape
 
 
 def edge_face_counts(faces: np.ndarray) -> np.ndarray:

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .shapes.io import Normalization, sample_triangles
-from .tokenizer.grid import CELL  # one cell of the 7-bit grid, in units of the longest bounding-box side
+from ..shapes.io import Normalization, sample_triangles
+from ..tokenizer.grid import CELL  # one cell of the 7-bit grid, in units of the longest bounding-box side
 
 N_SAMPLES = 5000
 SEED = 0

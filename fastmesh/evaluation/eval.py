@@ -10,7 +10,7 @@ Three systems can be scored on the same inputs in one run:
 ``gt_vertices`` mode scores the face stage alone: the reference's own 7-bit vertices go
 into the face model and the predicted edges are compared with the true ones.
 
-Every system's result is also scored at the vertex stage (:func:`fastmesh.metrics.vertex_metrics`,
+Every system's result is also scored at the vertex stage (:func:`fastmesh.evaluation.metrics.vertex_metrics`,
 under ``vertex_metrics``): its vertices against the artist's, in cells of the 7-bit grid.
 
 A mesh that fails to generate is a failure, counted in ``failure_rate``, never dropped.
@@ -25,9 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .metrics import edge_metrics, edges_from_faces, mesh_topology, surface_distance, vertex_metrics
-from .quality import topology, weld
-from .shapes.io import (
+from ..shapes.io import (
     SUPPORTED_FORMATS,
     Normalization,
     Shape,
@@ -37,9 +35,11 @@ from .shapes.io import (
     sample_surface,
     write_mesh,
 )
-from .surface_triangles import restricted_delaunay_mesh
-from .tokenizer import dequantize, quantize_mesh
-from .triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced
+from ..surface_triangles import restricted_delaunay_mesh
+from ..tokenizer import dequantize, quantize_mesh
+from ..triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced
+from .metrics import edge_metrics, edges_from_faces, mesh_topology, surface_distance, vertex_metrics
+from .quality import topology, weld
 
 MESH_EXTS = ("ply", "obj", "glb", "gltf", "stl", "off")
 
@@ -150,7 +150,7 @@ def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("
 
     With ``save`` every result is written in the input's (= the reference's) frame (see :func:`_save`).
     """
-    from .pipeline import GenerationError
+    from ..pipeline import GenerationError
 
     rows = []
     for i, (inp, ref_path) in enumerate(pairs, 1):
@@ -207,7 +207,7 @@ def _line(out: dict) -> str:
 
 
 def summarise_vertex_metrics(per_mesh: list[dict]) -> dict:
-    """Means of :func:`fastmesh.metrics.vertex_metrics` over meshes, and the median count ratio."""
+    """Means of :func:`fastmesh.evaluation.metrics.vertex_metrics` over meshes, and the median count ratio."""
     keys = ("precision_1", "precision_2", "recall_1", "recall_2", "on_surface", "count_ratio")
     out = {f"mean_{k}": float(np.mean([m[k] for m in per_mesh if k in m] or [np.nan])) for k in keys}
     out["median_count_ratio"] = float(np.median([m["count_ratio"] for m in per_mesh]))

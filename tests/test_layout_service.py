@@ -107,7 +107,7 @@ def test_a_batch_takes_the_same_fields(served):
 
 def test_cli_submit_and_the_python_client(served, tmp_path, capsys):
     from fastmesh.cli import main
-    from fastmesh.client import Client
+    from fastmesh.remote.client import Client
 
     src = tmp_path / "crate.obj"
     src.write_bytes(trimesh.creation.box(extents=(1, 2, 3)).export(file_type="obj").encode())

@@ -1,6 +1,6 @@
 """A small client of the FastMesh HTTP service: submit, wait (with progress), download.
 
-    from fastmesh.client import Client
+    from fastmesh.remote.client import Client
     c = Client("http://127.0.0.1:8000", api_key=None)
     job = c.submit("chair.ply", seed=1, formats="glb,obj")
     job = c.wait(job["id"], progress=lambda j: print(j["progress"]))

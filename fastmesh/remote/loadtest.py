@@ -1,11 +1,11 @@
 """Load-testing a FastMesh service: many clients that upload, poll and download like real users.
 
-    from fastmesh.loadtest import LoadConfig, run
+    from fastmesh.remote.loadtest import LoadConfig, run
     report = run(LoadConfig(url="http://127.0.0.1:8000", inputs=["shapes/"], concurrency=4, jobs=20))
     print(format_report(report))
 
 Each of ``concurrency`` virtual users loops: upload a file (``POST /v1/jobs``), poll
-``GET /v1/jobs/{id}`` with a growing interval (0.25 s x 1.5 up to 2 s, like :mod:`fastmesh.client`),
+``GET /v1/jobs/{id}`` with a growing interval (0.25 s x 1.5 up to 2 s, like :mod:`fastmesh.remote.client`),
 download the result, then take the next file.  A 429 is waited out for its ``Retry-After``; a
 refused connection or a 5xx (an API restarting, Redis away) is retried with back-off, the same
 ``Idempotency-Key`` reused so a retried upload never makes a second job.
@@ -14,7 +14,7 @@ The run is bounded: it stops submitting after ``jobs`` uploads or ``duration`` s
 comes first; 20 jobs when neither is given), then waits at most ``grace`` seconds for the accepted
 jobs.  An accepted job that has not finished by then (or whose id the service forgot) is *lost*.
 
-Like :mod:`fastmesh.client` this module talks HTTP (httpx); nothing else in the library imports it.
+Like :mod:`fastmesh.remote.client` this module talks HTTP (httpx); nothing else in the library imports it.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from .shapes.io import SUPPORTED_FORMATS
+from ..shapes.io import SUPPORTED_FORMATS
 
 FINAL = ("succeeded", "failed", "cancelled")
 PERCENTILES = (50, 95, 99)

@@ -2,7 +2,7 @@
 
 A preview shows the result mesh once the job has succeeded, and the input (point cloud or dense
 mesh) before that, or when the job failed or was cancelled, so a client always has something to
-show.  Rendering is :mod:`fastmesh.render` (numpy z-buffer, CPU only), and ``input.ply`` a sample of the
+show.  Rendering is :mod:`fastmesh.preview.render` (numpy z-buffer, CPU only), and ``input.ply`` a sample of the
 stored input, both in a small pool of memory-capped child processes (:mod:`service.render_pool`), so the API's
 memory does not grow with the inputs; both take one of ``max_concurrent_renders`` slots, and a request
 waiting for one holds no input in memory.  Concurrent requests for the same overlay share one sample.

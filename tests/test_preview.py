@@ -29,7 +29,7 @@ from service.settings import Settings
 from service.store import Store, mesh_to_bytes
 
 DB = int(os.environ.get("FASTMESH_TEST_WEB_REDIS_DB", "9"))
-BACKGROUND = np.round(np.array([0.965, 0.968, 0.975]) * 255)  # fastmesh.render.RenderConfig.background
+BACKGROUND = np.round(np.array([0.965, 0.968, 0.975]) * 255)  # fastmesh.preview.render.RenderConfig.background
 
 
 def sphere_xyz(n: int = 400) -> bytes:

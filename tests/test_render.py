@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.render import (
+from fastmesh.preview.render import (
     DEFAULT_CONFIG,
     RenderConfig,
     fit_camera,

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fastmesh.png import to_png  # re-exported: render + encode in one import
+from fastmesh.preview.png import to_png  # re-exported: render + encode in one import
 from fastmesh.shapes.io import ShapeError
 
 _EMPTY = np.iinfo(np.int64).max  # z-buffer value of a pixel no fragment reached

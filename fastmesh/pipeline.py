@@ -45,6 +45,8 @@ import torch
 from .batch import DecodeRequest
 from .closure import decide_closed
 from .evaluation.quality import edge_face_counts, mesh_quality, weld
+from .export.output import MeshOut, finish
+from .export.quads import EdgeEvidence
 from .facecount import TOLERANCE as COUNT_TOLERANCE
 from .facecount import CountRule, count_rule, hold_count
 from .filtering import FilterConfig, Predictor, predict_edges
@@ -54,11 +56,9 @@ from .models.checkpoint import load_model, save_model
 from .models.encoder import EncoderConfig
 from .models.generate import Cancelled
 from .models.onnx_decode import choose_decoder
-from .output import MeshOut, finish
 from .params import GenerateParams
 from .pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
 from .progress import STAGES
-from .quads import EdgeEvidence
 from .request import PLANAR_SAMPLES, Frame, Request
 from .shapes.canonical import canonical_rotation, frame_normals, turned_degrees
 from .shapes.io import Shape
@@ -187,7 +187,7 @@ class GenerateResult:
         target_met (faces within ``facecount.TOLERANCE`` of the target; None without one) and count_step
         (``facecount.hold_count``'s: kept, simplified or split; None without a target); quads and quad_share
         (of the polygons the OBJ and PLY files hold)
-    mesh : fastmesh.output.MeshOut, the result as written (quads, UV layout, baked texture, placement); the
+    mesh : fastmesh.export.output.MeshOut, the result as written (quads, UV layout, baked texture, placement); the
         vertices above are placed as it says
     """
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from fastmesh.placement import placement
+from fastmesh.export.placement import placement
 from fastmesh.preview.png import to_png
 from fastmesh.preview.render import RenderConfig, render_mesh
 

@@ -42,8 +42,8 @@ import numpy as np
 import redis
 from rq import Queue
 
-from fastmesh.bake import SurfaceTexture
 from fastmesh.shapes.io import EXPORT_FORMATS, Normalization, Shape
+from fastmesh.shapes.texture import SurfaceTexture
 
 from .settings import Settings
 

@@ -14,8 +14,8 @@ from stack import assert_error, make_settings, post, wait_final, wp
 from test_quads import read_obj, read_ply
 from test_uv_layout import COLOURS, glb_json, side_of, textured_box_glb
 
-from fastmesh.bake import sample
-from fastmesh.layout import overlap_share
+from fastmesh.export.bake import sample
+from fastmesh.export.layout import overlap_share
 from service.processes import ServedApp
 
 

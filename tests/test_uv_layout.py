@@ -1,5 +1,5 @@
-"""uv=true and bake=true: xatlas UV layouts (fastmesh.layout) in the GLB (TEXCOORD_0) and OBJ (vt) files, and a
-textured glTF input's base colour baked onto them (fastmesh.bake)."""
+"""uv=true and bake=true: xatlas UV layouts (fastmesh.export.layout) in the GLB (TEXCOORD_0) and OBJ (vt) files, and a
+textured glTF input's base colour baked onto them (fastmesh.export.bake)."""
 
 from __future__ import annotations
 
@@ -15,12 +15,13 @@ from test_quads import read_obj
 from trimesh.visual import TextureVisuals
 from trimesh.visual.material import PBRMaterial
 
-from fastmesh.bake import SurfaceTexture, closest_on_triangles, sample
-from fastmesh.layout import overlap_share, rasterize, uv_layout
-from fastmesh.output import MeshOut
+from fastmesh.export.bake import closest_on_triangles, sample
+from fastmesh.export.layout import overlap_share, rasterize, uv_layout
+from fastmesh.export.output import MeshOut
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.shapes.io import Shape, load_shape
+from fastmesh.shapes.texture import SurfaceTexture
 
 # The six sides of the textured box, in the order textured_box_glb makes them: -X, +X, -Y, +Y, -Z, +Z.
 COLOURS = np.array([[230, 20, 20], [20, 230, 20], [20, 20, 230], [230, 230, 20], [20, 230, 230], [230, 20, 230]])
@@ -189,8 +190,8 @@ def test_closest_point_on_triangles():
 
 def test_two_textures_each_bake_onto_their_own_triangles():
     """A scene of two textured cubes with different images: each triangle takes its own cube's image."""
-    from fastmesh.bake import bake
     from fastmesh.evaluation.quality import weld
+    from fastmesh.export.bake import bake
 
     a = trimesh.load(io.BytesIO(textured_box_glb(center=(-2.0, 0, 0))), file_type="glb", force="mesh")
     b = trimesh.load(io.BytesIO(textured_box_glb(center=(2.0, 0, 0))), file_type="glb", force="mesh")

@@ -46,7 +46,7 @@ def add_sampling_args(p) -> None:
 
 
 def add_output_args(p, defaults: bool = True) -> None:
-    """Flags of the written result (``fastmesh.output``), shared by ``generate`` and ``submit``; without
+    """Flags of the written result (``fastmesh.export.output``), shared by ``generate`` and ``submit``; without
     ``defaults`` an unset flag is None (the server's default)."""
     from fastmesh.params import ORIGIN_CHOICES, TOPOLOGY_CHOICES, UP_CHOICES, GenerateParams
 

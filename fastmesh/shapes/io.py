@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from ..bake import SurfaceTexture
+    from .texture import SurfaceTexture
 
 MESH_FORMATS = ("obj", "glb", "gltf", "ply", "stl", "off")
 POINT_FORMATS = ("xyz", "txt", "npy", "npz")  # plus ply without faces
@@ -53,7 +53,7 @@ class Shape:
         Triangles for a mesh, None for a point cloud.
     normals : (N, 3) float64 or None
         Unit normals of a point cloud (given or estimated); None for a mesh.
-    texture : fastmesh.bake.SurfaceTexture or None
+    texture : fastmesh.shapes.texture.SurfaceTexture or None
         The base-colour texture of a textured glTF mesh, when loaded with ``texture=True``.
     """
 
@@ -201,7 +201,7 @@ def _precheck_mesh(data: bytes, ext: str, max_points: int, max_faces: int) -> No
 
 
 def _load_trimesh(data: bytes, ext: str, texture: bool = False) -> Shape:
-    """The geometry of a mesh file; with ``texture``, a glTF's base-colour texture too (``bake.texture_of``)."""
+    """The geometry of a mesh file; with ``texture``, a glTF's base-colour texture too (``texture.texture_of``)."""
     import trimesh
 
     # Geometry only: an OBJ's materials would make trimesh import an image library for textures that
@@ -211,7 +211,7 @@ def _load_trimesh(data: bytes, ext: str, texture: bool = False) -> Shape:
     found = None
     texture = texture and ext in ("glb", "gltf")
     if isinstance(loaded, trimesh.Scene):
-        from ..bake import drop_unreadable, texture_of
+        from .texture import drop_unreadable, texture_of
 
         for g in loaded.geometry.values():  # dump() copies visuals: a textured one decodes its images
             if isinstance(g, trimesh.Trimesh) and texture:

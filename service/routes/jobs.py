@@ -19,7 +19,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import Field, TypeAdapter, ValidationError
 
-from fastmesh.output import MeshOut
+from fastmesh.export.output import MeshOut
 from fastmesh.shapes.io import EXPORT_FORMATS
 
 from ..children import CappedPool, ChildFailed, ChildShapeError

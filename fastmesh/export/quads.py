@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .surface_triangles import edge_log_prob
+from ..surface_triangles import edge_log_prob
 
 # A result vertex is the face stage's vertex at the same position to this share of the vertices' extent: the
 # steps between them copy positions (or move a vertex away, which then has no evidence).

@@ -62,7 +62,7 @@ class MeshOut:
 
     def export(self, fmt: str) -> bytes:
         """The result as ``glb``, ``obj`` or ``ply`` bytes."""
-        from .shapes.io import ShapeError, export_mesh
+        from ..shapes.io import ShapeError, export_mesh
 
         fmt = fmt.lower()
         if fmt not in FORMATS:
@@ -117,7 +117,7 @@ def finish(vertices: np.ndarray, faces: np.ndarray, params, source=None, evidenc
     (:class:`fastmesh.params.GenerateParams`) ask.
 
     ``source`` is the input :class:`fastmesh.shapes.io.Shape`, whose texture ``bake`` reads; ``evidence`` the face
-    model's edges, whose flat 4-cliques become quads first (:func:`fastmesh.quads.pair_triangles`).  Returns the
+    model's edges, whose flat 4-cliques become quads first (:func:`fastmesh.export.quads.pair_triangles`).  Returns the
     :class:`MeshOut`, its placement and notes for people on what a format leaves out.
 
     Raises

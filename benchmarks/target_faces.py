@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fastmesh.evaluation.primitives import CURVED_KINDS, coarse_copy, curved_input  # noqa: E402
 from fastmesh.evaluation.quality import topology  # noqa: E402
-from fastmesh.facecount import TOLERANCE, hold_count, input_samples  # noqa: E402
+from fastmesh.faces.facecount import TOLERANCE, hold_count, input_samples  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
 from fastmesh.shapes.io import SUPPORTED_FORMATS, load_shape  # noqa: E402

@@ -108,7 +108,7 @@ class GenerateParams:
     filtering: bool = False
     candidates: int = 2  # meshes made (seeds seed, seed+1, ...); the one nearest the input is returned
     target_faces: int | None = None
-    # Whether the result is closed: "auto" closes it when the input is (``fastmesh.closure.decide_closed``).
+    # Whether the result is closed: "auto" closes it when the input is (``fastmesh.faces.closure.decide_closed``).
     closed: str = "auto"
     # The written result (fastmesh.export.output): quads, a UV layout, the input's texture baked onto it, placement.
     topology: str = "triangle"

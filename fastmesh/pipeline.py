@@ -43,13 +43,16 @@ import numpy as np
 import torch
 
 from .batch import DecodeRequest
-from .closure import decide_closed
 from .evaluation.quality import edge_face_counts, mesh_quality, weld
 from .export.output import MeshOut, finish
 from .export.quads import EdgeEvidence
-from .facecount import TOLERANCE as COUNT_TOLERANCE
-from .facecount import CountRule, count_rule, hold_count
-from .filtering import FilterConfig, Predictor, predict_edges
+from .faces.closure import decide_closed
+from .faces.facecount import TOLERANCE as COUNT_TOLERANCE
+from .faces.facecount import CountRule, count_rule, hold_count
+from .faces.filtering import FilterConfig, Predictor, predict_edges
+from .faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
+from .faces.support import surface_fit
+from .faces.triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced, triangle_areas
 from .fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
 from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model
@@ -57,17 +60,14 @@ from .models.encoder import EncoderConfig
 from .models.generate import Cancelled
 from .models.onnx_decode import choose_decoder
 from .params import GenerateParams
-from .pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
 from .progress import STAGES
 from .request import PLANAR_SAMPLES, Frame, Request
 from .shapes.canonical import canonical_rotation, frame_normals, turned_degrees
 from .shapes.io import Shape
 from .shapes.planar import polyhedron
-from .support import surface_fit
 from .tokenizer import dequantize
 from .tokenizer import vertex as vt
 from .tokenizer.grid import CELL
-from .triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced, triangle_areas
 
 __all__ = ["STAGES", "Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "Pipeline",
            "default_weights_dir"]
@@ -359,7 +359,7 @@ class Pipeline:
         With ``params.candidates`` = K > 1 (and a temperature above 0) the meshes of seeds ``seed``
         ... ``seed + K - 1`` are made (their vertex tokens decoded together, as one batch) and the
         one closest to the input surface is returned
-        (:func:`fastmesh.support.surface_fit`): a sampled mesh sometimes leaves out a part or fills
+        (:func:`fastmesh.faces.support.surface_fit`): a sampled mesh sometimes leaves out a part or fills
         a flat region with vertices, and the input tells which.
 
         Parameters

@@ -19,7 +19,7 @@ from functools import cached_property
 import numpy as np
 
 from .evaluation.quality import input_pieces
-from .facecount import CountRule, count_rule, input_samples
+from .faces.facecount import CountRule, count_rule, input_samples
 from .models.generate import Cancelled
 from .params import GenerateParams
 from .progress import STAGES, Progress

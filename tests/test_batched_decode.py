@@ -8,6 +8,7 @@ import torch
 from test_cells import _cell_grids
 
 from fastmesh.evaluation.primitives import point_cloud, primitive
+from fastmesh.faces.support import surface_fit
 from fastmesh.models.cells import flat_index
 from fastmesh.models.encoder import EncoderConfig
 from fastmesh.models.evidence import GAIN
@@ -17,7 +18,6 @@ from fastmesh.models.vertex import VertexConfig, VertexDecoder
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.shapes.io import Normalization, input_surface
-from fastmesh.support import surface_fit
 from fastmesh.tokenizer import vertex as vt
 
 torch.set_num_threads(1)

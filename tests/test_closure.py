@@ -1,4 +1,4 @@
-"""Closure (fastmesh.closure): deciding from the input whether to close, and closing what step 6 left open."""
+"""Closure (fastmesh.faces.closure): deciding from the input whether to close, and closing what step 6 left open."""
 
 from __future__ import annotations
 
@@ -7,13 +7,13 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from fastmesh.closure import _winding, close_loops, decide_closed, mesh_open_share, winding_closed_share
 from fastmesh.evaluation.primitives import point_cloud
 from fastmesh.evaluation.quality import topology
+from fastmesh.faces.closure import _winding, close_loops, decide_closed, mesh_open_share, winding_closed_share
+from fastmesh.faces.support import support_limit
+from fastmesh.faces.surface_triangles import _Selection, vertex_frames
+from fastmesh.faces.triangles import orient_faces
 from fastmesh.shapes.io import Shape, sample_surface
-from fastmesh.support import support_limit
-from fastmesh.surface_triangles import _Selection, vertex_frames
-from fastmesh.triangles import orient_faces
 
 
 def _closed_shapes(rng: np.random.Generator) -> list[trimesh.Trimesh]:
@@ -169,7 +169,7 @@ def test_an_opening_of_the_input_stays_open():
 def test_a_loop_no_triangulation_closes_gets_a_fan_about_an_input_point(monkeypatch):
     """Where no triangulation of a loop's own vertices fits, the loop is joined to a new vertex: the input
     point nearest its middle.  (The triangulations are refused here to reach that step.)"""
-    import fastmesh.closure as closure
+    import fastmesh.faces.closure as closure
 
     monkeypatch.setattr(closure, "_close_loop", lambda *a, **k: None)
     monkeypatch.setattr(closure, "_best_triangulation", lambda *a, **k: None)

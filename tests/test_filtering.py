@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fastmesh.evaluation.metrics import edge_metrics, edges_from_faces
-from fastmesh.filtering import (
+from fastmesh.faces.filtering import (
     FilterConfig,
     adjacency_bandwidth,
     band_mask,

@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from fastmesh.evaluation.metrics import edges_from_faces
-from fastmesh.filtering import FilterConfig, band_mask
+from fastmesh.faces.filtering import FilterConfig, band_mask
 from fastmesh.models.encoder import EncoderConfig
 from fastmesh.models.face import OUTSIDE, FaceModel, FaceModelConfig, asymmetric_loss, mask_spans
 from fastmesh.tokenizer import quantize_mesh

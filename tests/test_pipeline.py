@@ -16,14 +16,14 @@ import trimesh
 
 from fastmesh.evaluation.primitives import point_cloud
 from fastmesh.evaluation.quality import mesh_quality
-from fastmesh.filtering import FilterConfig
+from fastmesh.faces.filtering import FilterConfig
+from fastmesh.faces.support import surface_fit
+from fastmesh.faces.triangles import TriangleConfig, mesh_from_adjacency
 from fastmesh.fitting import FitConfig
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weights_dir
 from fastmesh.shapes.io import Shape, load_shape, sample_surface
-from fastmesh.support import surface_fit
 from fastmesh.tokenizer.grid import CELL
-from fastmesh.triangles import TriangleConfig, mesh_from_adjacency
 
 torch.set_num_threads(1)
 

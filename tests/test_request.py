@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from fastmesh import request as request_module
-from fastmesh.facecount import count_rule
+from fastmesh.faces.facecount import count_rule
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.request import PLANAR_SAMPLES, Frame, Request

@@ -11,14 +11,14 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from fastmesh import holes
-from fastmesh import surface_triangles as sf
 from fastmesh.cli import main
 from fastmesh.evaluation.metrics import mesh_topology
+from fastmesh.faces import holes
+from fastmesh.faces import surface_triangles as sf
+from fastmesh.faces.support import SupportCache, support_distance, support_limit
+from fastmesh.faces.triangles import TriangleConfig, mesh_from_adjacency
 from fastmesh.shapes.io import Normalization
-from fastmesh.support import SupportCache, support_distance, support_limit
 from fastmesh.tokenizer import dequantize, quantize_mesh
-from fastmesh.triangles import TriangleConfig, mesh_from_adjacency
 
 PRIMITIVES = {
     "box": lambda: trimesh.creation.box(),

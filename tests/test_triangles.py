@@ -10,8 +10,8 @@ import scipy.sparse as sp
 import trimesh
 from testdata import committed_meshes, shared_corpus_sample
 
-from fastmesh import triangles as fm
 from fastmesh.evaluation.metrics import edges_from_faces
+from fastmesh.faces import triangles as fm
 from fastmesh.shapes.io import Normalization, load_shape
 from fastmesh.tokenizer import dequantize, quantize_mesh
 

@@ -88,7 +88,7 @@ def params_from_args(args):
 def faces_text(faces: int, quality: dict) -> str:
     """The faces of a result as the summaries print them: ``"812 faces"``, or with a face count asked for
     ``"812 / 1000 faces (within ±20 %)"`` (``quality``'s ``target_faces`` and ``target_met``)."""
-    from fastmesh.facecount import TOLERANCE
+    from fastmesh.faces.facecount import TOLERANCE
 
     target = quality.get("target_faces")
     if target is None:

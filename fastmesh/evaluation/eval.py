@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..faces.surface_triangles import restricted_delaunay_mesh
+from ..faces.triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced
 from ..shapes.io import (
     SUPPORTED_FORMATS,
     Normalization,
@@ -35,9 +37,7 @@ from ..shapes.io import (
     sample_surface,
     write_mesh,
 )
-from ..surface_triangles import restricted_delaunay_mesh
 from ..tokenizer import dequantize, quantize_mesh
-from ..triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced
 from .metrics import edge_metrics, edges_from_faces, mesh_topology, surface_distance, vertex_metrics
 from .quality import topology, weld
 

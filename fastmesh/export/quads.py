@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..surface_triangles import edge_log_prob
+from ..faces.surface_triangles import edge_log_prob
 
 # A result vertex is the face stage's vertex at the same position to this share of the vertices' extent: the
 # steps between them copy positions (or move a vertex away, which then has no evidence).
@@ -83,7 +83,7 @@ class EdgeEvidence:
     def of_mesh(cls, vertices: np.ndarray, faces: np.ndarray, positions: np.ndarray, logits: np.ndarray,
                 predicted: np.ndarray) -> EdgeEvidence:
         """The evidence about the edges of the face stage's mesh, as
-        :func:`fastmesh.surface_triangles.edge_log_prob` weighs it (a predicted edge at least 0.5).
+        :func:`fastmesh.faces.surface_triangles.edge_log_prob` weighs it (a predicted edge at least 0.5).
 
         Parameters
         ----------

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from ..evaluation.metrics import edge_metrics, edges_from_faces
-from ..filtering import adjacency_bandwidth, band_mask, edges_from_logits, neighbour_radius, rcm_order
+from ..faces.filtering import adjacency_bandwidth, band_mask, edges_from_logits, neighbour_radius, rcm_order
 from ..models.checkpoint import config_from_dict, registry
 from ..tokenizer import dequantize
 from ..tokenizer import vertex as vt

@@ -16,7 +16,7 @@ from pathlib import Path
 from fastapi import APIRouter
 from fastapi.responses import FileResponse, JSONResponse, Response
 
-from fastmesh.facecount import TOLERANCE
+from fastmesh.faces.facecount import TOLERANCE
 from fastmesh.params import BOUNDS
 from fastmesh.shapes.io import EXPORT_FORMATS, SUPPORTED_FORMATS
 

@@ -2,7 +2,7 @@
 and the repair that takes out the faces blocking a hole.
 
 Every face added here lies on the input surface (support distance at most the limit) and fits the
-selection's bookkeeping (:class:`fastmesh.surface_triangles._Selection`): a closed input gives a
+selection's bookkeeping (:class:`fastmesh.faces.surface_triangles._Selection`): a closed input gives a
 closed result where its holes allow, an open input stays open.
 """
 

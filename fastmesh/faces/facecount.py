@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .shapes.io import Normalization, Shape, sample_surface, with_normals
+from ..shapes.io import Normalization, Shape, sample_surface, with_normals
 from .simplify import _dot, _Mesh, _sub
 from .triangles import remove_unreferenced
 

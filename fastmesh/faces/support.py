@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .shapes.io import sample_triangles
+from ..shapes.io import sample_triangles
 
 SPACING_FACTOR = 3.0  # the limit is never below this many median point spacings
 GRID = 6  # face samples per edge of the barycentric grid: 21 points inside each triangle

@@ -18,10 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .evaluation.metrics import normalize_edges
+from ..evaluation.metrics import normalize_edges
+from ..tokenizer.grid import CELL
 from .simplify import collapse_flat
 from .support import support_distance, supported
-from .tokenizer.grid import CELL
 
 # Wedges expanded per vectorised chunk: bounds memory at ~100 MB for any adjacency.
 _CHUNK = 2_000_000
@@ -50,7 +50,7 @@ class TriangleConfig:
         Drop vertices no face uses (returned vertices are then a subset).
     support_tol : float or None
         With the input's surface samples given: drop faces that stray farther than this from
-        them (:func:`fastmesh.support.supported`; relative to their longest side).
+        them (:func:`fastmesh.faces.support.supported`; relative to their longest side).
     support_points : int
         How many samples of the input surface to check against (a point cloud with fewer points
         gives all of them).
@@ -61,7 +61,7 @@ class TriangleConfig:
         ``"cliques"``: the 3-cycles of the predicted edges with the clean-up above.  ``"surface"``
         (needs the input's samples): restricted Delaunay triangles plus the 3-cycles that lie on
         the input surface, scored by the model, selected to stay a surface and holes filled
-        (:func:`fastmesh.surface_triangles.surface_mesh`; of the options above it uses
+        (:func:`fastmesh.faces.surface_triangles.surface_mesh`; of the options above it uses
         ``support_points`` and ``remove_unreferenced``, and always orients).
     surface_tol : float or None
         ``"surface"``: the support limit relative to the points' longest side (None: only the
@@ -69,7 +69,7 @@ class TriangleConfig:
     fold_angle : float
         ``"surface"``: degrees; two faces on an edge closer than this around it overlap.
     fill_max_loop : int
-        ``"surface"``: longest boundary loop closed (``fastmesh.holes.fill_holes``; 0 = no filling).
+        ``"surface"``: longest boundary loop closed (``fastmesh.faces.holes.fill_holes``; 0 = no filling).
     support_weight : float
         ``"surface"``: a triangle's score loses this much per support limit it strays.
     model_weight : float
@@ -79,11 +79,11 @@ class TriangleConfig:
         candidates too (else only the restricted Delaunay triangles, scored by the model; on the
         out-of-package validation meshes the extra triangles raise CD and HD).
     close : bool
-        ``"surface"``: close the loops hole filling left open (:func:`fastmesh.closure.close_loops`): the
+        ``"surface"``: close the loops hole filling left open (:func:`fastmesh.faces.closure.close_loops`): the
         pipeline sets it per request, for an input that is closed (``closure.decide_closed``).
     flat_tol : float or None
         Last, remove the vertices of flat regions, straight creases and straight open borders
-        (:func:`fastmesh.simplify.collapse_flat`): a kept vertex stays within ``flat_tol * L``
+        (:func:`fastmesh.faces.simplify.collapse_flat`): a kept vertex stays within ``flat_tol * L``
         of the faces it replaces (None: keep every vertex).  Default: half a 7-bit cell.  The pipeline
         turns it off for a face-count target (the count asked for).
     """
@@ -262,7 +262,7 @@ def drop_coplanar_diagonals(vertices: np.ndarray, faces: np.ndarray, coplanar_to
         Which cliques to resolve: ``"convex"`` quads (drop the longer diagonal) and/or
         ``"inner"`` ones (a point inside the others' triangle: drop that outer triangle).
     """
-    from .evaluation.metrics import edges_from_faces
+    from ..evaluation.metrics import edges_from_faces
 
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     v = np.asarray(vertices, dtype=np.float64)
@@ -318,7 +318,7 @@ def limit_faces_per_edge(faces: np.ndarray, score: np.ndarray, max_per_edge: int
     Parameters
     ----------
     faces : (F, 3) int
-    score : (F,) float, lower is better (e.g. :func:`fastmesh.support.support_distance`)
+    score : (F,) float, lower is better (e.g. :func:`fastmesh.faces.support.support_distance`)
     max_per_edge : int
         2 makes every edge manifold: a triangle soup from dense cliques has interior and
         overlapping faces sharing edges, an artist mesh has at most two faces per edge.
@@ -480,7 +480,7 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: TriangleConfig | None
 
 
 def _flat_removed(v: np.ndarray, f: np.ndarray, cfg: TriangleConfig) -> np.ndarray:
-    """``f`` without the vertices :func:`fastmesh.simplify.collapse_flat` finds flat at ``cfg.flat_tol``."""
+    """``f`` without the vertices :func:`fastmesh.faces.simplify.collapse_flat` finds flat at ``cfg.flat_tol``."""
     if cfg.flat_tol is None or len(f) == 0:
         return f
     return collapse_flat(v, f, cfg.flat_tol * float(np.ptp(v, axis=0).max()), cfg.area_tol)

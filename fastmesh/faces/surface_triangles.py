@@ -3,9 +3,9 @@
 Candidates are the triangles of the vertices' 3D Delaunay tetrahedralisation that lie on the
 input surface (a surface-restricted Delaunay triangulation: Delaunay triangles never cross each
 other) plus the triangles of the face model's predicted edges that pass the same support test
-(:func:`fastmesh.support.support_distance`).  :func:`select_faces` takes them best first while the
+(:func:`fastmesh.faces.support.support_distance`).  :func:`select_faces` takes them best first while the
 result stays a surface: every edge in at most two faces, and no face folded onto a face it
-shares an edge with.  :func:`fastmesh.holes.fill_holes` then closes boundary loops, each face
+shares an edge with.  :func:`fastmesh.faces.holes.fill_holes` then closes boundary loops, each face
 checked against the input surface, so a closed input gives a closed result.
 
 :func:`restricted_delaunay_mesh` is the anchor without learning: restricted Delaunay
@@ -75,7 +75,7 @@ def on_surface(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, tol:
     points : (P, 3) float, samples of the input surface (at least two)
     tol : float
         Relative to the points' longest side; the limit is at least ``SPACING_FACTOR`` point spacings
-        (:func:`fastmesh.support.support_limit`).
+        (:func:`fastmesh.faces.support.support_limit`).
     tree : cKDTree of ``points``, optional
 
     Returns

@@ -22,10 +22,10 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .evaluation.quality import edge_face_counts, weld
+from ..evaluation.quality import edge_face_counts, weld
+from ..params import CLOSED_CHOICES
+from ..shapes.io import Normalization, Shape
 from .holes import WHOLE_LOOP_MAX, _best_triangulation, _close_loop, _simple_loops, _walk_loops
-from .params import CLOSED_CHOICES
-from .shapes.io import Normalization, Shape
 from .support import SupportCache, face_samples
 from .triangles import orient_faces
 
@@ -153,7 +153,7 @@ def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarra
 
     Each loop of at most ``max_loop`` edges is closed, at the first step that closes it, by: ear clipping
     and (up to ``WHOLE_MAX`` edges) whole triangulation under the selection's rules
-    (:func:`fastmesh.holes._close_loop`) with the support limit relaxed by each factor of ``RELAX``; then,
+    (:func:`fastmesh.faces.holes._close_loop`) with the support limit relaxed by each factor of ``RELAX``; then,
     within the last of them, the whole triangulation of least support distance that adds no edge the surface
     already has, folds allowed (it stays edge-manifold); a loop that passes a vertex twice and does not close
     so is closed in its simple parts.

@@ -109,7 +109,8 @@ def main() -> int:
     sys.path[:0] = [args.root, str(Path(args.root) / "tests")]
     import numpy as np
 
-    from fastmesh import pipeline, surface_triangles
+    from fastmesh import pipeline
+    from fastmesh.faces import surface_triangles
     from fastmesh.pipeline import Pipeline
 
     spent: dict[str, float] = defaultdict(float)

@@ -12,7 +12,7 @@ The stages as :meth:`Pipeline.generate` runs them (``STAGES`` names their timing
           ──► prediction filtering: masked re-predictions (optional)          filtering
           ──► triangles on the input surface: candidates that lie on it,      faces
               chosen by the edge logits, kept a surface, holes closed, the
-              vertices of flat regions removed (``triangles.mesh_from_adjacency``,
+              vertices of flat regions removed (``faces.mesh_from_adjacency``,
               ``surface_triangles``, ``simplify``)
           ──► the candidate nearest the input surface (``support.surface_fit``) filtering
           ──► back to the input's frame
@@ -43,16 +43,17 @@ import numpy as np
 import torch
 
 from .batch import DecodeRequest
-from .evaluation.quality import edge_face_counts, mesh_quality, weld
+from .evaluation.quality import mesh_quality
 from .export.output import MeshOut, finish
 from .export.quads import EdgeEvidence
+from .faces import TriangleConfig, mesh_from_adjacency
 from .faces.closure import decide_closed
 from .faces.facecount import TOLERANCE as COUNT_TOLERANCE
 from .faces.facecount import CountRule, count_rule, hold_count
 from .faces.filtering import FilterConfig, Predictor, predict_edges
+from .faces.meshops import edge_face_counts, remove_unreferenced, triangle_areas, weld
 from .faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
 from .faces.support import surface_fit
-from .faces.triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced, triangle_areas
 from .fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
 from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model

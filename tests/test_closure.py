@@ -10,8 +10,9 @@ from scipy.spatial import cKDTree
 from fastmesh.evaluation.primitives import point_cloud
 from fastmesh.evaluation.quality import topology
 from fastmesh.faces.closure import _winding, close_loops, decide_closed, mesh_open_share, winding_closed_share
+from fastmesh.faces.selection import Selection
 from fastmesh.faces.support import support_limit
-from fastmesh.faces.surface_triangles import _Selection, vertex_frames
+from fastmesh.faces.surface_triangles import vertex_frames
 from fastmesh.faces.triangles import orient_faces
 from fastmesh.shapes.io import Shape, sample_surface
 
@@ -106,8 +107,8 @@ def _holed(m: trimesh.Trimesh, rng: np.random.Generator, holes: int) -> np.ndarr
     return f[~gone]
 
 
-def _book(v: np.ndarray, f: np.ndarray, pts: np.ndarray) -> _Selection:
-    book = _Selection(v, vertex_frames(v, pts, cKDTree(pts)), 30.0)
+def _book(v: np.ndarray, f: np.ndarray, pts: np.ndarray) -> Selection:
+    book = Selection(v, vertex_frames(v, pts, cKDTree(pts)), 30.0)
     for t in f.tolist():
         book.add(*t)
     return book

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fastmesh.evaluation.metrics import edge_metrics, edges_from_faces
+from fastmesh.evaluation.metrics import edge_metrics
 from fastmesh.faces.filtering import (
     FilterConfig,
     adjacency_bandwidth,
@@ -16,6 +16,7 @@ from fastmesh.faces.filtering import (
     predict_edges,
     rcm_order,
 )
+from fastmesh.faces.meshops import edges_from_faces
 
 
 def _shuffled_grid(k: int, seed: int):

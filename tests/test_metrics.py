@@ -11,13 +11,13 @@ from fastmesh.evaluation.metrics import (
     chamfer,
     distance_to_triangles,
     edge_metrics,
-    edges_from_faces,
     hausdorff,
     nearest_distances,
     normalized_samples,
     surface_distance,
     vertex_metrics,
 )
+from fastmesh.faces.meshops import edges_from_faces
 from fastmesh.shapes.io import ShapeError, sample_triangles
 
 

@@ -3,9 +3,9 @@
 import numpy as np
 import trimesh
 
-from fastmesh.evaluation.metrics import edges_from_faces
+from fastmesh.faces import TriangleConfig, mesh_from_adjacency
+from fastmesh.faces.meshops import edges_from_faces
 from fastmesh.faces.support import SupportCache, drop_unsupported, support_distance, surface_fit
-from fastmesh.faces.triangles import TriangleConfig, mesh_from_adjacency
 from fastmesh.shapes.io import Shape, input_surface, sample_triangles
 
 

@@ -190,8 +190,8 @@ def test_closest_point_on_triangles():
 
 def test_two_textures_each_bake_onto_their_own_triangles():
     """A scene of two textured cubes with different images: each triangle takes its own cube's image."""
-    from fastmesh.evaluation.quality import weld
     from fastmesh.export.bake import bake
+    from fastmesh.faces.meshops import weld
 
     a = trimesh.load(io.BytesIO(textured_box_glb(center=(-2.0, 0, 0))), file_type="glb", force="mesh")
     b = trimesh.load(io.BytesIO(textured_box_glb(center=(2.0, 0, 0))), file_type="glb", force="mesh")

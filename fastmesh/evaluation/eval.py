@@ -25,8 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..faces import TriangleConfig, mesh_from_adjacency
+from ..faces.meshops import edges_from_faces, remove_unreferenced, weld
 from ..faces.surface_triangles import restricted_delaunay_mesh
-from ..faces.triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced
 from ..shapes.io import (
     SUPPORTED_FORMATS,
     Normalization,
@@ -38,8 +39,8 @@ from ..shapes.io import (
     write_mesh,
 )
 from ..tokenizer import dequantize, quantize_mesh
-from .metrics import edge_metrics, edges_from_faces, mesh_topology, surface_distance, vertex_metrics
-from .quality import topology, weld
+from .metrics import edge_metrics, mesh_topology, surface_distance, vertex_metrics
+from .quality import topology
 
 MESH_EXTS = ("ply", "obj", "glb", "gltf", "stl", "off")
 

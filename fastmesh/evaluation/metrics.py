@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..faces.meshops import face_sides, normalize_edges
 from ..shapes.io import Normalization, sample_triangles
 from ..tokenizer.grid import CELL  # one cell of the 7-bit grid, in units of the longest bounding-box side
 
@@ -233,20 +234,6 @@ def _point_triangle(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- edges
 
 
-def edges_from_faces(faces: np.ndarray) -> np.ndarray:
-    """(F, 3) triangles -> (E, 2) int64 unique undirected edges, each (i, j) with i < j, sorted."""
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    return normalize_edges(e)
-
-
-def normalize_edges(edges: np.ndarray) -> np.ndarray:
-    """(E, 2) int pairs -> unique (i, j) rows with i < j, self-loops dropped, sorted."""
-    e = np.sort(np.asarray(edges, dtype=np.int64).reshape(-1, 2), axis=1)
-    e = e[e[:, 0] != e[:, 1]]
-    return np.unique(e, axis=0) if len(e) else e
-
-
 def edge_metrics(pred_edges: np.ndarray, true_edges: np.ndarray) -> dict:
     """Precision, recall and F1 of predicted vs true undirected edges.
 
@@ -300,7 +287,7 @@ def mesh_topology(vertices: np.ndarray, faces: np.ndarray, merge: bool = True) -
     f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
     if len(f) == 0:
         return {"edge_manifold": True, "watertight": False, "pieces": 0}
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    e = np.sort(face_sides(f), axis=1)
     _, count = np.unique(e, axis=0, return_counts=True)
     used, remap = np.unique(f, return_inverse=True)
     r = remap.reshape(-1, 3)

@@ -28,26 +28,9 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ..faces.meshops import corner_fans, edge_face_counts, piece_labels, weld
 from ..shapes.io import Normalization, Shape
 from .metrics import N_SAMPLES, SEED, surface_distance
-
-
-def edge_face_counts(faces: np.ndarray) -> np.ndarray:
-    """How many faces use each undirected edge.
-
-    Parameters
-    ----------
-    faces : (F, 3) int
-
-    Returns
-    -------
-    (E,) int64 : one count per distinct edge (order unspecified).
-    """
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    if len(e) == 0:
-        return np.zeros(0, dtype=np.int64)
-    return np.unique(e, axis=0, return_counts=True)[1].astype(np.int64)
 
 
 def count_components(faces: np.ndarray) -> int:
@@ -79,26 +62,6 @@ def count_pieces(faces: np.ndarray) -> int:
     return int(labels.max()) + 1 if len(labels) else 0
 
 
-def corner_fans(faces: np.ndarray) -> np.ndarray:
-    """(3F,) the fan of each face corner around its vertex: corners of one vertex share a label exactly when
-    their faces are joined edge to edge around it.  Corner i of face k is entry ``i * F + k``.
-
-    Parameters
-    ----------
-    faces : (F, 3) int
-    """
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    # Each corner (v; x, y) joins the spokes v-x and v-y of v's fan: a vertex with one fan has one
-    # connected set of spokes.
-    corners = np.concatenate([f, f[:, [1, 2, 0]], f[:, [2, 0, 1]]])
-    spokes = np.concatenate([corners[:, [0, 1]], corners[:, [0, 2]]])
-    keys, ids = np.unique(spokes, axis=0, return_inverse=True)
-    ids = ids.reshape(-1)
-    half = len(corners)
-    graph = coo_matrix((np.ones(half, dtype=np.int8), (ids[:half], ids[half:])), shape=(len(keys), len(keys)))
-    return connected_components(graph, directed=False)[1][ids[:half]]
-
-
 def non_manifold_vertices(faces: np.ndarray) -> int:
     """Vertices of (F, 3) ``faces`` whose faces do not form one fan: around a manifold vertex the faces are
     joined edge to edge into a single disc or half-disc."""
@@ -108,20 +71,6 @@ def non_manifold_vertices(faces: np.ndarray) -> int:
     vertex = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
     fans = np.unique(np.c_[vertex, corner_fans(f)], axis=0)[:, 0]
     return int((np.bincount(fans) > 1).sum())
-
-
-def piece_labels(faces: np.ndarray) -> np.ndarray:
-    """(F,) the piece of each face (:func:`count_pieces`), labels 0 .. pieces - 1."""
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if len(f) == 0:
-        return np.zeros(0, dtype=np.int64)
-    e = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1), axis=2).reshape(-1, 2)
-    edge = np.unique(e, axis=0, return_inverse=True)[1].reshape(-1)
-    # Faces and edges as the nodes of one graph, each face joined to its three edges.
-    n = len(f) + int(edge.max()) + 1
-    graph = coo_matrix((np.ones(len(edge), dtype=np.int8), (np.repeat(np.arange(len(f)), 3), len(f) + edge)),
-                       shape=(n, n))
-    return connected_components(graph, directed=False)[1][:len(f)].astype(np.int64)
 
 
 def point_pieces(points: np.ndarray, k: int = 6, reach: float = 2.5, min_share: float = 0.01) -> int:
@@ -156,37 +105,6 @@ def input_pieces(shape: Shape, n: int = 8192, seed: int = SEED) -> int:
             v = v[np.random.default_rng(seed).choice(len(v), size=n, replace=False)]
         return point_pieces(v)
     return count_pieces(weld(v, shape.faces)[1])
-
-
-def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6,
-         among: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """A mesh's vertices within ``tol`` of its longest side of each other made one, and the faces that
-    collapse dropped: files split vertices along UV seams and hard edges, which are not openings.
-
-    Parameters
-    ----------
-    vertices : (N, 3) float
-    faces : (F, 3) int
-    among : (N,) bool, optional: only these vertices are welded (to each other); the others stay apart even where
-        they coincide (the copies ``pieces.split_pinches`` makes of a pinched vertex)
-
-    Returns
-    -------
-    vertices : (M, 3) float64, the first of each welded group
-    faces : (F', 3) int64
-    """
-    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if len(v) == 0:
-        return v, f
-    extent = float(np.ptp(v, axis=0).max()) or 1.0
-    key = np.round((v - v.min(0)) / (extent * tol))
-    if among is not None:  # a vertex outside ``among`` is a group of its own
-        key = np.c_[key, np.where(among, -1, np.arange(len(v)))]
-    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    f = inverse.reshape(-1)[f]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
-    return v[first], f
 
 
 def topology(faces: np.ndarray) -> dict:

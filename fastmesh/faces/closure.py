@@ -22,10 +22,10 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..evaluation.quality import edge_face_counts, weld
 from ..params import CLOSED_CHOICES
 from ..shapes.io import Normalization, Shape
 from .holes import WHOLE_LOOP_MAX, _best_triangulation, _close_loop, _simple_loops, _walk_loops
+from .meshops import edge_face_counts, face_sides, weld
 from .support import SupportCache, face_samples
 from .triangles import orient_faces
 
@@ -86,7 +86,7 @@ def decide_closed(shape: Shape, closed: str = "auto") -> tuple[bool, str]:
 
 def mesh_open_share(vertices: np.ndarray, faces: np.ndarray) -> float:
     """The share in [0, 1] of the edges of a mesh ((N, 3) ``vertices``, (F, 3) ``faces``) that have one face,
-    its vertices welded first (:func:`fastmesh.evaluation.quality.weld`: seams are not openings); 1 without faces."""
+    its vertices welded first (:func:`fastmesh.faces.meshops.weld`: seams are not openings); 1 without faces."""
     weld_f = weld(vertices, faces)[1]
     if len(weld_f) == 0:
         return 1.0
@@ -164,7 +164,7 @@ def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarra
     Parameters
     ----------
     vertices : (N, 3) float
-    faces : (F, 3) int, the selection, its bookkeeping in ``book`` (``surface_triangles._Selection``)
+    faces : (F, 3) int, the selection, its bookkeeping in ``book`` (``selection.Selection``)
     book : the selection's bookkeeping; closing faces are added to it
     points : (P, 3) float, samples of the input surface
     limit : float, the selection's support limit
@@ -256,7 +256,7 @@ def _orientable(vertices: np.ndarray, faces: np.ndarray, book, rounds: int = 8) 
     """
     f = orient_faces(vertices, faces)
     for _ in range(rounds):
-        half = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        half = face_sides(f)
         again = np.ones(len(half), dtype=bool)
         again[np.unique(half, axis=0, return_index=True)[1]] = False  # a half-edge met a second time
         clash = np.unique(np.flatnonzero(again) % len(f))
@@ -293,7 +293,7 @@ def hole_loops(vertices: np.ndarray, faces: np.ndarray) -> list[list[int]]:
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if len(f) == 0:
         return []
-    half = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    half = face_sides(f)
     _, inverse, counts = np.unique(np.sort(half, axis=1), axis=0, return_inverse=True, return_counts=True)
     hole = half[counts[inverse.reshape(-1)] == 1][:, ::-1]  # a hole runs against its faces' winding
     normal = np.zeros_like(v)

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..shapes.io import Normalization, Shape, sample_surface, with_normals
+from .meshops import face_sides, remove_unreferenced
 from .simplify import _dot, _Mesh, _sub
-from .triangles import remove_unreferenced
 
 TOLERANCE = 0.2  # the promise: achieved within +-20 % of target_faces (tests/test_facecount.py holds it)
 KEEP = 0.1  # a result this close to the target is the model's own, untouched; farther, it is brought to it
@@ -232,7 +232,7 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, target: int, area_tol: flo
 def _edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The distinct undirected edges (E, 2) of ``faces`` (F, 3) and (3F,) the edge of each face side, side
     j of face k (from corner j to corner j + 1) at ``j * F + k``."""
-    sides = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    sides = np.sort(face_sides(faces), axis=1)
     n = int(faces.max()) + 1
     keys, which = np.unique(sides[:, 0] * n + sides[:, 1], return_inverse=True)  # one number: 10x np.unique's rows
     return np.c_[keys // n, keys % n], which.reshape(-1)

@@ -2,22 +2,20 @@
 and the repair that takes out the faces blocking a hole.
 
 Every face added here lies on the input surface (support distance at most the limit) and fits the
-selection's bookkeeping (:class:`fastmesh.faces.surface_triangles._Selection`): a closed input gives a
+selection's bookkeeping (:class:`fastmesh.faces.selection.Selection`): a closed input gives a
 closed result where its holes allow, an open input stays open.
 """
 
 from __future__ import annotations
 
 import itertools
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .meshops import face_sides
+from .selection import Selection
 from .support import SupportCache
-
-if TYPE_CHECKING:
-    from .surface_triangles import _Selection
 
 # Rings of faces around a hole that :func:`fill_holes` may take out to close it.
 REPAIR_RINGS = 2
@@ -34,12 +32,12 @@ def boundary_loops(faces: np.ndarray) -> list[list[int]]:
     first free edge.  Open chains (possible only with edges in three faces) are left out.
     """
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    e = np.sort(face_sides(f), axis=1)
     uniq, cnt = np.unique(e, axis=0, return_counts=True)
     return _walk_loops(uniq[cnt == 1].tolist())
 
 
-def _loops_through(book: _Selection, seeds) -> list[list[int]]:
+def _loops_through(book: Selection, seeds) -> list[list[int]]:
     """The loops :func:`boundary_loops` finds in the selected faces (``book``) on the boundary edges
     connected to the edges ``seeds``, in the same order, found from the seeds outward (a repair
     looks at one hole; walking the whole mesh's boundary for each would cost most of the stage).
@@ -106,7 +104,7 @@ def _simple_loops(loop: list[int]) -> list[list[int]]:
     return out
 
 
-def _clip_loop(loop: list[int], book: _Selection, support: SupportCache,
+def _clip_loop(loop: list[int], book: Selection, support: SupportCache,
                limit: float) -> list[tuple[int, int, int]] | None:
     """Ear clipping of one boundary loop, best-supported ear first (see :func:`fill_holes`).
 
@@ -157,7 +155,7 @@ def _cheapest_chains(k: int, cost: dict[tuple[int, int, int], float]) -> dict[tu
     return best
 
 
-def _best_triangulation(loop: list[int], book: _Selection, support: SupportCache,
+def _best_triangulation(loop: list[int], book: Selection, support: SupportCache,
                         limit: float, folds: bool = False) -> list[tuple[int, int, int]] | None:
     """The triangulation of ``loop`` (no inner vertices) with the least total support distance, among
     triangles that lie on the surface, add no edge the selection already has, and fit it.
@@ -229,7 +227,7 @@ def _best_triangulation(loop: list[int], book: _Selection, support: SupportCache
     return added
 
 
-def _edges_free(book: _Selection, face) -> bool:
+def _edges_free(book: Selection, face) -> bool:
     """Whether each edge of ``face`` is in at most one selected face (adding it keeps the surface
     edge-manifold).  A loop that passes a vertex twice can hold one edge twice: as a chord from one visit
     and as a chord or loop edge from the other."""
@@ -237,7 +235,7 @@ def _edges_free(book: _Selection, face) -> bool:
     return all(len(book.third.get((x, y) if x < y else (y, x), ())) < 2 for x, y in ((a, b), (b, c), (a, c)))
 
 
-def _close_loop(loop: list[int], book: _Selection, support: SupportCache,
+def _close_loop(loop: list[int], book: Selection, support: SupportCache,
                 limit: float) -> list[tuple[int, int, int]] | None:
     """Ear clipping, then (loops of 4 to ``WHOLE_LOOP_MAX`` edges) the best whole triangulation; a
     triangle's only triangulation is itself, which ear clipping has tried."""
@@ -251,7 +249,7 @@ def _loop_edges(loop: list[int]) -> set[tuple[int, int]]:
     return {(a, b) if a < b else (b, a) for a, b in zip(loop, loop[1:] + loop[:1], strict=True)}
 
 
-def _bridge(x: int, loops: list[list[int]], book: _Selection, support: SupportCache,
+def _bridge(x: int, loops: list[list[int]], book: Selection, support: SupportCache,
             limit: float) -> tuple[int, int, int] | None:
     """Join vertex ``x`` (in no face) to a hole: the best-supported triangle (a, x, b) over an edge (a, b)
     of one of ``loops`` that lies on the surface and fits is added to ``book``, and x goes between a and
@@ -272,7 +270,7 @@ def _bridge(x: int, loops: list[list[int]], book: _Selection, support: SupportCa
     return None
 
 
-def _reclip(loop: list[int], kept: dict, book: _Selection, support: SupportCache, limit: float,
+def _reclip(loop: list[int], kept: dict, book: Selection, support: SupportCache, limit: float,
             max_loop: int) -> bool:
     """Close a boundary ``loop`` no ear fits by clipping again without the faces along it.
 
@@ -323,13 +321,13 @@ def _reclip(loop: list[int], kept: dict, book: _Selection, support: SupportCache
     return False
 
 
-def fill_holes(vertices: np.ndarray, faces: np.ndarray, book: _Selection, points: np.ndarray, limit: float,
+def fill_holes(vertices: np.ndarray, faces: np.ndarray, book: Selection, points: np.ndarray, limit: float,
                tree: cKDTree | None = None, max_loop: int = 64) -> np.ndarray:
     """Close boundary loops that lie on the input surface by ear clipping (or whole triangulation).
 
     Each loop of at most ``max_loop`` edges is clipped ear by ear, best-supported ear first; an ear is
     allowed when it lies on the surface (support distance at most ``limit``), adds no edge that
-    already exists, and fits the selection (:meth:`_Selection.fits`).  Where the ears lead into a
+    already exists, and fits the selection (:meth:`Selection.fits`).  Where the ears lead into a
     dead end, a loop of up to ``WHOLE_LOOP_MAX`` edges takes its best whole triangulation
     (:func:`_best_triangulation`) under the same rules.  A loop that neither closes is tried again
     without the faces along it (:func:`_reclip`): a wrong face beside a hole is what most often

@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..evaluation.quality import corner_fans, piece_labels
 from ..shapes.io import Normalization
 from ..tokenizer.grid import CELL
+from .meshops import corner_fans, piece_labels
 
 # A piece is a stray when it has at most this many faces or this share of the result's area, and spans at most
 # STRAY_SPAN of the result's bounding-box diagonal: dropping it moves the result at most that far from the

@@ -7,7 +7,7 @@ and a triangle is found once as a wedge ``x -> y -> z`` closed by the edge ``x -
 few even for dense predictions).
 
 Not every 3-cycle is a face (three faces around a valence-3 vertex close a 3-cycle over its
-ring, a flat quad with both diagonals gives four triangles), so :func:`mesh_from_adjacency`
+ring, a flat quad with both diagonals gives four triangles), so :func:`fastmesh.faces.mesh_from_adjacency`
 optionally drops zero-area triangles and one diagonal of coplanar 4-cliques (the variant in
 the authors' release), then orients the faces consistently and outward.
 """
@@ -18,10 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..evaluation.metrics import normalize_edges
 from ..tokenizer.grid import CELL
-from .simplify import collapse_flat
-from .support import support_distance, supported
+from .meshops import normalize_edges, triangle_areas
 
 # Wedges expanded per vectorised chunk: bounds memory at ~100 MB for any adjacency.
 _CHUNK = 2_000_000
@@ -228,12 +226,6 @@ def _scale(vertices: np.ndarray) -> float:
     return float(np.ptp(vertices, axis=0).max()) if len(vertices) else 1.0
 
 
-def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(F,) areas of ``vertices[faces]`` in squared input units."""
-    t = np.asarray(vertices, dtype=np.float64)[faces]
-    return 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
-
-
 def drop_degenerate(vertices: np.ndarray, faces: np.ndarray, area_tol: float = 1e-10) -> np.ndarray:
     """Drop faces with a repeated index or an area at most ``area_tol * L**2``; then duplicates
     (the same vertex set, whatever the winding; the first one is kept)."""
@@ -262,7 +254,7 @@ def drop_coplanar_diagonals(vertices: np.ndarray, faces: np.ndarray, coplanar_to
         Which cliques to resolve: ``"convex"`` quads (drop the longer diagonal) and/or
         ``"inner"`` ones (a point inside the others' triangle: drop that outer triangle).
     """
-    from ..evaluation.metrics import edges_from_faces
+    from .meshops import edges_from_faces
 
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     v = np.asarray(vertices, dtype=np.float64)
@@ -410,77 +402,3 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray, outward: bool = True) 
     return f
 
 
-def remove_unreferenced(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Drop vertices no face uses.
-
-    Returns
-    -------
-    vertices : (M, 3), faces : (F, 3) remapped, kept : (M,) int64 original index of each kept vertex.
-    """
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    used = np.zeros(len(vertices), dtype=bool)
-    used[f.ravel()] = True
-    remap = np.cumsum(used) - 1
-    return np.asarray(vertices)[used], remap[f], np.flatnonzero(used)
-
-
-def mesh_from_adjacency(vertices: np.ndarray, adj, config: TriangleConfig | None = None,
-                        points: np.ndarray | None = None, logits: np.ndarray | None = None
-                        ) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices and a predicted adjacency -> a cleaned, oriented triangle mesh.
-
-    Parameters
-    ----------
-    vertices : (N, 3) float
-        Positions (any frame; tolerances are relative to the bounding box).
-    adj : (N, N) array, sparse matrix or (E, 2) edge list
-    config : TriangleConfig
-    points : (P, 3) float, optional
-        Samples of the input surface in the frame of ``vertices``: with ``config.support_tol``,
-        faces that leave that surface are dropped, and ``config.max_faces_per_edge`` keeps the
-        best-supported faces first.  Needed by ``config.selection == "surface"``.
-    logits : (N, N) float, optional
-        The model's edge logits, to score candidates with ``selection == "surface"``.
-
-    Returns
-    -------
-    vertices : (M, 3) float64 (M = N unless ``remove_unreferenced``, or the closure of ``selection``
-        "surface" added vertices)
-    faces : (F, 3) int64
-    """
-    cfg = config or TriangleConfig()
-    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-    if cfg.selection == "surface":
-        from .surface_triangles import surface_mesh
-
-        if points is None:
-            raise ValueError("selection 'surface' needs samples of the input surface (points)")
-        v, f = surface_mesh(v, as_edges(adj, len(v))[0], points, cfg, logits)
-        f = _flat_removed(v, f, cfg)
-        return remove_unreferenced(v, f)[:2] if cfg.remove_unreferenced else (v, f)
-    f = triangles_from_adjacency(adj, len(v))
-    if cfg.drop_zero_area:
-        f = drop_degenerate(v, f, cfg.area_tol)
-    if cfg.drop_coplanar_diagonals:
-        f = drop_coplanar_diagonals(v, f, cfg.coplanar_tol)
-    score = None  # how far each face strays from the input surface, when the input is given
-    if points is not None and (cfg.support_tol is not None or cfg.max_faces_per_edge is not None):
-        score = support_distance(v, f, points)
-    if cfg.support_tol is not None and score is not None:
-        keep = supported(v, f, points, cfg.support_tol, score)
-        f, score = f[keep], score[keep]
-    if cfg.max_faces_per_edge is not None:
-        f = limit_faces_per_edge(f, score if score is not None else np.zeros(len(f)), cfg.max_faces_per_edge)
-    if cfg.orient:
-        f = orient_faces(v, f)
-    f = _flat_removed(v, f, cfg)
-    if cfg.remove_unreferenced:
-        v, f, _ = remove_unreferenced(v, f)
-    return v, f
-
-
-def _flat_removed(v: np.ndarray, f: np.ndarray, cfg: TriangleConfig) -> np.ndarray:
-    """``f`` without the vertices :func:`fastmesh.faces.simplify.collapse_flat` finds flat at ``cfg.flat_tol``."""
-    if cfg.flat_tol is None or len(f) == 0:
-        return f
-    return collapse_flat(v, f, cfg.flat_tol * float(np.ptp(v, axis=0).max()), cfg.area_tol)

@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .shapes.io import MESH_FORMATS, Normalization, ShapeError, load_shape
-from .tokenizer import dequantize, quantize_mesh, vertex
-from .tokenizer.grid import LEVELS
+from ..shapes.io import MESH_FORMATS, Normalization, ShapeError, load_shape
+from ..tokenizer import dequantize, quantize_mesh, vertex
+from ..tokenizer.grid import LEVELS
 
 CACHE_VERSION = 2
 
@@ -94,7 +94,7 @@ class MeshDataset:
 
     def cell_logits(self, i: int):
         """(128^3,) float32 torch grid of mesh ``i``'s stored cell log-odds."""
-        from .models.cells import dense_grid_flat
+        from ..models.cells import dense_grid_flat
 
         return dense_grid_flat(*self.cells(i))
 
@@ -180,8 +180,8 @@ def one_thread() -> None:
 
 def _score_mesh(i: int) -> tuple[np.ndarray, np.ndarray]:
     """Flat indices (int32) and log-odds (float16) of mesh ``i``'s cells at or above ``CELL_KEEP``."""
-    from .models.cells import flat_index
-    from .shapes.io import sample_triangles
+    from ..models.cells import flat_index
+    from ..shapes.io import sample_triangles
 
     ds, net, seed = _CELL_JOB["ds"], _CELL_JOB["net"], _CELL_JOB["seed"]
     rec = ds[int(i)]

@@ -30,7 +30,8 @@ def main() -> int:
 
     from fastmesh.params import GenerateParams
     from fastmesh.pipeline import Pipeline
-    from fastmesh.shapes.io import SUPPORTED_FORMATS, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import SUPPORTED_FORMATS
 
     files = sorted(f for f in Path(args.inputs).iterdir() if f.suffix.lower().lstrip(".") in SUPPORTED_FORMATS)
     files = files[:: max(1, args.every)]

@@ -28,7 +28,7 @@ from fastmesh.evaluation.metrics import vertex_metrics  # noqa: E402
 from fastmesh.evaluation.primitives import LADDER, point_cloud, primitive  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
-from fastmesh.shapes.io import Normalization  # noqa: E402
+from fastmesh.shapes.shape import Normalization
 
 TARGET_RECALL = 0.9
 TARGET_COUNT = 1.5

@@ -23,7 +23,8 @@ import fastmesh.export.output
 from fastmesh.export import quads
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.shapes.io import Shape, load_shape
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Shape
 
 
 def worst_corner(vertices: np.ndarray, faces: np.ndarray, pairs: np.ndarray) -> float | None:

@@ -27,7 +27,7 @@ from fastmesh.evaluation.metrics import vertex_metrics  # noqa: E402
 from fastmesh.evaluation.primitives import RANDOM_KINDS, point_cloud, posed, random_shape  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
-from fastmesh.shapes.io import Normalization  # noqa: E402
+from fastmesh.shapes.shape import Normalization
 
 
 def run_one(pipe: Pipeline, kind: str, rng: np.random.Generator, given: str, pose: str) -> dict:

@@ -89,7 +89,7 @@ def _inputs(n: int, seed: int) -> list:
 
     from fastmesh.evaluation.primitives import posed
     from fastmesh.params import GenerateParams
-    from fastmesh.shapes.io import Shape
+    from fastmesh.shapes.shape import Shape
 
     cylinder = trimesh.creation.cylinder(0.3, 0.8, sections=64)
     turned = posed(Shape(vertices=np.asarray(cylinder.vertices), faces=np.asarray(cylinder.faces)),

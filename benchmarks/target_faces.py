@@ -33,7 +33,8 @@ from fastmesh.evaluation.quality import topology  # noqa: E402
 from fastmesh.faces.facecount import TOLERANCE, hold_count, input_samples  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
-from fastmesh.shapes.io import SUPPORTED_FORMATS, load_shape  # noqa: E402
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import SUPPORTED_FORMATS
 
 GIVEN = ("mesh", "points")
 TARGETS = (100, 8000)

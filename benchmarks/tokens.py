@@ -33,7 +33,8 @@ sys.path.insert(0, str(ROOT))
 
 from fastmesh.faces import triangles as trimod  # noqa: E402
 from fastmesh.faces.meshops import edges_from_faces  # noqa: E402
-from fastmesh.shapes.io import Normalization, ShapeError, load_shape  # noqa: E402
+from fastmesh.shapes.io import load_shape  # noqa: E402
+from fastmesh.shapes.shape import Normalization, ShapeError  # noqa: E402
 from fastmesh.tokenizer import bpt, dequantize, quantize_mesh, vanilla, vertex  # noqa: E402
 
 KEYS = ("vertices", "faces", "vanilla", "bpt", "bpt_authors", "bpt_undirected", "fastmesh")

@@ -40,7 +40,8 @@ from fastmesh.models.cells import select_cells  # noqa: E402
 from fastmesh.models.checkpoint import load_model  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import CELL_SEED, Pipeline  # noqa: E402
-from fastmesh.shapes.io import Normalization, load_shape, sample_surface  # noqa: E402
+from fastmesh.shapes.io import load_shape, sample_surface
+from fastmesh.shapes.shape import Normalization
 from fastmesh.tokenizer import dequantize  # noqa: E402
 
 KEYS = ("precision_1", "recall_1", "precision_2", "recall_2", "on_surface", "count_ratio")

@@ -64,8 +64,8 @@ from .params import GenerateParams
 from .progress import STAGES
 from .request import PLANAR_SAMPLES, Frame, Request
 from .shapes.canonical import canonical_rotation, frame_normals, turned_degrees
-from .shapes.io import Shape
 from .shapes.planar import polyhedron
+from .shapes.shape import Shape
 from .tokenizer import dequantize
 from .tokenizer import vertex as vt
 from .tokenizer.grid import CELL

@@ -24,7 +24,8 @@ from .models.generate import Cancelled
 from .params import GenerateParams
 from .progress import STAGES, Progress
 from .shapes.canonical import rotate_shape
-from .shapes.io import Normalization, Shape, sample_surface
+from .shapes.io import sample_surface
+from .shapes.shape import Normalization, Shape
 
 PLANAR_SAMPLES = 8192  # surface samples of a mesh input read by ``planar.polyhedron`` and the whole step
 

@@ -28,7 +28,7 @@ CRASH_CODES = ("internal", "worker_lost")
 
 
 def corpus_files(root: Path) -> list[Path]:
-    from fastmesh.shapes.io import SUPPORTED_FORMATS
+    from fastmesh.shapes.shape import SUPPORTED_FORMATS
 
     return sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower().lstrip(".") in SUPPORTED_FORMATS)
 

@@ -94,7 +94,7 @@ def _watch_parent(parent: int) -> None:
 
 def _answer(fn: Callable, payload: bytes | None, args: tuple) -> tuple:
     """``fn``'s result or failure as a picklable message."""
-    from fastmesh.shapes.io import ShapeError
+    from fastmesh.shapes.shape import ShapeError
 
     try:
         return ("ok", fn(payload, *args) if payload is not None else fn(*args))

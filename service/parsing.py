@@ -5,7 +5,8 @@ This module imports no web framework: it is what a child imports.
 
 from __future__ import annotations
 
-from fastmesh.shapes.io import Shape, load_shape
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Shape
 
 
 def input_info(filename: str, shape: Shape) -> dict:

@@ -11,7 +11,7 @@ from typing import Annotated
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from fastmesh.shapes.io import EXPORT_FORMATS
+from fastmesh.shapes.shape import EXPORT_FORMATS
 
 CommaList = Annotated[list[str], NoDecode]
 

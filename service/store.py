@@ -42,7 +42,7 @@ import numpy as np
 import redis
 from rq import Queue
 
-from fastmesh.shapes.io import EXPORT_FORMATS, Normalization, Shape
+from fastmesh.shapes.shape import EXPORT_FORMATS, Normalization, Shape
 from fastmesh.shapes.texture import SurfaceTexture
 
 from .settings import Settings

@@ -15,7 +15,8 @@ import numpy as np
 
 from fastmesh.evaluation.primitives import RANDOM_KINDS, posed, random_shape
 from fastmesh.params import GenerateParams
-from fastmesh.shapes.io import Shape, load_shape
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Shape
 
 SMOOTH = ("ellipsoid", "torus", "wavy", "superellipsoid")
 CORPUS = Path(__file__).parent / "data" / "corpus"

@@ -33,7 +33,7 @@ from schemathesis.specs.openapi.checks import (
 )
 from stack import assert_error, make_settings, post, sphere_points, wait_final, wp, xyz_bytes
 
-from fastmesh.shapes.io import SUPPORTED_FORMATS
+from fastmesh.shapes.shape import SUPPORTED_FORMATS
 from service.processes import ServedApp, wait_for
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -412,7 +412,8 @@ def test_worker_still_serves_after_everything(served):
 
 def test_io_guards_count_before_parsing():
     """The checks added to fastmesh.shapes.io for the bombs above, at the library level."""
-    from fastmesh.shapes.io import ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     # Comment and blank lines do not count as points; one point more than the limit does.
     ok = b"# header\n\n" * 50 + xyz_bytes(sphere_points(100))
@@ -440,7 +441,8 @@ def test_io_guards_count_before_parsing():
 def test_io_textured_obj_and_old_gltf():
     """Found with the assimp corpus: a textured OBJ needed an image library (PIL) only to copy its material;
     glTF 1.0 got a misleading message."""
-    from fastmesh.shapes.io import ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     obj = (b"mtllib missing.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nvt 1 0\nvt 0 1\nusemtl skin\n"
            b"f 1/1 2/2 3/3\nf 1/1 2/2 4/3\no second\nusemtl other\nf 1/1 3/3 4/2\n")
@@ -508,7 +510,8 @@ def test_text_points_end_lines_only_where_the_line_count_does():
     """A 1.2 MB file of carriage-return lines is refused by the count, before any parsing allocates."""
     import tracemalloc
 
-    from fastmesh.shapes.io import ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     tracemalloc.start()
     try:
@@ -529,7 +532,8 @@ def test_text_points_end_lines_only_where_the_line_count_does():
 def test_gltf_instances_are_counted_before_flattening():
     import tracemalloc
 
-    from fastmesh.shapes.io import ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     three = load_shape(instanced_glb(3), "three.glb")
     assert len(three.vertices) == 3 * 642  # what the count below multiplies: one copy per node
@@ -566,7 +570,8 @@ def test_zero_or_nan_normals_are_estimated_not_taken():
 
 
 def test_truncated_binary_ply_says_what_is_missing():
-    from fastmesh.shapes.io import ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     data = trimesh.creation.box().export(file_type="ply")
     # The body is 8 x 12 bytes of vertices and 12 x 13 of triangles: 252 bytes.
@@ -583,7 +588,8 @@ INTERNALS = ("Error", "NoneType", "subscriptable", "unexpected length", "'quad'"
 
 def test_parser_errors_are_worded_for_people():
     """Damaged files of every format: each refusal names the problem, never a parser's internals."""
-    from fastmesh.shapes.io import ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     rng = np.random.default_rng(1)
     messages = {}

@@ -15,7 +15,7 @@ from fastmesh.models.generate import Cancelled, SamplingConfig, StackedEvidence,
 from fastmesh.models.onnx_decode import OrtDecoder
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import STAGES, Pipeline
-from fastmesh.shapes.io import Shape
+from fastmesh.shapes.shape import Shape
 from fastmesh.tokenizer import vertex as vt
 
 torch.set_num_threads(1)

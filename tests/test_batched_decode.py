@@ -17,7 +17,8 @@ from fastmesh.models.onnx_decode import NumpyCache, OrtDecoder
 from fastmesh.models.vertex import VertexConfig, VertexDecoder
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.shapes.io import Normalization, input_surface
+from fastmesh.shapes.io import input_surface
+from fastmesh.shapes.shape import Normalization
 from fastmesh.tokenizer import vertex as vt
 
 torch.set_num_threads(1)

@@ -15,7 +15,7 @@ from fastmesh.shapes.canonical import (
     rotate_shape,
     turned_degrees,
 )
-from fastmesh.shapes.io import Shape
+from fastmesh.shapes.shape import Shape
 
 
 def _random_box(rng: np.random.Generator) -> tuple[trimesh.Trimesh, np.ndarray]:

@@ -14,7 +14,8 @@ from fastmesh.faces.selection import Selection
 from fastmesh.faces.support import support_limit
 from fastmesh.faces.surface_triangles import vertex_frames
 from fastmesh.faces.triangles import orient_faces
-from fastmesh.shapes.io import Shape, sample_surface
+from fastmesh.shapes.io import sample_surface
+from fastmesh.shapes.shape import Shape
 
 
 def _closed_shapes(rng: np.random.Generator) -> list[trimesh.Trimesh]:

@@ -10,7 +10,8 @@ import pytest
 import trimesh
 from testdata import TEST_CORPUS, manifest
 
-from fastmesh.shapes.io import Normalization, load_shape
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Normalization
 from fastmesh.tokenizer import quantize_mesh
 from fastmesh.training.data import build_dataset, dataset_stats, in_validation, load_dataset
 

@@ -18,7 +18,7 @@ from fastmesh.faces.facecount import KEEP, TOLERANCE, decimate, hold_count, inpu
 from fastmesh.faces.triangles import TriangleConfig
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.shapes.io import Shape
+from fastmesh.shapes.shape import Shape
 
 torch.set_num_threads(1)
 

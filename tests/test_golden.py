@@ -23,7 +23,8 @@ from fastmesh.batch import decode
 from fastmesh.evaluation.primitives import box, torus
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.shapes.io import Shape, sample_surface
+from fastmesh.shapes.io import sample_surface
+from fastmesh.shapes.shape import Shape
 
 GOLDEN = Path(__file__).parent / "data" / "golden.npz"
 

@@ -24,7 +24,7 @@ from fastmesh.models.generate import StackedEvidence, generate
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.request import Frame
-from fastmesh.shapes.io import Normalization
+from fastmesh.shapes.shape import Normalization
 
 pytestmark = pytest.mark.gpu
 CUDA = torch.cuda.is_available()

@@ -17,7 +17,7 @@ from fastmesh.export import layout
 from fastmesh.export.placement import placement, turn_up
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.shapes.io import Shape
+from fastmesh.shapes.shape import Shape
 
 CENTER, EXTENTS = np.array([5.0, -2.0, 1.0]), np.array([1.0, 2.0, 3.0])  # the box: x 4.5..5.5, y -3..-1, z -0.5..2.5
 

@@ -18,7 +18,8 @@ from fastmesh.evaluation.metrics import (
     vertex_metrics,
 )
 from fastmesh.faces.meshops import edges_from_faces
-from fastmesh.shapes.io import ShapeError, sample_triangles
+from fastmesh.shapes.io import sample_triangles
+from fastmesh.shapes.shape import ShapeError
 
 
 def _box(extents=(1.0, 1.0, 1.0)):

@@ -106,7 +106,7 @@ def test_making_whole_keeps_a_split_pinch_apart_when_it_welds_pulled_vertices():
     from types import SimpleNamespace
 
     from fastmesh.pipeline import _whole
-    from fastmesh.shapes.io import Normalization, Shape
+    from fastmesh.shapes.shape import Normalization, Shape
 
     rng = np.random.default_rng(0)
     square = np.c_[rng.uniform(-2, 2, (4000, 2)), np.zeros(4000)]

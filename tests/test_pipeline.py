@@ -22,7 +22,8 @@ from fastmesh.faces.support import surface_fit
 from fastmesh.fitting import FitConfig
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weights_dir
-from fastmesh.shapes.io import Shape, load_shape, sample_surface
+from fastmesh.shapes.io import load_shape, sample_surface
+from fastmesh.shapes.shape import Shape
 from fastmesh.tokenizer.grid import CELL
 
 torch.set_num_threads(1)

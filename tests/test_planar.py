@@ -9,8 +9,8 @@ import trimesh
 from fastmesh.evaluation.primitives import point_cloud, posed, random_shape
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.shapes.io import Normalization, Shape
 from fastmesh.shapes.planar import polyhedron
+from fastmesh.shapes.shape import Normalization, Shape
 
 
 def _rebuilt(mesh: Shape, seed: int, noise: float = 0.0):

@@ -68,7 +68,7 @@ def test_shipped_weights_give_the_flat_rungs_back_small_and_closed(name):
 
     from fastmesh.params import GenerateParams
     from fastmesh.pipeline import Pipeline
-    from fastmesh.shapes.io import Normalization
+    from fastmesh.shapes.shape import Normalization
     from fastmesh.tokenizer.grid import CELL
 
     mesh = primitive(name)

@@ -10,7 +10,7 @@ import trimesh
 
 from fastmesh.pipeline import GenerateParams, Pipeline
 from fastmesh.progress import STAGES, Progress
-from fastmesh.shapes.io import Shape
+from fastmesh.shapes.shape import Shape
 
 ORDER = [name for name, _, _ in STAGES]
 

@@ -14,7 +14,7 @@ from fastmesh.export.output import MeshOut
 from fastmesh.export.quads import QuadConfig, interior_pairs, pair_triangles, quad_corners, quad_share
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.shapes.io import Shape
+from fastmesh.shapes.shape import Shape
 
 
 @pytest.fixture(scope="module")

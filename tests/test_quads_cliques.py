@@ -14,7 +14,8 @@ from fastmesh.export.output import finish
 from fastmesh.export.quads import EdgeEvidence, QuadConfig, flat_cliques, pair_triangles, quad_corners
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.shapes.io import Shape, load_shape
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Shape
 
 SURE = 9.0  # a logit the model is sure of: probability 0.9999
 

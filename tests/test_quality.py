@@ -10,7 +10,8 @@ from trimesh.grouping import group_rows
 from fastmesh.evaluation.metrics import surface_distance
 from fastmesh.evaluation.primitives import point_cloud
 from fastmesh.evaluation.quality import input_pieces, mesh_quality, topology
-from fastmesh.shapes.io import Shape, sample_surface
+from fastmesh.shapes.io import sample_surface
+from fastmesh.shapes.shape import Shape
 
 KEYS = {"cd", "hd", "boundary_edges", "non_manifold_edges", "non_manifold_vertices", "components", "pieces",
         "watertight", "input_pieces"}

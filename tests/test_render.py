@@ -19,7 +19,7 @@ from fastmesh.preview.render import (
     render_shape,
     to_png,
 )
-from fastmesh.shapes.io import Shape, ShapeError
+from fastmesh.shapes.shape import Shape, ShapeError
 
 SIZE = 96
 BG = np.rint(np.asarray(DEFAULT_CONFIG.background) * 255).astype(np.uint8)

@@ -26,7 +26,8 @@ from stack import assert_error, make_settings, sphere_points, xyz_bytes
 
 import fastmesh.shapes.io
 import fastmesh.shapes.precheck
-from fastmesh.shapes.io import ShapeError, load_shape
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import ShapeError
 from service.children import CappedPool, ChildFailed
 from service.processes import ServedApp, wait_for
 

@@ -6,7 +6,8 @@ import trimesh
 from fastmesh.faces import TriangleConfig, mesh_from_adjacency
 from fastmesh.faces.meshops import edges_from_faces
 from fastmesh.faces.support import SupportCache, drop_unsupported, support_distance, surface_fit
-from fastmesh.shapes.io import Shape, input_surface, sample_triangles
+from fastmesh.shapes.io import input_surface, sample_triangles
+from fastmesh.shapes.shape import Shape
 
 
 def _grid(n: int, x0: float, x1: float) -> np.ndarray:

@@ -17,7 +17,7 @@ from fastmesh.faces import TriangleConfig, holes, mesh_from_adjacency
 from fastmesh.faces import surface_triangles as sf
 from fastmesh.faces.selection import Selection
 from fastmesh.faces.support import SupportCache, support_distance, support_limit
-from fastmesh.shapes.io import Normalization
+from fastmesh.shapes.shape import Normalization
 from fastmesh.tokenizer import dequantize, quantize_mesh
 
 PRIMITIVES = {

@@ -13,7 +13,8 @@ from testdata import committed_meshes, shared_corpus_sample
 from fastmesh.faces import mesh_from_adjacency
 from fastmesh.faces import triangles as fm
 from fastmesh.faces.meshops import edges_from_faces, remove_unreferenced, triangle_areas
-from fastmesh.shapes.io import Normalization, load_shape
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Normalization
 from fastmesh.tokenizer import dequantize, quantize_mesh
 
 

@@ -20,7 +20,8 @@ from fastmesh.export.layout import overlap_share, rasterize, uv_layout
 from fastmesh.export.output import MeshOut
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.shapes.io import Shape, load_shape
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Shape
 from fastmesh.shapes.texture import SurfaceTexture
 
 # The six sides of the textured box, in the order textured_box_glb makes them: -X, +X, -Y, +Y, -Z, +Z.

@@ -21,7 +21,8 @@ from dataclasses import dataclass
 import redis
 from rq.timeouts import JobTimeoutException
 
-from fastmesh.shapes.io import ShapeError, with_normals
+from fastmesh.shapes.io import with_normals
+from fastmesh.shapes.shape import ShapeError
 from service.processes import wait_for
 from service.settings import Settings
 from service.store import Store, mesh_to_bytes, shape_from_bytes, timeout_error

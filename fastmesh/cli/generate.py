@@ -12,7 +12,7 @@ import json
 import sys
 import time
 
-from fastmesh.shapes.io import EXPORT_FORMATS
+from fastmesh.shapes.shape import EXPORT_FORMATS
 
 TIMING_KEYS = ("load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total")
 
@@ -119,7 +119,8 @@ def register(sub) -> None:
 
 
 def _run(args) -> int:
-    from fastmesh.shapes.io import ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     from .inputs import generate_jobs
 

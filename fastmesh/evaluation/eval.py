@@ -28,16 +28,8 @@ import numpy as np
 from ..faces import TriangleConfig, mesh_from_adjacency
 from ..faces.meshops import edges_from_faces, remove_unreferenced, weld
 from ..faces.surface_triangles import restricted_delaunay_mesh
-from ..shapes.io import (
-    SUPPORTED_FORMATS,
-    Normalization,
-    Shape,
-    ShapeError,
-    input_surface,
-    load_shape,
-    sample_surface,
-    write_mesh,
-)
+from ..shapes.io import input_surface, load_shape, sample_surface, write_mesh
+from ..shapes.shape import SUPPORTED_FORMATS, Normalization, Shape, ShapeError
 from ..tokenizer import dequantize, quantize_mesh
 from .metrics import edge_metrics, mesh_topology, surface_distance, vertex_metrics
 from .quality import topology

@@ -21,7 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..faces.meshops import face_sides, normalize_edges
-from ..shapes.io import Normalization, sample_triangles
+from ..shapes.io import sample_triangles
+from ..shapes.shape import Normalization
 from ..tokenizer.grid import CELL  # one cell of the 7-bit grid, in units of the longest bounding-box side
 
 N_SAMPLES = 5000

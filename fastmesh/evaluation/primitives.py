@@ -15,7 +15,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..shapes.io import Shape, sample_surface
+from ..shapes.io import sample_surface
+from ..shapes.shape import Shape
 
 SIDES = 16  # sections of the cylinder and the cone
 N_POINTS = 8192  # points sampled on a primitive for the ladder's input

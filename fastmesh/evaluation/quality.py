@@ -29,7 +29,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ..faces.meshops import corner_fans, edge_face_counts, piece_labels, weld
-from ..shapes.io import Normalization, Shape
+from ..shapes.shape import Normalization, Shape
 from .metrics import N_SAMPLES, SEED, surface_distance
 
 

@@ -62,7 +62,8 @@ class MeshOut:
 
     def export(self, fmt: str) -> bytes:
         """The result as ``glb``, ``obj`` or ``ply`` bytes."""
-        from ..shapes.io import ShapeError, export_mesh
+        from ..shapes.io import export_mesh
+        from ..shapes.shape import ShapeError
 
         fmt = fmt.lower()
         if fmt not in FORMATS:

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..params import CLOSED_CHOICES
-from ..shapes.io import Normalization, Shape
+from ..shapes.shape import Normalization, Shape
 from .holes import WHOLE_LOOP_MAX, _best_triangulation, _close_loop, _simple_loops, _walk_loops
 from .meshops import edge_face_counts, face_sides, weld
 from .support import SupportCache, face_samples

@@ -23,7 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..shapes.io import Normalization, Shape, sample_surface, with_normals
+from ..shapes.io import sample_surface, with_normals
+from ..shapes.shape import Normalization, Shape
 from .meshops import face_sides, remove_unreferenced
 from .simplify import _dot, _Mesh, _sub
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..shapes.io import Normalization
+from ..shapes.shape import Normalization
 from ..tokenizer.grid import CELL
 from .meshops import corner_fans, piece_labels
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..shapes.io import Shape, sample_triangles
+from ..shapes.io import sample_triangles
+from ..shapes.shape import Shape
 
 
 def overlay_points(shape: Shape, n: int) -> np.ndarray:

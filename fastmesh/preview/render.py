@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fastmesh.preview.png import to_png  # re-exported: render + encode in one import
-from fastmesh.shapes.io import ShapeError
+from fastmesh.shapes.shape import ShapeError
 
 _EMPTY = np.iinfo(np.int64).max  # z-buffer value of a pixel no fragment reached
 _DEPTH_LEVELS = (1 << 31) - 1  # depth quantisation: fits above a 32-bit id in a positive int64

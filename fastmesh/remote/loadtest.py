@@ -32,7 +32,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from ..shapes.io import SUPPORTED_FORMATS
+from ..shapes.shape import SUPPORTED_FORMATS
 
 FINAL = ("succeeded", "failed", "cancelled")
 PERCENTILES = (50, 95, 99)

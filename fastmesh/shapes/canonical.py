@@ -20,7 +20,8 @@ import itertools
 
 import numpy as np
 
-from .io import Normalization, Shape, sample_surface
+from .io import sample_surface
+from .shape import Normalization, Shape
 
 # With normals: turn when the box's frame has at least this much more of the surface (the share of the
 # normals, area-weighted samples) within ALIGNED_DEGREES of an axis than the input's frame has.

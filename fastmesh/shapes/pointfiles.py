@@ -12,7 +12,7 @@ import io
 
 import numpy as np
 
-from .io import Shape, ShapeError, too_many
+from .shape import Shape, ShapeError, too_many
 
 MAX_TEXT_LINE = 1024  # characters in one line of a text point file (six numbers take ~150)
 

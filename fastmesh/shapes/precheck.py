@@ -13,7 +13,7 @@ import json
 import re
 import struct
 
-from .io import ShapeError, too_many
+from .shape import ShapeError, too_many
 from .sniff import STL_HEADER, STL_TRIANGLE, not_obj
 
 FORMAT_NAMES = {"obj": "Wavefront OBJ", "glb": "binary glTF (GLB)", "gltf": "glTF JSON", "ply": "PLY",

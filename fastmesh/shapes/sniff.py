@@ -10,7 +10,7 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
-from .io import SUPPORTED_FORMATS, ShapeError
+from .shape import SUPPORTED_FORMATS, ShapeError
 
 SNIFF_BYTES = 64 * 1024  # read of a text file to find its first line that is not a comment
 # Wavefront OBJ statements (geometry, grouping, display and free-form); a line starting with another word is

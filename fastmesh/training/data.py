@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..shapes.io import MESH_FORMATS, Normalization, ShapeError, load_shape
+from ..shapes.io import load_shape
+from ..shapes.shape import MESH_FORMATS, Normalization, ShapeError
 from ..tokenizer import dequantize, quantize_mesh, vertex
 from ..tokenizer.grid import LEVELS
 

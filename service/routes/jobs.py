@@ -20,7 +20,7 @@ from fastapi.responses import JSONResponse
 from pydantic import Field, TypeAdapter, ValidationError
 
 from fastmesh.export.output import MeshOut
-from fastmesh.shapes.io import EXPORT_FORMATS
+from fastmesh.shapes.shape import EXPORT_FORMATS
 
 from ..children import CappedPool, ChildFailed, ChildShapeError
 from ..deps import JobId, Owner, Parses, ParseSlots, SettingsDep, StoreDep, owned_job

@@ -18,7 +18,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 
 from fastmesh.faces.facecount import TOLERANCE
 from fastmesh.params import BOUNDS
-from fastmesh.shapes.io import EXPORT_FORMATS, SUPPORTED_FORMATS
+from fastmesh.shapes.shape import EXPORT_FORMATS, SUPPORTED_FORMATS
 
 from ..errors import ApiError
 from ..settings import Settings

@@ -58,7 +58,7 @@ from .fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
 from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model
 from .models.encoder import EncoderConfig
-from .models.generate import Cancelled
+from .models.generate import Cancelled, GenerationError
 from .models.onnx_decode import choose_decoder
 from .params import GenerateParams
 from .progress import STAGES
@@ -163,14 +163,6 @@ def _low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:
     if len(f) == 0 or len(f) > faces or edge_face_counts(f).max() > 2:
         return None
     return remove_unreferenced(v, f)[:2]
-
-
-class GenerationError(RuntimeError):
-    """The networks ran but produced no usable mesh (``code`` says why)."""
-
-    def __init__(self, code: str, message: str):
-        super().__init__(message)
-        self.code, self.message = code, message
 
 
 @dataclass

@@ -143,7 +143,7 @@ def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("
 
     With ``save`` every result is written in the input's (= the reference's) frame (see :func:`_save`).
     """
-    from ..pipeline import GenerationError
+    from ..models.generate import GenerationError
 
     rows = []
     for i, (inp, ref_path) in enumerate(pairs, 1):

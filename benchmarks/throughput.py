@@ -27,8 +27,8 @@ import httpx
 import numpy as np
 
 from fastmesh.remote.loadtest import LoadConfig, percentiles, run
+from fastmesh_jobs.settings import Settings
 from service.processes import ApiProcess, RedisServer, WorkerProcess
-from service.settings import Settings
 
 
 def make_inputs(directory: Path, n_files: int = 4, n_points: int = 4000) -> Path:

@@ -29,12 +29,13 @@ import anyio
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
 
+from fastmesh_jobs.store import Store
+
 from .children import ChildFailed, ChildShapeError
 from .deps import JobId, Owner, StoreDep, owned_job
 from .errors import ApiError
 from .render_pool import RenderPool
 from .schemas import error_responses
-from .store import Store
 
 # KEYS: the job's hash, its preview hash.  ARGV: field, PNG, ttl.  A render that finishes after the job was
 # deleted must not leave its PNG behind: the preview is cached only while the job exists.

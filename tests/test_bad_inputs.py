@@ -34,7 +34,8 @@ from schemathesis.specs.openapi.checks import (
 from stack import assert_error, make_settings, post, sphere_points, wait_final, wp, xyz_bytes
 
 from fastmesh.shapes.shape import SUPPORTED_FORMATS
-from service.processes import ServedApp, wait_for
+from fastmesh_jobs.runtime import wait_for
+from service.processes import ServedApp
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 LIMITS = dict(max_points=20_000, max_faces=40_000, max_upload_bytes=2_000_000, max_queue_depth=1000)

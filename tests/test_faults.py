@@ -18,7 +18,8 @@ import redis
 from stack import DB, forget_run, make_settings, wp, write_inputs
 
 from fastmesh.remote.loadtest import LoadConfig, run
-from service.processes import ApiProcess, RedisServer, ServedApp, local_redis, wait_for
+from fastmesh_jobs.runtime import wait_for
+from service.processes import ApiProcess, RedisServer, ServedApp, local_redis
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 

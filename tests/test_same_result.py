@@ -20,8 +20,8 @@ from testdata import committed_meshes
 
 from fastmesh.pipeline import GenerateParams, Pipeline
 from fastmesh.shapes.io import load_shape
+from fastmesh_jobs.store import Store, mesh_from_bytes
 from service.processes import ServedApp, local_redis
-from service.store import Store, mesh_from_bytes
 
 PARAMS = {"seed": 3, "max_vertices": 20}
 

@@ -28,8 +28,9 @@ import fastmesh.shapes.io
 import fastmesh.shapes.precheck
 from fastmesh.shapes.io import load_shape
 from fastmesh.shapes.shape import ShapeError
+from fastmesh_jobs.runtime import wait_for
 from service.children import CappedPool, ChildFailed
-from service.processes import ServedApp, wait_for
+from service.processes import ServedApp
 
 MIB = 1024 * 1024
 

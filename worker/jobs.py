@@ -1,7 +1,7 @@
 """What a worker does with one job: the function RQ calls, and the per-process model cache.
 
 RQ carries only ``(job id, attempt)``.  The job's input, parameters and state live in Redis
-(:mod:`service.store`), so a worker on another machine needs nothing but the Redis URL.
+(:mod:`fastmesh_jobs.store`), so a worker on another machine needs nothing but the Redis URL.
 """
 
 from __future__ import annotations
@@ -23,9 +23,9 @@ from rq.timeouts import JobTimeoutException
 
 from fastmesh.shapes.io import with_normals
 from fastmesh.shapes.shape import ShapeError
-from service.processes import wait_for
-from service.settings import Settings
-from service.store import Store, mesh_to_bytes, shape_from_bytes, timeout_error
+from fastmesh_jobs.runtime import wait_for
+from fastmesh_jobs.settings import Settings
+from fastmesh_jobs.store import Store, mesh_to_bytes, shape_from_bytes, timeout_error
 
 log = logging.getLogger("fastmesh.worker")
 

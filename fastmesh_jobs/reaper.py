@@ -2,7 +2,7 @@
 
 Run every ``reaper_interval`` seconds by each API process (:func:`reap_loop`) and each worker's heartbeat
 thread (:func:`reap_logged`).  Any number of reapers may run at once: every decision is a compare-and-set
-on the job's (status, attempt).  It works on :class:`service.store.Store`; the store knows nothing of it.
+on the job's (status, attempt).  It works on :class:`fastmesh_jobs.store.Store`; the store knows nothing of it.
 """
 
 from __future__ import annotations

@@ -78,6 +78,29 @@ def imports(name: str, path: Path, known: set[str]) -> set[str]:
     return out
 
 
+def unresolved(name: str, path: Path, known: set[str]) -> list[str]:
+    """The imports of ``name`` that name a module of ``PACKAGES`` this tree does not have.
+
+    ``fastmesh`` is a namespace package: an installed copy elsewhere on the path would still answer such an
+    import at run time, so the tree is checked on its own."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            bases = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                up = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(up + ([base] if base else []))
+            bases = [f"{base}.{a.name}" if base in PACKAGES else base for a in node.names]
+        else:
+            continue
+        out += [f"{name}:{node.lineno} {b}" for b in bases
+                if b.split(".")[0] in PACKAGES and b not in PACKAGES and b not in known]
+    return out
+
+
 def graph() -> dict[str, set[str]]:
     found = modules()
     return {name: imports(name, path, set(found)) for name, path in found.items()}
@@ -137,6 +160,14 @@ def circles(edges: dict[str, set[str]]) -> list[list[str]]:
 
 def test_every_module_has_a_floor():
     assert [name for name in modules() if unit_of(name) is None] == []
+
+
+def test_every_import_names_a_module_of_this_tree():
+    """In the packages, the tests, the benchmarks and the scripts."""
+    found = modules()
+    scripts = {".".join(p.relative_to(ROOT).with_suffix("").parts): p
+               for folder in ("tests", "benchmarks", "scripts") for p in sorted((ROOT / folder).rglob("*.py"))}
+    assert [u for name, path in (found | scripts).items() for u in unresolved(name, path, set(found))] == []
 
 
 def test_no_circle_between_modules():

@@ -46,7 +46,7 @@ class ChildFailed(Exception):
 
 
 class ChildShapeError(Exception):
-    """A :class:`fastmesh.shapes.io.ShapeError` raised in a child (``code``, ``message``), carried back whole."""
+    """A :class:`fastmesh.shapes.shape.ShapeError` raised in a child (``code``, ``message``), carried back whole."""
 
     def __init__(self, code: str, message: str):
         super().__init__(message)

@@ -20,7 +20,7 @@ def input_info(filename: str, shape: Shape) -> dict:
 
 def parse_upload(data: bytes, filename: str, max_points: int, max_faces: int, texture: bool = False
                  ) -> tuple[dict, bytes]:
-    """``(input facts, stored input bytes)`` of an upload; raises :class:`fastmesh.shapes.io.ShapeError`.
+    """``(input facts, stored input bytes)`` of an upload; raises :class:`fastmesh.shapes.shape.ShapeError`.
 
     A point cloud's normals are left as the file gives them: estimating them takes seconds for a large
     cloud and is the worker's.  ``texture``: keep a glTF's base-colour texture (``bake``).

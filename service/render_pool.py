@@ -20,7 +20,7 @@ def render_blob(blob: bytes, of: str, size: int, wireframe: bool) -> bytes:
     """PNG bytes of a stored result (``of == "result"``: npz of vertices and faces) or input (a Shape's npz).
 
     A result without faces (a degenerate generation) is drawn as its vertices, so the preview still
-    shows what came out.  Raises :class:`fastmesh.shapes.io.ShapeError` when there is nothing drawable.
+    shows what came out.  Raises :class:`fastmesh.shapes.shape.ShapeError` when there is nothing drawable.
     """
     from fastmesh.preview.render import render_mesh, render_points, render_shape, to_png
     from fastmesh_jobs.store import mesh_from_bytes, shape_from_bytes

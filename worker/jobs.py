@@ -232,7 +232,7 @@ class Job:
     params: object  # GenerateParams
     formats: list[str]
     timings: dict[str, float]
-    shape: object = None  # fastmesh.shapes.io.Shape
+    shape: object = None  # fastmesh.shapes.shape.Shape
     error: Exception | None = None
     device_errors: int = 0  # device errors it met on earlier attempts
 

@@ -125,7 +125,7 @@ def vertex_metrics(vertices: np.ndarray, reference: np.ndarray, surface_vertices
                    surface_faces: np.ndarray | None = None) -> dict:
     """How well generated vertices find the artist's, in cells of the 7-bit grid.
 
-    Everything is given in the reference's normalised frame (``io.Normalization.fit`` of the
+    Everything is given in the reference's normalised frame (``shape.Normalization.fit`` of the
     reference mesh: bounding-box centre at the origin, longest side 1), where one cell is
     ``CELL`` = 1/128.  "Within k cells" means a Euclidean distance <= k / 128.
 

@@ -117,7 +117,7 @@ def finish(vertices: np.ndarray, faces: np.ndarray, params, source=None, evidenc
     """The result ``vertices`` (V, 3, the input's frame) and ``faces`` (F, 3) made ready to write as ``params``
     (:class:`fastmesh.params.GenerateParams`) ask.
 
-    ``source`` is the input :class:`fastmesh.shapes.io.Shape`, whose texture ``bake`` reads; ``evidence`` the face
+    ``source`` is the input :class:`fastmesh.shapes.shape.Shape`, whose texture ``bake`` reads; ``evidence`` the face
     model's edges, whose flat 4-cliques become quads first (:func:`fastmesh.export.quads.pair_triangles`).  Returns the
     :class:`MeshOut`, its placement and notes for people on what a format leaves out.
 

@@ -491,7 +491,7 @@ def render_points(points, normals=None, size: int = 512, alpha: bool = False,
 
 def render_shape(shape, size: int = 512, wireframe: bool = False, alpha: bool = False,
                  config: RenderConfig = DEFAULT_CONFIG) -> np.ndarray:
-    """Render a :class:`fastmesh.shapes.io.Shape`: a mesh with :func:`render_mesh`, points with
+    """Render a :class:`fastmesh.shapes.shape.Shape`: a mesh with :func:`render_mesh`, points with
     :func:`render_points`."""
     if shape.faces is not None:
         return render_mesh(shape.vertices, shape.faces, size=size, wireframe=wireframe, alpha=alpha, config=config)

@@ -39,7 +39,7 @@ def polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = Plan
 
     Parameters
     ----------
-    points : (N, 3) float, in the unit frame (``io.Normalization``)
+    points : (N, 3) float, in the unit frame (``shape.Normalization``)
     normals : (N, 3) float, unit, pointing out of the shape (their sign orients the faces)
     cfg : tolerances
 

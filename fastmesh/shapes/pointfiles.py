@@ -1,5 +1,5 @@
 """Point-cloud files: text (``.xyz``, ``.txt``) and NumPy (``.npy``, ``.npz``) into a
-:class:`~fastmesh.shapes.io.Shape`.
+:class:`~fastmesh.shapes.shape.Shape`.
 
 Both read what they are given with bounded memory: text rows are streamed into one flat array,
 array headers are checked against the limits before any data is read.

@@ -46,7 +46,7 @@ from .batch import DecodeRequest
 from .evaluation.quality import mesh_quality
 from .export.output import MeshOut, finish
 from .export.quads import EdgeEvidence
-from .faces import TriangleConfig, mesh_from_adjacency
+from .faces import mesh_from_adjacency
 from .faces.closure import decide_closed
 from .faces.facecount import TOLERANCE as COUNT_TOLERANCE
 from .faces.facecount import CountRule, count_rule, hold_count
@@ -54,6 +54,7 @@ from .faces.filtering import FilterConfig, Predictor, predict_edges
 from .faces.meshops import edge_face_counts, remove_unreferenced, triangle_areas, weld
 from .faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
 from .faces.support import surface_fit
+from .faces.triangles import TriangleConfig
 from .fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
 from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model

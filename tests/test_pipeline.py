@@ -16,9 +16,10 @@ import trimesh
 
 from fastmesh.evaluation.primitives import point_cloud
 from fastmesh.evaluation.quality import mesh_quality
-from fastmesh.faces import TriangleConfig, mesh_from_adjacency
+from fastmesh.faces import mesh_from_adjacency
 from fastmesh.faces.filtering import FilterConfig
 from fastmesh.faces.support import surface_fit
+from fastmesh.faces.triangles import TriangleConfig
 from fastmesh.fitting import FitConfig
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weights_dir

@@ -3,9 +3,10 @@
 import numpy as np
 import trimesh
 
-from fastmesh.faces import TriangleConfig, mesh_from_adjacency
+from fastmesh.faces import mesh_from_adjacency
 from fastmesh.faces.meshops import edges_from_faces
 from fastmesh.faces.support import SupportCache, drop_unsupported, support_distance, surface_fit
+from fastmesh.faces.triangles import TriangleConfig
 from fastmesh.shapes.io import input_surface, sample_triangles
 from fastmesh.shapes.shape import Shape
 

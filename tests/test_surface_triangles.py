@@ -13,10 +13,11 @@ from scipy.spatial import cKDTree
 
 from fastmesh.cli import main
 from fastmesh.evaluation.metrics import mesh_topology
-from fastmesh.faces import TriangleConfig, holes, mesh_from_adjacency
+from fastmesh.faces import holes, mesh_from_adjacency
 from fastmesh.faces import surface_triangles as sf
 from fastmesh.faces.selection import Selection
 from fastmesh.faces.support import SupportCache, support_distance, support_limit
+from fastmesh.faces.triangles import TriangleConfig
 from fastmesh.shapes.shape import Normalization
 from fastmesh.tokenizer import dequantize, quantize_mesh
 

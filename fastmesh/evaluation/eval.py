@@ -25,9 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..faces import TriangleConfig, mesh_from_adjacency
+from ..faces import mesh_from_adjacency
 from ..faces.meshops import edges_from_faces, remove_unreferenced, weld
 from ..faces.surface_triangles import restricted_delaunay_mesh
+from ..faces.triangles import TriangleConfig
 from ..shapes.io import input_surface, load_shape, sample_surface, write_mesh
 from ..shapes.shape import SUPPORTED_FORMATS, Normalization, Shape, ShapeError
 from ..tokenizer import dequantize, quantize_mesh

@@ -54,11 +54,11 @@ run: $(STAMP) web
 	$(BIN)/python -m service.run
 
 test: $(STAMP) web chromium assimp blender
-	$(BIN)/ruff check fastmesh service worker tests benchmarks clients
+	$(BIN)/ruff check fastmesh fastmesh_jobs service worker tests benchmarks clients
 	$(BIN)/python -m pytest -q tests
 
 lint: $(STAMP)
-	$(BIN)/ruff check fastmesh service worker tests benchmarks clients
+	$(BIN)/ruff check fastmesh fastmesh_jobs service worker tests benchmarks clients
 
 bench-tokens: $(STAMP)
 	$(BIN)/python benchmarks/tokens.py ../shared/corpus

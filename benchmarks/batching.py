@@ -25,7 +25,8 @@ CORPUS = Path(__file__).resolve().parents[1] / "tests" / "data" / "corpus"
 def shapes(inputs: str | None, limit: int) -> list:
     """The first ``limit`` inputs of ``inputs`` (sorted), or point clouds (8,192 samples with normals) of the
     test corpus's base meshes (no poses)."""
-    from fastmesh.io import SUPPORTED_FORMATS, Shape, load_shape, sample_surface
+    from fastmesh.shapes.io import load_shape, sample_surface
+    from fastmesh.shapes.shape import SUPPORTED_FORMATS, Shape
 
     if inputs:
         files = sorted(f for f in Path(inputs).iterdir() if f.suffix.lower().lstrip(".") in SUPPORTED_FORMATS)

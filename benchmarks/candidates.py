@@ -32,10 +32,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fastmesh.io import SUPPORTED_FORMATS, load_shape  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
 from fastmesh.request import Frame  # noqa: E402
+from fastmesh.shapes.io import load_shape  # noqa: E402
+from fastmesh.shapes.shape import SUPPORTED_FORMATS  # noqa: E402
 
 
 def pick_inputs(folder: Path, n: int) -> list[Path]:

@@ -30,14 +30,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fastmesh.data import load_dataset  # noqa: E402
-from fastmesh.io import sample_triangles  # noqa: E402
 from fastmesh.models.generate import generate  # noqa: E402
 from fastmesh.models.kv_cache import KVCache  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import Pipeline  # noqa: E402
+from fastmesh.shapes.io import sample_triangles  # noqa: E402
 from fastmesh.tokenizer import bpt  # noqa: E402
 from fastmesh.tokenizer import vertex as vt  # noqa: E402
+from fastmesh.training.data import load_dataset  # noqa: E402
 
 
 @torch.inference_mode()

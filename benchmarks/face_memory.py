@@ -65,7 +65,7 @@ import json, resource, sys, time
 import numpy as np, torch
 n, threads, filtering = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "1"
 torch.set_num_threads(threads)
-from fastmesh.triangles import mesh_from_adjacency
+from fastmesh.faces import mesh_from_adjacency
 from fastmesh.pipeline import Pipeline
 from fastmesh.tokenizer import dequantize
 from fastmesh.tokenizer.grid import LEVELS

@@ -28,9 +28,10 @@ def main() -> int:
     sys.path.insert(0, args.root)
     import numpy as np
 
-    from fastmesh.io import SUPPORTED_FORMATS, load_shape
     from fastmesh.params import GenerateParams
     from fastmesh.pipeline import Pipeline
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import SUPPORTED_FORMATS
 
     files = sorted(f for f in Path(args.inputs).iterdir() if f.suffix.lower().lstrip(".") in SUPPORTED_FORMATS)
     files = files[:: max(1, args.every)]

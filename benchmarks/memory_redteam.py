@@ -27,8 +27,9 @@ import numpy as np
 import trimesh
 from attack_memory import Peak, npy, rss_mib
 
-from service.processes import ApiProcess, RedisServer, WorkerProcess, free_port, wait_for
-from service.settings import Settings
+from fastmesh_jobs.runtime import wait_for
+from fastmesh_jobs.settings import Settings
+from service.processes import ApiProcess, RedisServer, WorkerProcess, free_port
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from hostile import (  # noqa: E402

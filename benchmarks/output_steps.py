@@ -1,4 +1,4 @@
-"""Timings of the written result's steps (fastmesh.output): quads, the xatlas UV layout, baking a texture at
+"""Timings of the written result's steps (fastmesh.export.output): quads, the xatlas UV layout, baking a texture at
 1,024 x 1,024 and writing each format, for results of 1,280 / 5,120 faces (icospheres) baked from a textured
 sphere of 20,000 faces.
 
@@ -30,7 +30,7 @@ def textured_sphere():
     longitude and latitude."""
     import trimesh
 
-    from fastmesh.bake import SurfaceTexture
+    from fastmesh.shapes.texture import SurfaceTexture
 
     m = trimesh.creation.icosphere(5)
     v = np.asarray(m.vertices)
@@ -45,10 +45,10 @@ def textured_sphere():
 def main() -> None:
     import trimesh
 
-    from fastmesh.bake import bake
-    from fastmesh.layout import uv_layout
-    from fastmesh.output import MeshOut
-    from fastmesh.quads import pair_triangles
+    from fastmesh.export.bake import bake
+    from fastmesh.export.layout import uv_layout
+    from fastmesh.export.output import MeshOut
+    from fastmesh.export.quads import pair_triangles
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)

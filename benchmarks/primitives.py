@@ -2,12 +2,12 @@
 
     python benchmarks/primitives.py [--weights DIR] [--shapes box,cone] [--seed 0] [--threads N] [--json]
 
-Each shape of ``fastmesh.primitives.LADDER`` (box, L-shaped block, box with a square through-hole,
+Each shape of ``fastmesh.evaluation.primitives.LADDER`` (box, L-shaped block, box with a square through-hole,
 cylinder and cone of 16 sides, icosphere of 1 and 2 subdivisions, torus) is sampled to 8,192
 points with normals, and the pipeline (default settings) makes a mesh from that point cloud.
 Per shape: the primitive's vertex count, the generated count and their ratio, precision and
 recall within one 7-bit cell of the primitive's vertices, the share of generated vertices within
-1.5 cells of its surface (``fastmesh.metrics.vertex_metrics``, in the primitive's normalised
+1.5 cells of its surface (``fastmesh.evaluation.metrics.vertex_metrics``, in the primitive's normalised
 frame), and the seconds of ``generate``.  ``ok`` marks the target: recall within one
 cell >= 0.9 and at most 1.5x the primitive's vertices.
 """
@@ -24,11 +24,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fastmesh.io import Normalization  # noqa: E402
-from fastmesh.metrics import vertex_metrics  # noqa: E402
+from fastmesh.evaluation.metrics import vertex_metrics  # noqa: E402
+from fastmesh.evaluation.primitives import LADDER, point_cloud, primitive  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
-from fastmesh.primitives import LADDER, point_cloud, primitive  # noqa: E402
+from fastmesh.shapes.shape import Normalization
 
 TARGET_RECALL = 0.9
 TARGET_COUNT = 1.5

@@ -1,5 +1,5 @@
 """topology=quad on artist meshes' point clouds: how many quads the face model's flat 4-cliques make, and the quad
-share and shape with that evidence and by shape alone (fastmesh.quads.pair_triangles).
+share and shape with that evidence and by shape alone (fastmesh.export.quads.pair_triangles).
 
 Usage: python benchmarks/quad_cliques.py MESH.ply ... [--points 8192] [--seed 0]
 
@@ -19,11 +19,12 @@ import json
 import numpy as np
 import trimesh
 
-import fastmesh.output
-from fastmesh import quads
-from fastmesh.io import Shape, load_shape
+import fastmesh.export.output
+from fastmesh.export import quads
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Shape
 
 
 def worst_corner(vertices: np.ndarray, faces: np.ndarray, pairs: np.ndarray) -> float | None:
@@ -60,7 +61,7 @@ def measure(pipe: Pipeline, path: str, n_points: int, seed: int, probs: dict) ->
         seen.append((np.asarray(vertices, dtype=np.float64), np.asarray(faces), evidence))
         return quads.pair_triangles(vertices, faces, config, evidence)
 
-    fastmesh.output.pair_triangles = spy
+    fastmesh.export.output.pair_triangles = spy
     res = pipe.generate(shape, GenerateParams(topology="quad", seed=seed))
     v, f, evidence = seen[0]
     shape_only = quads.pair_triangles(v, f)

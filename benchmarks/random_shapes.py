@@ -3,7 +3,7 @@
     python benchmarks/random_shapes.py [--n 10] [--kinds box,l_block,prism,cylinder,cone] [--inputs mesh,points]
                                        [--pose turned|axes|mm] [--seed 0] [--weights DIR] [--json]
 
-Each shape of ``fastmesh.primitives.random_shape`` (proportions and outlines at random) is posed
+Each shape of ``fastmesh.evaluation.primitives.random_shape`` (proportions and outlines at random) is posed
 (``turned``: a random rotation; ``axes``: as built; ``mm``: turned, in millimetres up to 10 m from the origin)
 and given to the pipeline (default settings) as its mesh or as 8,192 points with normals.  Per shape:
 ``exact`` (as many vertices as the shape and each within one 7-bit cell of one of its own), ``closed``
@@ -23,11 +23,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fastmesh.io import Normalization  # noqa: E402
-from fastmesh.metrics import vertex_metrics  # noqa: E402
+from fastmesh.evaluation.metrics import vertex_metrics  # noqa: E402
+from fastmesh.evaluation.primitives import RANDOM_KINDS, point_cloud, posed, random_shape  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
-from fastmesh.primitives import RANDOM_KINDS, point_cloud, posed, random_shape  # noqa: E402
+from fastmesh.shapes.shape import Normalization
 
 
 def run_one(pipe: Pipeline, kind: str, rng: np.random.Generator, given: str, pose: str) -> dict:

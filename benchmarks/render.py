@@ -1,4 +1,4 @@
-"""Timings of the preview renderer (fastmesh.render).  Target: < 0.5 s for 5,000 faces at 512 px.
+"""Timings of the preview renderer (fastmesh.preview.render).  Target: < 0.5 s for 5,000 faces at 512 px.
 
 Usage: python benchmarks/render.py [--size 512] [--repeat 5] [--corpus ../shared/corpus]
 
@@ -48,7 +48,7 @@ def corpus_meshes(root: Path, targets=(1000, 5000)) -> list[tuple[str, np.ndarra
 def main() -> None:
     import trimesh
 
-    from fastmesh.render import render_mesh, render_points, to_png
+    from fastmesh.preview.render import render_mesh, render_points, to_png
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=512)

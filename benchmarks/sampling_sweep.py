@@ -29,12 +29,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fastmesh.batch import decode  # noqa: E402
-from fastmesh.eval import artist_vertices, pair_inputs  # noqa: E402
-from fastmesh.io import load_shape  # noqa: E402
-from fastmesh.metrics import vertex_metrics  # noqa: E402
+from fastmesh.evaluation.eval import artist_vertices, pair_inputs  # noqa: E402
+from fastmesh.evaluation.metrics import vertex_metrics  # noqa: E402
 from fastmesh.params import GenerateParams, TunedParams  # noqa: E402
 from fastmesh.pipeline import Pipeline  # noqa: E402
 from fastmesh.request import Request  # noqa: E402
+from fastmesh.shapes.io import load_shape  # noqa: E402
 from fastmesh.tokenizer import dequantize  # noqa: E402
 
 BIG = 400  # a candidate with this many vertices or more: a run towards the cap

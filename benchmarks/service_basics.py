@@ -22,8 +22,9 @@ import httpx
 import numpy as np
 import redis
 
-from service.processes import ServedApp, WorkerProcess, local_redis, wait_for
-from service.settings import Settings
+from fastmesh_jobs.runtime import wait_for
+from fastmesh_jobs.settings import Settings
+from service.processes import ServedApp, WorkerProcess, local_redis
 
 
 def pct(xs: list[float], q: float) -> float:

@@ -25,11 +25,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import fastmesh.pipeline as pipeline_module  # noqa: E402
-from fastmesh.eval import pair_inputs  # noqa: E402
-from fastmesh.filtering import FilterConfig, edges_from_logits, filter_predictions  # noqa: E402
-from fastmesh.io import Normalization, load_shape  # noqa: E402
-from fastmesh.metrics import surface_distance  # noqa: E402
+from fastmesh.evaluation.eval import pair_inputs  # noqa: E402
+from fastmesh.evaluation.metrics import surface_distance  # noqa: E402
+from fastmesh.faces.filtering import FilterConfig, edges_from_logits, filter_predictions  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Normalization
 
 
 def variant(name: str) -> FilterConfig | float:

@@ -87,9 +87,9 @@ def _inputs(n: int, seed: int) -> list:
     import trimesh
     from gpu_inputs import varied
 
-    from fastmesh.io import Shape
+    from fastmesh.evaluation.primitives import posed
     from fastmesh.params import GenerateParams
-    from fastmesh.primitives import posed
+    from fastmesh.shapes.shape import Shape
 
     cylinder = trimesh.creation.cylinder(0.3, 0.8, sections=64)
     turned = posed(Shape(vertices=np.asarray(cylinder.vertices), faces=np.asarray(cylinder.faces)),
@@ -109,7 +109,8 @@ def main() -> int:
     sys.path[:0] = [args.root, str(Path(args.root) / "tests")]
     import numpy as np
 
-    from fastmesh import pipeline, surface_triangles
+    from fastmesh import pipeline
+    from fastmesh.faces import surface_triangles
     from fastmesh.pipeline import Pipeline
 
     spent: dict[str, float] = defaultdict(float)

@@ -4,7 +4,7 @@
                                       [--candidates K] [--max-vertices N] [--json OUT]
     python benchmarks/target_faces.py --inputs DIR [--targets 100 300 1000 2000] [--limit N] [--weights DIR]
 
-Family mode (the first form): ``--n`` inputs of every kind of ``fastmesh.primitives.curved_input`` (sphere,
+Family mode (the first form): ``--n`` inputs of every kind of ``fastmesh.evaluation.primitives.curved_input`` (sphere,
 torus, box, bumpy sphere; turned, in metres or millimetres, 10^-2 to 10^2 across) given as meshes and as
 points, each with a target drawn log-uniformly in [100, 8000].  ``--stage pipeline`` runs the whole pipeline
 (the shipped weights unless ``--weights``); ``--stage hold`` gives ``facecount.hold_count`` a stand-in result
@@ -28,12 +28,13 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fastmesh.facecount import TOLERANCE, hold_count, input_samples  # noqa: E402
-from fastmesh.io import SUPPORTED_FORMATS, load_shape  # noqa: E402
+from fastmesh.evaluation.primitives import CURVED_KINDS, coarse_copy, curved_input  # noqa: E402
+from fastmesh.evaluation.quality import topology  # noqa: E402
+from fastmesh.faces.facecount import TOLERANCE, hold_count, input_samples  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
-from fastmesh.primitives import CURVED_KINDS, coarse_copy, curved_input  # noqa: E402
-from fastmesh.quality import topology  # noqa: E402
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import SUPPORTED_FORMATS
 
 GIVEN = ("mesh", "points")
 TARGETS = (100, 8000)

@@ -7,7 +7,7 @@
 Starts everything it measures and stops it at the end: a private ``redis-server`` on a free port, the
 API (:class:`service.processes.ApiProcess`: a uvicorn process of its own, as in production, sharing no GIL
 with the load) and ``fastmesh-worker`` processes.  For each worker count it runs ``fastmesh loadtest``
-(:mod:`fastmesh.loadtest`) for ``--duration`` seconds with more simulated users than workers, so the queue
+(:mod:`fastmesh.remote.loadtest`) for ``--duration`` seconds with more simulated users than workers, so the queue
 never drains, while a separate poller process times ``GET /v1/jobs/{id}`` every ``--poll-interval`` seconds.
 Prints a table (``--json``: every report).
 """
@@ -26,9 +26,9 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from fastmesh.loadtest import LoadConfig, percentiles, run
+from fastmesh.remote.loadtest import LoadConfig, percentiles, run
+from fastmesh_jobs.settings import Settings
 from service.processes import ApiProcess, RedisServer, WorkerProcess
-from service.settings import Settings
 
 
 def make_inputs(directory: Path, n_files: int = 4, n_points: int = 4000) -> Path:

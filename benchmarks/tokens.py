@@ -31,9 +31,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fastmesh import triangles as trimod  # noqa: E402
-from fastmesh.io import Normalization, ShapeError, load_shape  # noqa: E402
-from fastmesh.metrics import edges_from_faces  # noqa: E402
+from fastmesh.faces import triangles as trimod  # noqa: E402
+from fastmesh.faces.meshops import edges_from_faces  # noqa: E402
+from fastmesh.shapes.io import load_shape  # noqa: E402
+from fastmesh.shapes.shape import Normalization, ShapeError  # noqa: E402
 from fastmesh.tokenizer import bpt, dequantize, quantize_mesh, vanilla, vertex  # noqa: E402
 
 KEYS = ("vertices", "faces", "vanilla", "bpt", "bpt_authors", "bpt_undirected", "fastmesh")

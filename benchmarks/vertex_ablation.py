@@ -3,7 +3,7 @@ evidence alone, side by side on the same inputs.
 
     python benchmarks/vertex_ablation.py --inputs DIR --reference DIR [--without DIR] [--limit N] [--json]
 
-Systems (vertex metrics of ``fastmesh.metrics.vertex_metrics``, in the reference's frame):
+Systems (vertex metrics of ``fastmesh.evaluation.metrics.vertex_metrics``, in the reference's frame):
 
 - ``decoder+cells``: the vertices of the pipeline's mesh with ``--weights`` (default: the shipped ones);
 - ``decoder``: the same with ``--without``: a decoder that does not read the cell evidence (its folder, run with
@@ -34,13 +34,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fastmesh.eval import pair_inputs  # noqa: E402
-from fastmesh.io import Normalization, load_shape, sample_surface  # noqa: E402
-from fastmesh.metrics import vertex_metrics  # noqa: E402
+from fastmesh.evaluation.eval import pair_inputs  # noqa: E402
+from fastmesh.evaluation.metrics import vertex_metrics  # noqa: E402
 from fastmesh.models.cells import select_cells  # noqa: E402
 from fastmesh.models.checkpoint import load_model  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import CELL_SEED, Pipeline  # noqa: E402
+from fastmesh.shapes.io import load_shape, sample_surface
+from fastmesh.shapes.shape import Normalization
 from fastmesh.tokenizer import dequantize  # noqa: E402
 
 KEYS = ("precision_1", "recall_1", "precision_2", "recall_2", "on_surface", "count_ratio")

@@ -133,7 +133,7 @@ def fit_samples(shape, unit: np.ndarray, config: FitConfig, seed: int, draw=None
     cloud's own points; (P, 3) points in the normalised frame ``unit`` and their normals.  ``draw(n, seed)``
     draws the mesh's samples where given (``request.Frame.samples``: drawn once, shared), else
     ``io.sample_surface``."""
-    from .io import sample_surface
+    from .shapes.io import sample_surface
 
     if shape.faces is None:
         return np.asarray(unit, dtype=np.float64), np.asarray(shape.normals, dtype=np.float64)

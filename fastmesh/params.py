@@ -19,7 +19,7 @@ DEFAULT_VERTEX_LIMIT = 1000  # a vertex decoder's max_vertices unless its config
 LARGEST_VERTEX_LIMIT = 4000  # the largest max_vertices of a trained decoder: the limit while the model is unknown
 # ``closed``: close the result's holes when the input is closed (auto), always (true) or never (false).
 CLOSED_CHOICES = ("auto", "true", "false")
-# ``topology``: triangles, or quads where two triangles make a near-planar, well-shaped one (fastmesh.quads).
+# ``topology``: triangles, or quads where two triangles make a near-planar, well-shaped one (fastmesh.export.quads).
 TOPOLOGY_CHOICES = ("triangle", "quad")
 # ``origin``: the input's own frame, or the pivot at the result's bounding-box centre or bottom centre.
 ORIGIN_CHOICES = ("input", "center", "bottom")
@@ -108,9 +108,9 @@ class GenerateParams:
     filtering: bool = False
     candidates: int = 2  # meshes made (seeds seed, seed+1, ...); the one nearest the input is returned
     target_faces: int | None = None
-    # Whether the result is closed: "auto" closes it when the input is (``fastmesh.closure.decide_closed``).
+    # Whether the result is closed: "auto" closes it when the input is (``fastmesh.faces.closure.decide_closed``).
     closed: str = "auto"
-    # The written result (fastmesh.output): quads, a UV layout, the input's texture baked onto it, placement.
+    # The written result (fastmesh.export.output): quads, a UV layout, the input's texture baked onto it, placement.
     topology: str = "triangle"
     uv: bool = False
     bake: bool = False  # needs uv; bakes the base-colour texture of a textured glTF input

@@ -12,7 +12,7 @@ The stages as :meth:`Pipeline.generate` runs them (``STAGES`` names their timing
           ──► prediction filtering: masked re-predictions (optional)          filtering
           ──► triangles on the input surface: candidates that lie on it,      faces
               chosen by the edge logits, kept a surface, holes closed, the
-              vertices of flat regions removed (``triangles.mesh_from_adjacency``,
+              vertices of flat regions removed (``faces.mesh_from_adjacency``,
               ``surface_triangles``, ``simplify``)
           ──► the candidate nearest the input surface (``support.surface_fit``) filtering
           ──► back to the input's frame
@@ -43,31 +43,33 @@ import numpy as np
 import torch
 
 from .batch import DecodeRequest
-from .canonical import canonical_rotation, frame_normals, turned_degrees
-from .closure import decide_closed
-from .facecount import TOLERANCE as COUNT_TOLERANCE
-from .facecount import CountRule, count_rule, hold_count
-from .filtering import FilterConfig, Predictor, predict_edges
+from .evaluation.quality import mesh_quality
+from .export.output import MeshOut, finish
+from .export.quads import EdgeEvidence
+from .faces import mesh_from_adjacency
+from .faces.closure import decide_closed
+from .faces.facecount import TOLERANCE as COUNT_TOLERANCE
+from .faces.facecount import CountRule, count_rule, hold_count
+from .faces.filtering import FilterConfig, Predictor, predict_edges
+from .faces.meshops import edge_face_counts, remove_unreferenced, triangle_areas, weld
+from .faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
+from .faces.support import surface_fit
+from .faces.triangles import TriangleConfig
 from .fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
-from .io import Shape
 from .models.cells import snap_to_cells
 from .models.checkpoint import load_model, save_model
 from .models.encoder import EncoderConfig
-from .models.generate import Cancelled
+from .models.generate import Cancelled, GenerationError
 from .models.onnx_decode import choose_decoder
-from .output import MeshOut, finish
 from .params import GenerateParams
-from .pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
-from .planar import polyhedron
 from .progress import STAGES
-from .quads import EdgeEvidence
-from .quality import edge_face_counts, mesh_quality, weld
 from .request import PLANAR_SAMPLES, Frame, Request
-from .support import surface_fit
+from .shapes.canonical import canonical_rotation, frame_normals, turned_degrees
+from .shapes.planar import polyhedron
+from .shapes.shape import Shape
 from .tokenizer import dequantize
 from .tokenizer import vertex as vt
 from .tokenizer.grid import CELL
-from .triangles import TriangleConfig, mesh_from_adjacency, remove_unreferenced, triangle_areas
 
 __all__ = ["STAGES", "Cancelled", "GenerateParams", "GenerateResult", "GenerationError", "Pipeline",
            "default_weights_dir"]
@@ -164,14 +166,6 @@ def _low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:
     return remove_unreferenced(v, f)[:2]
 
 
-class GenerationError(RuntimeError):
-    """The networks ran but produced no usable mesh (``code`` says why)."""
-
-    def __init__(self, code: str, message: str):
-        super().__init__(message)
-        self.code, self.message = code, message
-
-
 @dataclass
 class GenerateResult:
     """A generated mesh in the input's original frame, or placed as ``origin`` and ``height`` ask.
@@ -182,12 +176,12 @@ class GenerateResult:
     faces : (F, 3) int64
     tokens : int, vertex tokens generated (BOS/EOS included)
     timings : dict, seconds per stage: encode, vertices, enhancer, faces, filtering
-    quality : dict, distance to the input and topology (:func:`fastmesh.quality.mesh_quality`): cd, hd (% of
+    quality : dict, distance to the input and topology (:func:`fastmesh.evaluation.quality.mesh_quality`): cd, hd (% of
         the input's size), boundary_edges, non_manifold_edges, components, watertight; and faces, target_faces,
         target_met (faces within ``facecount.TOLERANCE`` of the target; None without one) and count_step
         (``facecount.hold_count``'s: kept, simplified or split; None without a target); quads and quad_share
         (of the polygons the OBJ and PLY files hold)
-    mesh : fastmesh.output.MeshOut, the result as written (quads, UV layout, baked texture, placement); the
+    mesh : fastmesh.export.output.MeshOut, the result as written (quads, UV layout, baked texture, placement); the
         vertices above are placed as it says
     """
 
@@ -359,7 +353,7 @@ class Pipeline:
         With ``params.candidates`` = K > 1 (and a temperature above 0) the meshes of seeds ``seed``
         ... ``seed + K - 1`` are made (their vertex tokens decoded together, as one batch) and the
         one closest to the input surface is returned
-        (:func:`fastmesh.support.surface_fit`): a sampled mesh sometimes leaves out a part or fills
+        (:func:`fastmesh.faces.support.surface_fit`): a sampled mesh sometimes leaves out a part or fills
         a flat region with vertices, and the input tells which.
 
         Parameters

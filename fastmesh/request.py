@@ -18,13 +18,14 @@ from functools import cached_property
 
 import numpy as np
 
-from .canonical import rotate_shape
-from .facecount import CountRule, count_rule, input_samples
-from .io import Normalization, Shape, sample_surface
+from .evaluation.quality import input_pieces
+from .faces.facecount import CountRule, count_rule, input_samples
 from .models.generate import Cancelled
 from .params import GenerateParams
 from .progress import STAGES, Progress
-from .quality import input_pieces
+from .shapes.canonical import rotate_shape
+from .shapes.io import sample_surface
+from .shapes.shape import Normalization, Shape
 
 PLANAR_SAMPLES = 8192  # surface samples of a mesh input read by ``planar.polyhedron`` and the whole step
 

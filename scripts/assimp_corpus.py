@@ -28,7 +28,7 @@ CRASH_CODES = ("internal", "worker_lost")
 
 
 def corpus_files(root: Path) -> list[Path]:
-    from fastmesh.io import SUPPORTED_FORMATS
+    from fastmesh.shapes.shape import SUPPORTED_FORMATS
 
     return sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower().lstrip(".") in SUPPORTED_FORMATS)
 
@@ -36,7 +36,7 @@ def corpus_files(root: Path) -> list[Path]:
 def run_corpus(url: str, files: list[Path], root: Path, api_key: str | None = None, params: dict | None = None,
                timeout: float = 120.0) -> dict:
     """Upload ``files`` one by one, then wait for every accepted job.  Returns counts and one row per file."""
-    from fastmesh.client import Client, JobFailed, ServiceError
+    from fastmesh.remote.client import Client, JobFailed, ServiceError
 
     rows: list[dict] = []
     pending: list[tuple[dict, str]] = []

@@ -20,7 +20,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fastmesh.filtering import FilterConfig  # noqa: E402
+from fastmesh.faces.filtering import FilterConfig  # noqa: E402
 from fastmesh.models.checkpoint import load_model, save_model  # noqa: E402
 
 

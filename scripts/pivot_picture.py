@@ -1,5 +1,5 @@
 """Render docs/pivot.png: one house placed by origin=input, center and bottom, each beside the axes of its
-origin, with fastmesh.render.
+origin, with fastmesh.preview.render.
 
     python scripts/pivot_picture.py [OUT.png]
 """
@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from fastmesh.placement import placement
-from fastmesh.png import to_png
-from fastmesh.render import RenderConfig, render_mesh
+from fastmesh.export.placement import placement
+from fastmesh.preview.png import to_png
+from fastmesh.preview.render import RenderConfig, render_mesh
 
 PANEL = 3.2  # metres between the panels' origins along X
 

@@ -15,18 +15,19 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
+from fastmesh_jobs.reaper import reap_loop
+from fastmesh_jobs.settings import Settings
+from fastmesh_jobs.store import Store
+
 from . import errors, preview
 from .children import CappedPool, tune_malloc
 from .deps import ApiKeys
 from .forms import generation_defaults
 from .middleware import ApiKeyGate, BodyLimit, JsonCORS, RequestMetrics
 from .preview import DEFAULT_PREVIEW, Previews
-from .reaper import reap_loop
 from .render_pool import RenderPool
 from .routes import batches, jobs, ops
 from .routes.jobs import document_settings
-from .settings import Settings
-from .store import Store
 from .telemetry import Metrics
 from .web.routes import web_router
 from .webhooks import dispatch_loop

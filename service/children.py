@@ -26,8 +26,9 @@ from collections.abc import Callable
 ORPHAN_CHECK_SECONDS = 1.0  # how often a child checks that the API process still exists
 STOP_WAIT_SECONDS = 2.0  # a recycled child gets this long to exit before it is killed
 # Imported by a child before its memory is capped, so the cap is spent on the work, not on imports.
-PRELOAD = ("numpy", "scipy.spatial", "trimesh", "fastmesh.io", "fastmesh.precheck", "fastmesh.pointfiles",
-           "fastmesh.render", "service.store", "service.parsing", "service.render_pool")
+PRELOAD = ("numpy", "scipy.spatial", "trimesh", "fastmesh.shapes.io", "fastmesh.shapes.precheck",
+           "fastmesh.shapes.pointfiles", "fastmesh.preview.render", "fastmesh.preview.overlay", "fastmesh_jobs.store",
+           "service.parsing", "service.render_pool")
 # One thread per library: every thread reserves address space (stacks, malloc arenas) inside the cap.
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 M_ARENA_MAX, M_MMAP_THRESHOLD = -8, -3  # glibc's mallopt parameters
@@ -45,7 +46,7 @@ class ChildFailed(Exception):
 
 
 class ChildShapeError(Exception):
-    """A :class:`fastmesh.io.ShapeError` raised in a child (``code``, ``message``), carried back whole."""
+    """A :class:`fastmesh.shapes.shape.ShapeError` raised in a child (``code``, ``message``), carried back whole."""
 
     def __init__(self, code: str, message: str):
         super().__init__(message)
@@ -93,7 +94,7 @@ def _watch_parent(parent: int) -> None:
 
 def _answer(fn: Callable, payload: bytes | None, args: tuple) -> tuple:
     """``fn``'s result or failure as a picklable message."""
-    from fastmesh.io import ShapeError
+    from fastmesh.shapes.shape import ShapeError
 
     try:
         return ("ok", fn(payload, *args) if payload is not None else fn(*args))

@@ -17,10 +17,11 @@ from typing import Annotated
 from fastapi import Depends, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from fastmesh_jobs.settings import Settings
+from fastmesh_jobs.store import Store
+
 from .children import CappedPool
 from .errors import ApiError
-from .settings import Settings
-from .store import Store
 from .telemetry import Metrics
 
 ID_RE = re.compile(r"[0-9a-f]{32}")

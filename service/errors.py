@@ -22,7 +22,7 @@ HTTP_CODES = {400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "n
               415: "unsupported_format", 422: "invalid_parameter", 429: "rate_limited",
               503: "unavailable"}
 
-# ShapeError.code (fastmesh.io) -> HTTP status of the answer.
+# ShapeError.code (fastmesh.shapes.io) -> HTTP status of the answer.
 SHAPE_STATUS = {"unsupported_format": 415, "too_large": 413}
 
 

@@ -15,7 +15,7 @@ from fastapi import Request, params
 from fastapi.routing import APIRoute
 from starlette.datastructures import FormData
 
-from fastmesh.io import EXPORT_FORMATS
+from fastmesh.shapes.shape import EXPORT_FORMATS
 
 from .errors import ApiError
 

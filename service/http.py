@@ -24,7 +24,7 @@ from .errors import error_body
 
 @functools.cache
 def header_timeout() -> float:
-    from .settings import Settings
+    from fastmesh_jobs.settings import Settings
 
     return Settings().header_timeout_seconds
 

@@ -1,6 +1,6 @@
 """The ``Idempotency-Key`` protocol of ``POST /v1/jobs``: a retried submission gets the job the first one made.
 
-Redis keeps, per owner and key, ``"<job id> <fingerprint>"`` (:meth:`service.store.Store.idempotency_get`);
+Redis keeps, per owner and key, ``"<job id> <fingerprint>"`` (:meth:`fastmesh_jobs.store.Store.idempotency_get`);
 the fingerprint hashes the upload and the parameters.  A submission with a key:
 
 1. :meth:`Idempotency.existing`: a job the key already names is the answer (200) when the fingerprint
@@ -12,7 +12,7 @@ the fingerprint hashes the upload and the parameters.  A submission with a key:
    seconds), else ``409 conflict`` + ``Retry-After``;
 3. :meth:`Idempotency.confirm` after the job is created, :meth:`Idempotency.release` when creating failed.
 
-A pending claim expires after ``service.store.PENDING_TTL`` seconds, so one whose API process died before
+A pending claim expires after ``fastmesh_jobs.store.PENDING_TTL`` seconds, so one whose API process died before
 creating the job does not block the key.  Without a key every step does nothing.
 """
 
@@ -22,8 +22,9 @@ import hashlib
 import json
 import time
 
+from fastmesh_jobs.store import Store
+
 from .errors import ApiError
-from .store import Store
 
 IDEMPOTENCY_WAIT = 5.0  # seconds a retry waits for the job of a request holding the same Idempotency-Key
 

@@ -1,7 +1,7 @@
 """``GET /v1/jobs``: an API key's jobs, newest first, a page at a time.
 
 The store indexes each key's jobs by creation time (``P:owned:<owner>``, a sorted set written with the job,
-:meth:`service.store.Store.create`).  A page walks that index from the cursor down; entries whose job has
+:meth:`fastmesh_jobs.store.Store.create`).  A page walks that index from the cursor down; entries whose job has
 expired or was deleted are dropped from it as they are met.  A status filter reads at most
 :data:`SCAN_BUDGET` entries per page, so a page of a rare status may hold fewer than ``limit`` jobs and
 still have a ``next_cursor``: a client reads on while ``next_cursor`` is not null.
@@ -13,9 +13,10 @@ import base64
 import binascii
 import math
 
+from fastmesh_jobs.store import Store
+
 from .deps import ID_RE
 from .errors import ApiError
-from .store import Store
 
 MAX_LIMIT = 100  # jobs on one page
 SCAN_BUDGET = 500  # index entries one page reads at most (a status filter skips the others)

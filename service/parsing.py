@@ -5,7 +5,8 @@ This module imports no web framework: it is what a child imports.
 
 from __future__ import annotations
 
-from fastmesh.io import Shape, load_shape
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Shape
 
 
 def input_info(filename: str, shape: Shape) -> dict:
@@ -19,12 +20,12 @@ def input_info(filename: str, shape: Shape) -> dict:
 
 def parse_upload(data: bytes, filename: str, max_points: int, max_faces: int, texture: bool = False
                  ) -> tuple[dict, bytes]:
-    """``(input facts, stored input bytes)`` of an upload; raises :class:`fastmesh.io.ShapeError`.
+    """``(input facts, stored input bytes)`` of an upload; raises :class:`fastmesh.shapes.shape.ShapeError`.
 
     A point cloud's normals are left as the file gives them: estimating them takes seconds for a large
     cloud and is the worker's.  ``texture``: keep a glTF's base-colour texture (``bake``).
     """
-    from .store import shape_to_bytes
+    from fastmesh_jobs.store import shape_to_bytes
 
     shape = load_shape(data, filename=filename, max_points=max_points, max_faces=max_faces, normals=False,
                        texture=texture)

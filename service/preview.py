@@ -2,7 +2,7 @@
 
 A preview shows the result mesh once the job has succeeded, and the input (point cloud or dense
 mesh) before that, or when the job failed or was cancelled, so a client always has something to
-show.  Rendering is :mod:`fastmesh.render` (numpy z-buffer, CPU only), and ``input.ply`` a sample of the
+show.  Rendering is :mod:`fastmesh.preview.render` (numpy z-buffer, CPU only), and ``input.ply`` a sample of the
 stored input, both in a small pool of memory-capped child processes (:mod:`service.render_pool`), so the API's
 memory does not grow with the inputs; both take one of ``max_concurrent_renders`` slots, and a request
 waiting for one holds no input in memory.  Concurrent requests for the same overlay share one sample.
@@ -29,12 +29,13 @@ import anyio
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
 
+from fastmesh_jobs.store import Store
+
 from .children import ChildFailed, ChildShapeError
 from .deps import JobId, Owner, StoreDep, owned_job
 from .errors import ApiError
 from .render_pool import RenderPool
 from .schemas import error_responses
-from .store import Store
 
 # KEYS: the job's hash, its preview hash.  ARGV: field, PNG, ttl.  A render that finishes after the job was
 # deleted must not leave its PNG behind: the preview is cached only while the job exists.

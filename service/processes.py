@@ -16,32 +16,20 @@ import subprocess
 import sys
 import tempfile
 import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 
 import httpx
 import redis
 
-from .settings import Settings
+from fastmesh_jobs.runtime import wait_for
+from fastmesh_jobs.settings import Settings
 
 
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def wait_for(pred: Callable[[], object], timeout: float = 20.0, interval: float = 0.05, what: str = "condition"):
-    """Poll ``pred`` until it returns something truthy; return that.  TimeoutError names ``what``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = pred()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"timed out after {timeout:g} s waiting for {what}")
-        time.sleep(interval)
 
 
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
@@ -136,11 +124,6 @@ def local_redis(db: int) -> tuple[str, RedisServer | None]:
     except redis.RedisError:
         server = RedisServer()
         return server.url.rsplit("/", 1)[0] + f"/{db}", server
-
-
-# ``fastmesh-worker``'s exit status after a job met a GPU error (``worker.jobs.is_device_error``): the job was
-# failed or requeued, and the process left because its CUDA context is unusable.  A supervisor restarts it.
-WORKER_EXIT_DEVICE_ERROR = 3
 
 
 def worker_command() -> list[str]:

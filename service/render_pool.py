@@ -9,8 +9,6 @@ module imports no web framework: it is what a child imports.
 
 from __future__ import annotations
 
-import numpy as np
-
 from .children import CappedPool
 
 TASKS_PER_CHILD = 50  # a child is replaced after this many renders: what its allocator kept goes with it
@@ -22,11 +20,10 @@ def render_blob(blob: bytes, of: str, size: int, wireframe: bool) -> bytes:
     """PNG bytes of a stored result (``of == "result"``: npz of vertices and faces) or input (a Shape's npz).
 
     A result without faces (a degenerate generation) is drawn as its vertices, so the preview still
-    shows what came out.  Raises :class:`fastmesh.io.ShapeError` when there is nothing drawable.
+    shows what came out.  Raises :class:`fastmesh.shapes.shape.ShapeError` when there is nothing drawable.
     """
-    from fastmesh.render import render_mesh, render_points, render_shape, to_png
-
-    from .store import mesh_from_bytes, shape_from_bytes
+    from fastmesh.preview.render import render_mesh, render_points, render_shape, to_png
+    from fastmesh_jobs.store import mesh_from_bytes, shape_from_bytes
 
     if of == "result":
         vertices, faces = mesh_from_bytes(blob)
@@ -38,30 +35,10 @@ def render_blob(blob: bytes, of: str, size: int, wireframe: bool) -> bytes:
     return to_png(img)
 
 
-def overlay_points(shape, n: int) -> np.ndarray:
-    """Up to ``n`` points of an input shape, (n, 3) float32, input frame: evenly picked points of a cloud,
-    area-weighted surface samples of a mesh (its vertices cluster where detail is, not where the surface is)."""
-    from fastmesh.io import sample_triangles
-
-    if shape.faces is None:
-        v = shape.vertices
-        idx = np.arange(len(v)) if len(v) <= n else np.linspace(0, len(v) - 1, n).astype(np.int64)
-        return v[idx].astype(np.float32)
-    points, _ = sample_triangles(np.asarray(shape.vertices, np.float64), shape.faces, n, np.random.default_rng(0))
-    return points
-
-
-def points_ply(points: np.ndarray) -> bytes:
-    """Binary little-endian PLY of (N, 3) points (float32 x, y, z), the format three.js's PLYLoader reads."""
-    p = np.ascontiguousarray(points, dtype="<f4")
-    header = (f"ply\nformat binary_little_endian 1.0\ncomment fastmesh input points\nelement vertex {len(p)}\n"
-              "property float x\nproperty float y\nproperty float z\nend_header\n")
-    return header.encode("ascii") + p.tobytes()
-
-
 def overlay_blob(blob: bytes, n: int) -> bytes:
     """``input.ply``: up to ``n`` points of a stored input (a Shape's npz) as a binary PLY."""
-    from .store import shape_from_bytes
+    from fastmesh.preview.overlay import overlay_points, points_ply
+    from fastmesh_jobs.store import shape_from_bytes
 
     return points_ply(overlay_points(shape_from_bytes(blob), n))
 

@@ -23,8 +23,10 @@ from pathlib import Path
 import numpy as np
 import redis
 
-from .processes import WORKER_EXIT_DEVICE_ERROR, ApiProcess, RedisServer, WorkerProcess, wait_for
-from .settings import Settings
+from fastmesh_jobs.runtime import WORKER_EXIT_DEVICE_ERROR, wait_for
+from fastmesh_jobs.settings import Settings
+
+from .processes import ApiProcess, RedisServer, WorkerProcess
 
 # A worker that dies (OOM, kill -9) or leaves after a GPU error (exit status WORKER_EXIT_DEVICE_ERROR: its CUDA
 # context is unusable, the job it ran is failed or requeued) is started again, after 1, 2, 4, ... s; one that

@@ -61,7 +61,7 @@ class InputInfo(BaseModel):
 
 
 class Quality(BaseModel):
-    """How far the result lies from the input and what its topology is (fastmesh.quality)."""
+    """How far the result lies from the input and what its topology is (fastmesh.evaluation.quality)."""
 
     cd: float = Field(description="Chamfer distance between result and input, % of the input's longest side.")
     hd: float = Field(description="Hausdorff distance between result and input, % of the input's longest side.")

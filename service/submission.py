@@ -11,9 +11,10 @@ import threading
 
 from fastapi import UploadFile
 
+from fastmesh_jobs.settings import Settings
+from fastmesh_jobs.store import Store
+
 from .errors import ApiError
-from .settings import Settings
-from .store import Store
 from .webhooks import UnsafeUrl, new_webhook, vet_at_submit
 
 

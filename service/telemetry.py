@@ -12,7 +12,7 @@ import logging
 from prometheus_client import CollectorRegistry, Counter, Histogram, disable_created_metrics, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
 
-from .store import DISTANCE_BUCKETS, STAGE_BUCKETS, Store
+from fastmesh_jobs.store import DISTANCE_BUCKETS, STAGE_BUCKETS, Store
 
 log = logging.getLogger("fastmesh.service")
 disable_created_metrics()  # the *_created series only add noise to every scrape

@@ -1,7 +1,7 @@
 """Webhooks: a job submitted with ``callback_url`` is POSTed there, signed, when it succeeds, fails or is cancelled.
 
 The job's final transition queues the delivery in Redis (``P:webhooks``, job id -> when due) in the same
-step as the status change (:meth:`service.store.Store.finish`), so no delivery is lost with a process.
+step as the status change (:meth:`fastmesh_jobs.store.Store.finish`), so no delivery is lost with a process.
 A dispatcher thread in each API process (:func:`dispatch_loop`) claims due entries and delivers them from a
 few threads of its own: workers never wait on a receiver.  A claim is a lease: a dispatcher that dies
 mid-delivery leaves the entry due again :data:`LEASE_SECONDS` later, so delivery is at least once.
@@ -35,8 +35,8 @@ from urllib.parse import urlsplit
 import httpcore
 import httpx
 
-from .settings import Settings
-from .store import FINAL, Store, iso
+from fastmesh_jobs.settings import Settings
+from fastmesh_jobs.store import FINAL, Store, iso
 
 log = logging.getLogger("fastmesh.webhooks")
 

@@ -2,8 +2,8 @@
 
 Point clouds of smooth analytic surfaces (ellipsoids, tori, wavy spheres, superellipsoids: no plane to rebuild
 them from, so the vertex decoder runs) at varied sizes, point counts, noise, poses and units; meshes of the same
-surfaces and of posed primitives (``fastmesh.primitives``: a flat-faced one is rebuilt from its planes); and the
-artist meshes of ``tests/data/corpus``.  Each comes with its own ``GenerateParams`` (seed, candidates, sampling,
+surfaces and of posed primitives (``fastmesh.evaluation.primitives``: a flat-faced one is rebuilt from its planes);
+and the artist meshes of ``tests/data/corpus``.  Each comes with its own ``GenerateParams`` (seed, candidates, sampling,
 now and then a face-count target).  Nothing here depends on files outside the repository.
 """
 
@@ -13,9 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fastmesh.io import Shape, load_shape
+from fastmesh.evaluation.primitives import RANDOM_KINDS, posed, random_shape
 from fastmesh.params import GenerateParams
-from fastmesh.primitives import RANDOM_KINDS, posed, random_shape
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Shape
 
 SMOOTH = ("ellipsoid", "torus", "wavy", "superellipsoid")
 CORPUS = Path(__file__).parent / "data" / "corpus"

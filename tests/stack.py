@@ -18,8 +18,9 @@ import httpx
 import numpy as np
 import redis
 
-from service.processes import WorkerProcess, local_redis, wait_for
-from service.settings import Settings
+from fastmesh_jobs.runtime import wait_for
+from fastmesh_jobs.settings import Settings
+from service.processes import WorkerProcess, local_redis
 
 DB = int(os.environ.get("FASTMESH_TEST_STACK_DB", "12"))
 # Fast failure detection and no rate limits: the tests make hundreds of requests in seconds.

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from fastmesh.metrics import edges_from_faces
+from fastmesh.faces.meshops import edges_from_faces
 from fastmesh.tokenizer import dequantize, quantize_mesh
 from fastmesh.tokenizer.grid import CELL
 from fastmesh.training.augment import AugmentConfig, perturb_vertex_set

@@ -33,8 +33,9 @@ from schemathesis.specs.openapi.checks import (
 )
 from stack import assert_error, make_settings, post, sphere_points, wait_final, wp, xyz_bytes
 
-from fastmesh.io import SUPPORTED_FORMATS
-from service.processes import ServedApp, wait_for
+from fastmesh.shapes.shape import SUPPORTED_FORMATS
+from fastmesh_jobs.runtime import wait_for
+from service.processes import ServedApp
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 LIMITS = dict(max_points=20_000, max_faces=40_000, max_upload_bytes=2_000_000, max_queue_depth=1000)
@@ -411,8 +412,9 @@ def test_worker_still_serves_after_everything(served):
 
 
 def test_io_guards_count_before_parsing():
-    """The checks added to fastmesh.io for the bombs above, at the library level."""
-    from fastmesh.io import ShapeError, load_shape
+    """The checks added to fastmesh.shapes.io for the bombs above, at the library level."""
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     # Comment and blank lines do not count as points; one point more than the limit does.
     ok = b"# header\n\n" * 50 + xyz_bytes(sphere_points(100))
@@ -440,7 +442,8 @@ def test_io_guards_count_before_parsing():
 def test_io_textured_obj_and_old_gltf():
     """Found with the assimp corpus: a textured OBJ needed an image library (PIL) only to copy its material;
     glTF 1.0 got a misleading message."""
-    from fastmesh.io import ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     obj = (b"mtllib missing.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nvt 1 0\nvt 0 1\nusemtl skin\n"
            b"f 1/1 2/2 3/3\nf 1/1 2/2 4/3\no second\nusemtl other\nf 1/1 3/3 4/2\n")
@@ -508,7 +511,8 @@ def test_text_points_end_lines_only_where_the_line_count_does():
     """A 1.2 MB file of carriage-return lines is refused by the count, before any parsing allocates."""
     import tracemalloc
 
-    from fastmesh.io import ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     tracemalloc.start()
     try:
@@ -529,7 +533,8 @@ def test_text_points_end_lines_only_where_the_line_count_does():
 def test_gltf_instances_are_counted_before_flattening():
     import tracemalloc
 
-    from fastmesh.io import ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     three = load_shape(instanced_glb(3), "three.glb")
     assert len(three.vertices) == 3 * 642  # what the count below multiplies: one copy per node
@@ -551,7 +556,7 @@ def test_gltf_instances_are_counted_before_flattening():
 
 def test_zero_or_nan_normals_are_estimated_not_taken():
     """All-zero normal columns mean "no normals": taken as given they all pointed one way ((0, 0, 1))."""
-    from fastmesh.io import estimate_normals, load_shape
+    from fastmesh.shapes.io import estimate_normals, load_shape
 
     pts = sphere_points(300, center=(0, 0, 0))
     zero = load_shape(npy_bytes(np.hstack([pts, np.zeros_like(pts)])), "z.npy")
@@ -566,7 +571,8 @@ def test_zero_or_nan_normals_are_estimated_not_taken():
 
 
 def test_truncated_binary_ply_says_what_is_missing():
-    from fastmesh.io import ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     data = trimesh.creation.box().export(file_type="ply")
     # The body is 8 x 12 bytes of vertices and 12 x 13 of triangles: 252 bytes.
@@ -583,7 +589,8 @@ INTERNALS = ("Error", "NoneType", "subscriptable", "unexpected length", "'quad'"
 
 def test_parser_errors_are_worded_for_people():
     """Damaged files of every format: each refusal names the problem, never a parser's internals."""
-    from fastmesh.io import ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     rng = np.random.default_rng(1)
     messages = {}

@@ -10,12 +10,12 @@ import trimesh
 from test_batched_decode import _inputs, _model, _Spy
 
 from fastmesh.batch import Batch
-from fastmesh.io import Shape
+from fastmesh.evaluation.primitives import point_cloud, primitive
 from fastmesh.models.generate import Cancelled, SamplingConfig, StackedEvidence, generate
 from fastmesh.models.onnx_decode import OrtDecoder
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import STAGES, Pipeline
-from fastmesh.primitives import point_cloud, primitive
+from fastmesh.shapes.shape import Shape
 from fastmesh.tokenizer import vertex as vt
 
 torch.set_num_threads(1)

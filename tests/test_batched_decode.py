@@ -7,7 +7,8 @@ import pytest
 import torch
 from test_cells import _cell_grids
 
-from fastmesh.io import Normalization, input_surface
+from fastmesh.evaluation.primitives import point_cloud, primitive
+from fastmesh.faces.support import surface_fit
 from fastmesh.models.cells import flat_index
 from fastmesh.models.encoder import EncoderConfig
 from fastmesh.models.evidence import GAIN
@@ -16,8 +17,8 @@ from fastmesh.models.onnx_decode import NumpyCache, OrtDecoder
 from fastmesh.models.vertex import VertexConfig, VertexDecoder
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.primitives import point_cloud, primitive
-from fastmesh.support import surface_fit
+from fastmesh.shapes.io import input_surface
+from fastmesh.shapes.shape import Normalization
 from fastmesh.tokenizer import vertex as vt
 
 torch.set_num_threads(1)

@@ -7,8 +7,8 @@ import httpx
 import pytest
 from stack import assert_error, make_settings, post, sphere_points, xyz_bytes
 
+from fastmesh_jobs.store import Store
 from service.processes import ServedApp
-from service.store import Store
 
 BALLS = [xyz_bytes(sphere_points(seed=i)) for i in range(4)]
 
@@ -107,7 +107,7 @@ def test_one_file_field_per_job_and_files_for_a_batch(idle):
 def test_a_failure_while_creating_deletes_the_jobs_made(idle, monkeypatch):
     """The queue filling between the check and the second job (other submissions racing): the first job is
     deleted, and the batch is answered 429 as a whole."""
-    from service.store import QueueFull
+    from fastmesh_jobs.store import QueueFull
 
     store = idle.app.state.store
     real, calls = store.create, []

@@ -173,8 +173,8 @@ def test_generate_with_perturbed_counts_gives_a_mesh(shipped, monkeypatch, delta
     """The shipped weights (cells, counts and sequence tables) end to end, every other count read by a table
     moved by ``delta`` first (all of them NaN would read as "nothing anywhere" and end the sequence at once): the
     decode completes with a valid mesh."""
+    from fastmesh.evaluation.primitives import point_cloud, primitive
     from fastmesh.pipeline import GenerateParams
-    from fastmesh.primitives import point_cloud, primitive
 
     exact = evidence_module._level
 
@@ -190,8 +190,8 @@ def test_generate_with_perturbed_counts_gives_a_mesh(shipped, monkeypatch, delta
 
 def test_generate_with_nan_cell_scores_gives_a_mesh(shipped, monkeypatch):
     """A third of the cell network's log-odds NaN: those cells are never drawn, the rest decodes as usual."""
+    from fastmesh.evaluation.primitives import point_cloud, primitive
     from fastmesh.pipeline import GenerateParams
-    from fastmesh.primitives import point_cloud, primitive
 
     grid = shipped.cells.grid
 

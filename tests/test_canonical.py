@@ -1,4 +1,4 @@
-"""The canonical frame (fastmesh.canonical) on shapes drawn at random: boxes, prisms and point clouds of them."""
+"""The canonical frame (fastmesh.shapes.canonical) on shapes drawn at random: boxes, prisms and point clouds of them."""
 
 from __future__ import annotations
 
@@ -6,10 +6,16 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh import canonical
-from fastmesh.canonical import aligned_share, aligned_share_bound, canonical_rotation, rotate_shape, turned_degrees
-from fastmesh.io import Shape
-from fastmesh.primitives import point_cloud
+from fastmesh.evaluation.primitives import point_cloud
+from fastmesh.shapes import canonical
+from fastmesh.shapes.canonical import (
+    aligned_share,
+    aligned_share_bound,
+    canonical_rotation,
+    rotate_shape,
+    turned_degrees,
+)
+from fastmesh.shapes.shape import Shape
 
 
 def _random_box(rng: np.random.Generator) -> tuple[trimesh.Trimesh, np.ndarray]:

@@ -1,4 +1,4 @@
-"""Closure (fastmesh.closure): deciding from the input whether to close, and closing what step 6 left open."""
+"""Closure (fastmesh.faces.closure): deciding from the input whether to close, and closing what step 6 left open."""
 
 from __future__ import annotations
 
@@ -7,13 +7,15 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from fastmesh.closure import _winding, close_loops, decide_closed, mesh_open_share, winding_closed_share
-from fastmesh.io import Shape, sample_surface
-from fastmesh.primitives import point_cloud
-from fastmesh.quality import topology
-from fastmesh.support import support_limit
-from fastmesh.surface_triangles import _Selection, vertex_frames
-from fastmesh.triangles import orient_faces
+from fastmesh.evaluation.primitives import point_cloud
+from fastmesh.evaluation.quality import topology
+from fastmesh.faces.closure import _winding, close_loops, decide_closed, mesh_open_share, winding_closed_share
+from fastmesh.faces.selection import Selection
+from fastmesh.faces.support import support_limit
+from fastmesh.faces.surface_triangles import vertex_frames
+from fastmesh.faces.triangles import orient_faces
+from fastmesh.shapes.io import sample_surface
+from fastmesh.shapes.shape import Shape
 
 
 def _closed_shapes(rng: np.random.Generator) -> list[trimesh.Trimesh]:
@@ -106,8 +108,8 @@ def _holed(m: trimesh.Trimesh, rng: np.random.Generator, holes: int) -> np.ndarr
     return f[~gone]
 
 
-def _book(v: np.ndarray, f: np.ndarray, pts: np.ndarray) -> _Selection:
-    book = _Selection(v, vertex_frames(v, pts, cKDTree(pts)), 30.0)
+def _book(v: np.ndarray, f: np.ndarray, pts: np.ndarray) -> Selection:
+    book = Selection(v, vertex_frames(v, pts, cKDTree(pts)), 30.0)
     for t in f.tolist():
         book.add(*t)
     return book
@@ -169,7 +171,7 @@ def test_an_opening_of_the_input_stays_open():
 def test_a_loop_no_triangulation_closes_gets_a_fan_about_an_input_point(monkeypatch):
     """Where no triangulation of a loop's own vertices fits, the loop is joined to a new vertex: the input
     point nearest its middle.  (The triangulations are refused here to reach that step.)"""
-    import fastmesh.closure as closure
+    import fastmesh.faces.closure as closure
 
     monkeypatch.setattr(closure, "_close_loop", lambda *a, **k: None)
     monkeypatch.setattr(closure, "_best_triangulation", lambda *a, **k: None)

@@ -10,9 +10,10 @@ import pytest
 import trimesh
 from testdata import TEST_CORPUS, manifest
 
-from fastmesh.data import build_dataset, dataset_stats, in_validation, load_dataset
-from fastmesh.io import Normalization, load_shape
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Normalization
 from fastmesh.tokenizer import quantize_mesh
+from fastmesh.training.data import build_dataset, dataset_stats, in_validation, load_dataset
 
 # The committed base meshes with animation poses (a pose shares its base's group).
 POSED = sorted({r["group"] for r in manifest() if r["kind"] == "pose"})
@@ -116,7 +117,7 @@ def test_split_by_package_holds_out_whole_packages(mini_corpus, tmp_path):
 
 def test_cli_default_holds_out_the_validation_packages_present(mini_corpus, tmp_path, capsys):
     from fastmesh.cli import main
-    from fastmesh.data import VAL_PACKAGES
+    from fastmesh.training.data import VAL_PACKAGES
 
     assert not set(VAL_PACKAGES) & {"ufoai-data", "megaglest-data"}  # none present: a split by group
     assert main(["data", "build", str(mini_corpus), "-o", str(tmp_path / "a.npz"), "--workers", "1"]) == 0

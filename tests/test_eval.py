@@ -1,4 +1,4 @@
-"""``fastmesh.eval`` end to end: the vertex-stage metrics in the per-mesh rows and the summary."""
+"""``fastmesh.evaluation.eval`` end to end: the vertex-stage metrics in the per-mesh rows and the summary."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import pytest
 import torch
 import trimesh
 
-from fastmesh.eval import artist_vertices, evaluate_end_to_end, pair_inputs
-from fastmesh.io import load_shape, sample_surface
+from fastmesh.evaluation.eval import artist_vertices, evaluate_end_to_end, pair_inputs
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
+from fastmesh.shapes.io import load_shape, sample_surface
 
 torch.set_num_threads(1)
 

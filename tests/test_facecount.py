@@ -12,13 +12,13 @@ import trimesh
 
 from fastmesh.cli import main
 from fastmesh.cli.generate import faces_text
-from fastmesh.facecount import KEEP, TOLERANCE, decimate, hold_count, input_samples, split_longest
-from fastmesh.io import Shape
+from fastmesh.evaluation.primitives import CURVED_KINDS, coarse_copy, curved_input, point_cloud
+from fastmesh.evaluation.quality import mesh_quality, topology
+from fastmesh.faces.facecount import KEEP, TOLERANCE, decimate, hold_count, input_samples, split_longest
+from fastmesh.faces.triangles import TriangleConfig
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.primitives import CURVED_KINDS, coarse_copy, curved_input, point_cloud
-from fastmesh.quality import mesh_quality, topology
-from fastmesh.triangles import TriangleConfig
+from fastmesh.shapes.shape import Shape
 
 torch.set_num_threads(1)
 

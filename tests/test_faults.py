@@ -1,5 +1,5 @@
 """Faults with real processes: a worker SIGKILLed under load, Redis restarted with jobs queued, the API
-restarted while jobs run, 200 jobs submitted at once.  The clients are :mod:`fastmesh.loadtest` users
+restarted while jobs run, 200 jobs submitted at once.  The clients are :mod:`fastmesh.remote.loadtest` users
 (upload, poll with back-off, download; 429/5xx/refused connections retried), so "nothing lost" is what a
 real client would see, and Redis is read afterwards to check no job ran to a result twice.
 
@@ -17,8 +17,9 @@ import pytest
 import redis
 from stack import DB, forget_run, make_settings, wp, write_inputs
 
-from fastmesh.loadtest import LoadConfig, run
-from service.processes import ApiProcess, RedisServer, ServedApp, local_redis, wait_for
+from fastmesh.remote.loadtest import LoadConfig, run
+from fastmesh_jobs.runtime import wait_for
+from service.processes import ApiProcess, RedisServer, ServedApp, local_redis
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fastmesh.filtering import (
+from fastmesh.evaluation.metrics import edge_metrics
+from fastmesh.faces.filtering import (
     FilterConfig,
     adjacency_bandwidth,
     band_mask,
@@ -15,7 +16,7 @@ from fastmesh.filtering import (
     predict_edges,
     rcm_order,
 )
-from fastmesh.metrics import edge_metrics, edges_from_faces
+from fastmesh.faces.meshops import edges_from_faces
 
 
 def _shuffled_grid(k: int, seed: int):

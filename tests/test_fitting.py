@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fastmesh.fitting import FitConfig, distinct, fit_radius, fit_samples, fit_to_planes
-from fastmesh.io import Shape
+from fastmesh.shapes.shape import Shape
 
 
 def _cube_samples(n: int = 60000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

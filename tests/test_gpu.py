@@ -20,11 +20,11 @@ import pytest
 import torch
 from gpu_inputs import smooth_cloud, varied
 
-from fastmesh.io import Normalization
 from fastmesh.models.generate import StackedEvidence, generate
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.request import Frame
+from fastmesh.shapes.shape import Normalization
 
 pytestmark = pytest.mark.gpu
 CUDA = torch.cuda.is_available()

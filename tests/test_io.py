@@ -9,16 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.io import (
-    EXPORT_FORMATS,
-    Normalization,
-    Shape,
-    ShapeError,
-    export_mesh,
-    load_shape,
-    sample_surface,
-    write_mesh,
-)
+from fastmesh.shapes.io import export_mesh, load_shape, sample_surface, write_mesh
+from fastmesh.shapes.shape import EXPORT_FORMATS, Normalization, Shape, ShapeError
 
 
 def _box():

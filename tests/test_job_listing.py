@@ -9,9 +9,9 @@ import httpx
 import pytest
 from stack import assert_error, make_settings, post, sphere_points, xyz_bytes
 
+from fastmesh_jobs.store import Store
 from service.listing import SCAN_BUDGET, decode_cursor, encode_cursor
 from service.processes import ServedApp
-from service.store import Store
 
 BALL = xyz_bytes(sphere_points())
 ONE = {"Authorization": "Bearer key-one"}

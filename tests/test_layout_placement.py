@@ -1,4 +1,4 @@
-"""origin, height and up (fastmesh.placement) through the Python API and the CLI, checked on the bounds of the
+"""origin, height and up (fastmesh.export.placement) through the Python API and the CLI, checked on the bounds of the
 files written; the CLI's --topology, --uv and --bake."""
 
 from __future__ import annotations
@@ -9,15 +9,15 @@ import json
 import numpy as np
 import pytest
 import trimesh
-from test_layout import glb_json, textured_box_glb
 from test_quads import read_obj, read_ply
+from test_uv_layout import glb_json, textured_box_glb
 
-from fastmesh import layout
 from fastmesh.cli import main
-from fastmesh.io import Shape
+from fastmesh.export import layout
+from fastmesh.export.placement import placement, turn_up
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.placement import placement, turn_up
+from fastmesh.shapes.shape import Shape
 
 CENTER, EXTENTS = np.array([5.0, -2.0, 1.0]), np.array([1.0, 2.0, 3.0])  # the box: x 4.5..5.5, y -3..-1, z -0.5..2.5
 

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import trimesh
 from stack import assert_error, make_settings, post, wait_final, wp
-from test_layout import COLOURS, glb_json, side_of, textured_box_glb
 from test_quads import read_obj, read_ply
+from test_uv_layout import COLOURS, glb_json, side_of, textured_box_glb
 
-from fastmesh.bake import sample
-from fastmesh.layout import overlap_share
+from fastmesh.export.bake import sample
+from fastmesh.export.layout import overlap_share
 from service.processes import ServedApp
 
 
@@ -107,7 +107,7 @@ def test_a_batch_takes_the_same_fields(served):
 
 def test_cli_submit_and_the_python_client(served, tmp_path, capsys):
     from fastmesh.cli import main
-    from fastmesh.client import Client
+    from fastmesh.remote.client import Client
 
     src = tmp_path / "crate.obj"
     src.write_bytes(trimesh.creation.box(extents=(1, 2, 3)).export(file_type="obj").encode())

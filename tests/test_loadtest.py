@@ -11,7 +11,7 @@ import httpx
 import pytest
 from stack import make_settings, wp, write_inputs
 
-from fastmesh.loadtest import LoadConfig, format_report, percentiles, run, summarize
+from fastmesh.remote.loadtest import LoadConfig, format_report, percentiles, run, summarize
 from service.processes import ServedApp, free_port
 
 

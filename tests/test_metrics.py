@@ -6,19 +6,20 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.io import ShapeError, sample_triangles
-from fastmesh.metrics import (
+from fastmesh.evaluation.metrics import (
     CELL,
     chamfer,
     distance_to_triangles,
     edge_metrics,
-    edges_from_faces,
     hausdorff,
     nearest_distances,
     normalized_samples,
     surface_distance,
     vertex_metrics,
 )
+from fastmesh.faces.meshops import edges_from_faces
+from fastmesh.shapes.io import sample_triangles
+from fastmesh.shapes.shape import ShapeError
 
 
 def _box(extents=(1.0, 1.0, 1.0)):
@@ -177,7 +178,7 @@ def test_distance_to_triangles_matches_dense_sampling():
     assert (exact <= approx + 1e-6).all()
     assert np.abs(exact - approx).max() < 0.02
     # Brute force over every triangle agrees with the pruned search.
-    from fastmesh.metrics import _point_triangle
+    from fastmesh.evaluation.metrics import _point_triangle
 
     brute = _point_triangle(np.repeat(pts, len(f), 0), np.tile(v[f], (len(pts), 1, 1))).reshape(len(pts), -1)
     assert np.allclose(exact, brute.min(1), atol=1e-12)

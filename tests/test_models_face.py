@@ -9,8 +9,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from fastmesh.filtering import FilterConfig, band_mask
-from fastmesh.metrics import edges_from_faces
+from fastmesh.faces.filtering import FilterConfig, band_mask
+from fastmesh.faces.meshops import edges_from_faces
 from fastmesh.models.encoder import EncoderConfig
 from fastmesh.models.face import OUTSIDE, FaceModel, FaceModelConfig, asymmetric_loss, mask_spans
 from fastmesh.tokenizer import quantize_mesh

@@ -1,4 +1,4 @@
-"""Whole results (fastmesh.pieces): pinched vertices split per fan, stray pieces dropped."""
+"""Whole results (fastmesh.faces.pieces): pinched vertices split per fan, stray pieces dropped."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.pieces import drop_strays, split_pinches
-from fastmesh.quality import topology
+from fastmesh.evaluation.quality import topology
+from fastmesh.faces.pieces import drop_strays, split_pinches
 
 
 def _boxes(offsets, sizes=None) -> trimesh.Trimesh:
@@ -63,7 +63,7 @@ def test_strays_go_smallest_first_down_to_the_inputs_pieces():
 
 def test_vertices_far_from_the_input_are_pulled_onto_it_and_only_those():
     """A vertex beyond the limit moves onto its nearest surface sample; the others and the faces stay."""
-    from fastmesh.pieces import FAR_CELLS, far_limit, pull_in
+    from fastmesh.faces.pieces import FAR_CELLS, far_limit, pull_in
     from fastmesh.tokenizer.grid import CELL
 
     rng = np.random.default_rng(0)
@@ -79,7 +79,7 @@ def test_vertices_far_from_the_input_are_pulled_onto_it_and_only_those():
 @pytest.mark.parametrize("scale", [1e-6, 1.0, 1e155])
 def test_pulling_in_works_at_any_scale(scale):
     """Distances are measured in the surface's unit cube: coordinates near 1e155 (squared: inf) still move."""
-    from fastmesh.pieces import far_limit, pull_in
+    from fastmesh.faces.pieces import far_limit, pull_in
 
     rng = np.random.default_rng(1)
     surface = np.c_[rng.uniform(0, 10, (200, 2)), np.zeros(200)] * scale
@@ -93,7 +93,7 @@ def test_pulling_in_works_at_any_scale(scale):
 
 def test_an_edge_crowded_with_faces_keeps_its_two_largest():
     """Four faces on the edge 0-1 (vertices made one can do that): the two largest stay, the others' edges too."""
-    from fastmesh.pieces import thin_crowded_edges
+    from fastmesh.faces.pieces import thin_crowded_edges
 
     v = np.array([[0, 0, 0], [1, 0, 0], [0.5, 3, 0], [0.5, -2, 0], [0.5, 0, 1], [0.5, 0, -0.5]], dtype=float)
     f = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4], [1, 0, 5], [1, 2, 4]])
@@ -112,8 +112,8 @@ def test_making_whole_keeps_a_split_pinch_apart_when_it_welds_pulled_vertices():
     vertex pulled onto the square, and the welding of pulled vertices leaves the pinch's two copies apart."""
     from types import SimpleNamespace
 
-    from fastmesh.io import Normalization, Shape
     from fastmesh.pipeline import _whole
+    from fastmesh.shapes.shape import Normalization, Shape
 
     rng = np.random.default_rng(0)
     square = np.c_[rng.uniform(-2, 2, (4000, 2)), np.zeros(4000)]

@@ -14,16 +14,18 @@ import pytest
 import torch
 import trimesh
 
-from fastmesh.filtering import FilterConfig
+from fastmesh.evaluation.primitives import point_cloud
+from fastmesh.evaluation.quality import mesh_quality
+from fastmesh.faces import mesh_from_adjacency
+from fastmesh.faces.filtering import FilterConfig
+from fastmesh.faces.support import surface_fit
+from fastmesh.faces.triangles import TriangleConfig
 from fastmesh.fitting import FitConfig
-from fastmesh.io import Shape, load_shape, sample_surface
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Cancelled, GenerationError, Pipeline, default_weights_dir
-from fastmesh.primitives import point_cloud
-from fastmesh.quality import mesh_quality
-from fastmesh.support import surface_fit
+from fastmesh.shapes.io import load_shape, sample_surface
+from fastmesh.shapes.shape import Shape
 from fastmesh.tokenizer.grid import CELL
-from fastmesh.triangles import TriangleConfig, mesh_from_adjacency
 
 torch.set_num_threads(1)
 
@@ -77,7 +79,7 @@ def test_a_low_poly_mesh_input_comes_back_as_it_is_unless_a_count_is_asked(pipe)
 def test_a_turned_shape_is_also_made_in_its_canonical_frame(pipe, monkeypatch):
     """A box turned at an angle is made in its own frame and in its oriented box's, each turned back to the
     input's frame; an axis-aligned one only once."""
-    from fastmesh.canonical import canonical_rotation, frame_normals
+    from fastmesh.shapes.canonical import canonical_rotation, frame_normals
 
     calls = []
     made = pipe._frame
@@ -154,7 +156,7 @@ def test_vertices_fitted_onto_one_point_become_one(monkeypatch):
     from scipy.spatial import cKDTree
 
     import fastmesh.pipeline as pipeline_module
-    from fastmesh.primitives import point_cloud, primitive
+    from fastmesh.evaluation.primitives import point_cloud, primitive
 
     seen = []
 

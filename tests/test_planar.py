@@ -1,4 +1,4 @@
-"""Piecewise-planar inputs rebuilt from their planes (``fastmesh.planar``), on families drawn at random."""
+"""Piecewise-planar inputs rebuilt from their planes (``fastmesh.shapes.planar``), on families drawn at random."""
 
 from __future__ import annotations
 
@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.io import Normalization, Shape
+from fastmesh.evaluation.primitives import point_cloud, posed, random_shape
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.planar import polyhedron
-from fastmesh.primitives import point_cloud, posed, random_shape
+from fastmesh.shapes.planar import polyhedron
+from fastmesh.shapes.shape import Normalization, Shape
 
 
 def _rebuilt(mesh: Shape, seed: int, noise: float = 0.0):

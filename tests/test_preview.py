@@ -1,7 +1,7 @@
 """``GET /v1/jobs/{id}/preview.png`` and ``.../input.ply`` over real HTTP against real Redis.
 
 No worker here: a job's input is what POST /v1/jobs stored; a "finished" job is made by writing
-what a worker writes (start, result npz, finish) through :class:`service.store.Store`, so each
+what a worker writes (start, result npz, finish) through :class:`fastmesh_jobs.store.Store`, so each
 case is exact and fast.  The worker path end to end is in ``test_web_browser.py``.
 
 Redis: database ``FASTMESH_TEST_WEB_REDIS_DB`` (default 9) of 127.0.0.1:6379.  Never flushed: every
@@ -23,13 +23,13 @@ import redis
 import trimesh
 from test_render import decode_png
 
+from fastmesh_jobs.settings import Settings
+from fastmesh_jobs.store import Store, mesh_to_bytes
 from service.preview import cache_field, cache_key
 from service.processes import ServedApp, local_redis
-from service.settings import Settings
-from service.store import Store, mesh_to_bytes
 
 DB = int(os.environ.get("FASTMESH_TEST_WEB_REDIS_DB", "9"))
-BACKGROUND = np.round(np.array([0.965, 0.968, 0.975]) * 255)  # fastmesh.render.RenderConfig.background
+BACKGROUND = np.round(np.array([0.965, 0.968, 0.975]) * 255)  # fastmesh.preview.render.RenderConfig.background
 
 
 def sphere_xyz(n: int = 400) -> bytes:
@@ -355,7 +355,8 @@ def test_render_processes_end_with_the_api_process_even_when_it_is_killed():
     import time
     from pathlib import Path
 
-    code = ("import trimesh\nfrom service.render_pool import RenderPool\nfrom service.store import mesh_to_bytes\n"
+    code = ("import trimesh\nfrom service.render_pool import RenderPool\n"
+            "from fastmesh_jobs.store import mesh_to_bytes\n"
             "m = trimesh.creation.box()\npool = RenderPool(2)\n"
             "print(len(pool.render('result', mesh_to_bytes(m.vertices, m.faces), 64, False, 60)), flush=True)\n"
             "import time; time.sleep(120)\n")

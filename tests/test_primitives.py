@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.primitives import LADDER, N_POINTS, point_cloud, primitive, prism
+from fastmesh.evaluation.primitives import LADDER, N_POINTS, point_cloud, primitive, prism
 
 # name: (vertices, faces, volume)
 EXPECTED = {
@@ -66,9 +66,9 @@ def test_shipped_weights_give_the_flat_rungs_back_small_and_closed(name):
     within one 7-bit cell of each of its own."""
     from scipy.spatial import cKDTree
 
-    from fastmesh.io import Normalization
     from fastmesh.params import GenerateParams
     from fastmesh.pipeline import Pipeline
+    from fastmesh.shapes.shape import Normalization
     from fastmesh.tokenizer.grid import CELL
 
     mesh = primitive(name)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.io import Shape
 from fastmesh.pipeline import GenerateParams, Pipeline
 from fastmesh.progress import STAGES, Progress
+from fastmesh.shapes.shape import Shape
 
 ORDER = [name for name, _, _ in STAGES]
 

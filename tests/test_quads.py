@@ -1,5 +1,5 @@
-"""topology=quad: triangles paired into quads (fastmesh.quads), written as 4-corner faces to OBJ and PLY by
-fastmesh.meshfiles, read back here by parsers of the tests' own."""
+"""topology=quad: triangles paired into quads (fastmesh.export.quads), written as 4-corner faces to OBJ and PLY by
+fastmesh.export.meshfiles, read back here by parsers of the tests' own."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from fastmesh.io import Shape
-from fastmesh.output import MeshOut
+from fastmesh.export.output import MeshOut
+from fastmesh.export.quads import QuadConfig, interior_pairs, pair_triangles, quad_corners, quad_share
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.quads import QuadConfig, interior_pairs, pair_triangles, quad_corners, quad_share
+from fastmesh.shapes.shape import Shape
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,5 @@
 """topology=quad with the face model's evidence: its flat 4-cliques (four sides predicted, the diagonal not)
-become quads before the shape rule pairs the rest (fastmesh.quads.pair_triangles), and the evidence reaches the
+become quads before the shape rule pairs the rest (fastmesh.export.quads.pair_triangles), and the evidence reaches the
 pairing through the pipeline."""
 
 from __future__ import annotations
@@ -9,12 +9,13 @@ import pytest
 import trimesh
 from testdata import committed_meshes
 
-import fastmesh.output
-from fastmesh.io import Shape, load_shape
-from fastmesh.output import finish
+import fastmesh.export.output
+from fastmesh.export.output import finish
+from fastmesh.export.quads import EdgeEvidence, QuadConfig, flat_cliques, pair_triangles, quad_corners
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.quads import EdgeEvidence, QuadConfig, flat_cliques, pair_triangles, quad_corners
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Shape
 
 SURE = 9.0  # a logit the model is sure of: probability 0.9999
 
@@ -112,7 +113,7 @@ def test_the_face_stages_evidence_reaches_the_pairing(monkeypatch):
         seen.append((np.array(vertices), np.array(faces), evidence))
         return pair_triangles(vertices, faces, config, evidence)
 
-    monkeypatch.setattr(fastmesh.output, "pair_triangles", spy)
+    monkeypatch.setattr(fastmesh.export.output, "pair_triangles", spy)
     artist = load_shape(next(p for p in committed_meshes() if "chicken" in p.name))
     m = trimesh.Trimesh(artist.vertices, artist.faces, process=False)
     points, index = trimesh.sample.sample_surface(m, 4096, seed=0)

@@ -1,4 +1,4 @@
-"""The per-result quality report (fastmesh.quality) against independent computations on known meshes."""
+"""The per-result quality report (fastmesh.evaluation.quality) against independent computations on known meshes."""
 
 from __future__ import annotations
 
@@ -7,10 +7,11 @@ import pytest
 import trimesh
 from trimesh.grouping import group_rows
 
-from fastmesh.io import Shape, sample_surface
-from fastmesh.metrics import surface_distance
-from fastmesh.primitives import point_cloud
-from fastmesh.quality import input_pieces, mesh_quality, topology
+from fastmesh.evaluation.metrics import surface_distance
+from fastmesh.evaluation.primitives import point_cloud
+from fastmesh.evaluation.quality import input_pieces, mesh_quality, topology
+from fastmesh.shapes.io import sample_surface
+from fastmesh.shapes.shape import Shape
 
 KEYS = {"cd", "hd", "boundary_edges", "non_manifold_edges", "non_manifold_vertices", "components", "pieces",
         "watertight", "input_pieces"}

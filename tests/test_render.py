@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.io import Shape, ShapeError
-from fastmesh.render import (
+from fastmesh.preview.render import (
     DEFAULT_CONFIG,
     RenderConfig,
     fit_camera,
@@ -20,6 +19,7 @@ from fastmesh.render import (
     render_shape,
     to_png,
 )
+from fastmesh.shapes.shape import Shape, ShapeError
 
 SIZE = 96
 BG = np.rint(np.asarray(DEFAULT_CONFIG.background) * 255).astype(np.uint8)

@@ -9,11 +9,12 @@ import pytest
 import trimesh
 
 from fastmesh import request as request_module
-from fastmesh.facecount import count_rule
-from fastmesh.io import Shape, sample_surface
+from fastmesh.faces.facecount import count_rule
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.request import PLANAR_SAMPLES, Frame, Request
+from fastmesh.shapes.io import sample_surface
+from fastmesh.shapes.shape import Shape
 
 
 @pytest.fixture(scope="module")

@@ -18,10 +18,10 @@ import pytest
 import trimesh
 from gpu_inputs import varied
 
-from fastmesh.io import Shape
+from fastmesh.evaluation.primitives import posed
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.primitives import posed
+from fastmesh.shapes.shape import Shape
 
 STORED = Path(__file__).parent / "data" / "same_meshes.npz"
 PICKED = (0, 3, 4, 6, 9)  # of varied(12, seed=9): ellipsoid cloud, box mesh, torus cloud with target, f13, wavy

@@ -18,10 +18,10 @@ import trimesh
 from stack import DB, forget_run, make_settings, post, sphere_points, wait_final, wp, xyz_bytes
 from testdata import committed_meshes
 
-from fastmesh.io import load_shape
 from fastmesh.pipeline import GenerateParams, Pipeline
+from fastmesh.shapes.io import load_shape
+from fastmesh_jobs.store import Store, mesh_from_bytes
 from service.processes import ServedApp, local_redis
-from service.store import Store, mesh_from_bytes
 
 PARAMS = {"seed": 3, "max_vertices": 20}
 

@@ -18,10 +18,11 @@ import trimesh
 from scipy.spatial import cKDTree
 from stack import flushed_redis
 
-from service import store as store_module
-from service.processes import ServedApp, WorkerProcess, wait_for
-from service.settings import Settings
-from service.store import Store
+from fastmesh_jobs import store as store_module
+from fastmesh_jobs.runtime import wait_for
+from fastmesh_jobs.settings import Settings
+from fastmesh_jobs.store import Store
+from service.processes import ServedApp, WorkerProcess
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 

@@ -21,8 +21,8 @@ import redis
 from stack import assert_error, make_settings, post, sphere_points, xyz_bytes
 
 import service.http
+from fastmesh_jobs.store import Store, shape_from_bytes
 from service.processes import RedisServer, ServedApp
-from service.store import Store, shape_from_bytes
 
 KEY = "attack-test-key"
 

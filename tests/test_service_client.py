@@ -1,4 +1,4 @@
-"""``fastmesh.client`` and ``fastmesh submit`` against a served API with a real worker."""
+"""``fastmesh.remote.client`` and ``fastmesh submit`` against a served API with a real worker."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import redis
 import trimesh
 from test_service_api import make_settings, sphere_xyz
 
-from fastmesh.client import Client, JobFailed, ServiceError
+from fastmesh.remote.client import Client, JobFailed, ServiceError
 from service.processes import ServedApp, WorkerProcess, free_port, local_redis
 
 DB = int(os.environ.get("FASTMESH_TEST_REDIS_DB", "13"))

@@ -13,9 +13,9 @@ import pytest
 from stack import assert_error, make_settings, post, sphere_points, xyz_bytes
 
 import service.render_pool
+from fastmesh_jobs.settings import Settings, settings_table
+from fastmesh_jobs.store import Store, mesh_to_bytes
 from service.processes import ServedApp
-from service.settings import Settings, settings_table
-from service.store import Store, mesh_to_bytes
 
 KEY, KEY2 = "limits-test-key", "limits-test-key-2"
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -179,10 +179,10 @@ def test_a_preview_finished_after_its_job_was_deleted_is_not_cached(open_api, mo
 
 def test_readme_lists_every_setting():
     """README's settings table is ``settings_table()``: regenerate it with
-    ``python -c 'from service.settings import settings_table; print(settings_table())'``."""
+    ``python -c 'from fastmesh_jobs.settings import settings_table; print(settings_table())'``."""
     readme = README.read_text()
     table = settings_table()
-    assert table in readme, "README's settings table differs from service.settings.settings_table()"
+    assert table in readme, "README's settings table differs from fastmesh_jobs.settings.settings_table()"
     for name in Settings.model_fields:
         assert re.search(rf"`FASTMESH_{name.upper()}`", readme), name
 

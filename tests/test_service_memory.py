@@ -24,11 +24,13 @@ from hostile import (
 )
 from stack import assert_error, make_settings, sphere_points, xyz_bytes
 
-import fastmesh.io
-import fastmesh.precheck
-from fastmesh.io import ShapeError, load_shape
+import fastmesh.shapes.io
+import fastmesh.shapes.precheck
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import ShapeError
+from fastmesh_jobs.runtime import wait_for
 from service.children import CappedPool, ChildFailed
-from service.processes import ServedApp, wait_for
+from service.processes import ServedApp
 
 MIB = 1024 * 1024
 
@@ -135,7 +137,7 @@ def no_parser(monkeypatch):
     def refuse(*_):
         raise AssertionError("the parser ran")
 
-    monkeypatch.setattr(fastmesh.io, "_load_trimesh", refuse)
+    monkeypatch.setattr(fastmesh.shapes.io, "_load_trimesh", refuse)
 
 
 def test_glb_accessors_with_a_one_byte_stride_are_refused(no_parser):
@@ -172,7 +174,7 @@ def test_a_gltf_of_many_empty_objects_is_refused_before_it_is_parsed(monkeypatch
     def refuse(*_):
         raise AssertionError("the JSON was parsed")
 
-    monkeypatch.setattr(fastmesh.precheck.json, "loads", refuse)
+    monkeypatch.setattr(fastmesh.shapes.precheck.json, "loads", refuse)
     with pytest.raises(ShapeError) as e:
         load_shape(gltf_empty_nodes(600_000), filename="j.gltf")
     assert e.value.code == "too_large" and "JSON" in e.value.message
@@ -204,7 +206,7 @@ def test_normal_estimation_takes_memory_in_blocks():
 
     import numpy as np
 
-    from fastmesh.io import estimate_normals
+    from fastmesh.shapes.io import estimate_normals
 
     points = np.random.default_rng(0).normal(size=(200_000, 3))
     tracemalloc.start()

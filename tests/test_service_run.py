@@ -14,7 +14,8 @@ from pathlib import Path
 import trimesh
 from stack import printed
 
-from service.processes import free_port, wait_for
+from fastmesh_jobs.runtime import wait_for
+from service.processes import free_port
 
 
 def children(pid: int) -> list[int]:

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.simplify import collapse_flat
-from fastmesh.triangles import TriangleConfig, mesh_from_adjacency
+from fastmesh.faces import mesh_from_adjacency
+from fastmesh.faces.simplify import collapse_flat
+from fastmesh.faces.triangles import TriangleConfig
 
 
 def _kept(faces: np.ndarray) -> int:

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from fastmesh.io import ShapeError, load_shape
-from fastmesh.sniff import sniff_format
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import ShapeError
+from fastmesh.shapes.sniff import sniff_format
 
 NOTE = b"Shapes for the chair project.\nAsk Ana before changing them.\n"
 

@@ -205,10 +205,10 @@ def test_cuda_graph_gives_the_eager_static_steps_tokens(temperature):
 
 
 def test_the_pipeline_decodes_with_static_shapes_when_asked_and_greedy_gives_the_eager_mesh(monkeypatch):
+    from fastmesh.evaluation.primitives import point_cloud, primitive
     from fastmesh.models.onnx_decode import choose_decoder
     from fastmesh.params import GenerateParams
     from fastmesh.pipeline import Pipeline
-    from fastmesh.primitives import point_cloud, primitive
 
     m = _model(0)
     monkeypatch.setenv("FASTMESH_DECODER", "static")

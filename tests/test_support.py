@@ -1,12 +1,14 @@
-"""Faces checked against the input surface (fastmesh.support)."""
+"""Faces checked against the input surface (fastmesh.faces.support)."""
 
 import numpy as np
 import trimesh
 
-from fastmesh.io import Shape, input_surface, sample_triangles
-from fastmesh.metrics import edges_from_faces
-from fastmesh.support import SupportCache, drop_unsupported, support_distance, surface_fit
-from fastmesh.triangles import TriangleConfig, mesh_from_adjacency
+from fastmesh.faces import mesh_from_adjacency
+from fastmesh.faces.meshops import edges_from_faces
+from fastmesh.faces.support import SupportCache, drop_unsupported, support_distance, surface_fit
+from fastmesh.faces.triangles import TriangleConfig
+from fastmesh.shapes.io import input_surface, sample_triangles
+from fastmesh.shapes.shape import Shape
 
 
 def _grid(n: int, x0: float, x1: float) -> np.ndarray:

@@ -11,14 +11,15 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from fastmesh import holes
-from fastmesh import surface_triangles as sf
 from fastmesh.cli import main
-from fastmesh.io import Normalization
-from fastmesh.metrics import mesh_topology
-from fastmesh.support import SupportCache, support_distance, support_limit
+from fastmesh.evaluation.metrics import mesh_topology
+from fastmesh.faces import holes, mesh_from_adjacency
+from fastmesh.faces import surface_triangles as sf
+from fastmesh.faces.selection import Selection
+from fastmesh.faces.support import SupportCache, support_distance, support_limit
+from fastmesh.faces.triangles import TriangleConfig
+from fastmesh.shapes.shape import Normalization
 from fastmesh.tokenizer import dequantize, quantize_mesh
-from fastmesh.triangles import TriangleConfig, mesh_from_adjacency
 
 PRIMITIVES = {
     "box": lambda: trimesh.creation.box(),
@@ -118,9 +119,9 @@ def test_folded_faces_are_not_both_selected():
     assert sorted(map(tuple, np.sort(f, 1).tolist())) == [(0, 1, 2), (0, 2, 3)]
 
 
-def _book(vertices, frames, faces) -> sf._Selection:
+def _book(vertices, frames, faces) -> Selection:
     """The selection's bookkeeping holding ``faces`` (fold angle 30 degrees)."""
-    book = sf._Selection(vertices, frames, 30.0)
+    book = Selection(vertices, frames, 30.0)
     for t in np.asarray(faces).tolist():
         book.add(*t)
     return book
@@ -346,7 +347,7 @@ def test_selection_keeps_its_boundary_while_faces_come_and_go():
     """``open`` (each vertex's neighbours across an edge of one face) against the edges ``third`` holds
     in exactly one face, after a shuffled run of additions and removals."""
     m, pts = _primitive("icosphere2")
-    book = sf._Selection(m.vertices, np.full((len(m.vertices), 2, 3), np.nan), 30.0)
+    book = Selection(m.vertices, np.full((len(m.vertices), 2, 3), np.nan), 30.0)
     rng = np.random.default_rng(1)
     faces = np.asarray(m.faces).tolist()
     present = []

@@ -5,10 +5,10 @@ from __future__ import annotations
 import torch
 
 import fastmesh.batch as batch
+from fastmesh.evaluation.primitives import point_cloud, primitive
 from fastmesh.models.onnx_decode import OrtDecoder
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.primitives import point_cloud, primitive
 
 
 def test_the_decoder_runs_on_one_thread_and_the_other_stages_on_the_pipelines_count(monkeypatch):

@@ -16,11 +16,11 @@ import torch
 from safetensors.numpy import load_file
 
 from fastmesh.cli import main
-from fastmesh.data import build_dataset, load_dataset
 from fastmesh.models.checkpoint import load_model
 from fastmesh.tokenizer import quantize
 from fastmesh.tokenizer.grid import LEVELS, N_CELLS
 from fastmesh.training.augment import apply_symmetry, grid_symmetry, symmetric_cells
+from fastmesh.training.data import build_dataset, load_dataset
 from fastmesh.training.tasks import dense_cells, sparse_cells
 
 CORPUS = Path(__file__).resolve().parents[2] / "shared" / "corpus"

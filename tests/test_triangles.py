@@ -10,9 +10,11 @@ import scipy.sparse as sp
 import trimesh
 from testdata import committed_meshes, shared_corpus_sample
 
-from fastmesh import triangles as fm
-from fastmesh.io import Normalization, load_shape
-from fastmesh.metrics import edges_from_faces
+from fastmesh.faces import mesh_from_adjacency
+from fastmesh.faces import triangles as fm
+from fastmesh.faces.meshops import edges_from_faces, remove_unreferenced, triangle_areas
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import Normalization
 from fastmesh.tokenizer import dequantize, quantize_mesh
 
 
@@ -131,17 +133,17 @@ def test_orientation_inverted_parts_and_open_surface():
 def test_mesh_from_adjacency_recovers_sphere():
     s = trimesh.creation.icosphere(subdivisions=2)
     adj = edges_from_faces(s.faces)
-    v, f = fm.mesh_from_adjacency(s.vertices, adj)
+    v, f = mesh_from_adjacency(s.vertices, adj)
     m = trimesh.Trimesh(v, f, process=False)
     assert len(f) == len(s.faces) and m.is_winding_consistent and m.volume > 0
-    v3, f3 = fm.mesh_from_adjacency(np.concatenate([s.vertices, [[9, 9, 9]]]), adj,
+    v3, f3 = mesh_from_adjacency(np.concatenate([s.vertices, [[9, 9, 9]]]), adj,
                                     fm.TriangleConfig(remove_unreferenced=True, drop_coplanar_diagonals=True))
     assert len(v3) == len(s.vertices) and len(f3) == len(s.faces)
 
 
 def test_remove_unreferenced():
     v = np.arange(15, dtype=float).reshape(5, 3)
-    nv, nf, kept = fm.remove_unreferenced(v, np.array([[4, 1, 3]]))
+    nv, nf, kept = remove_unreferenced(v, np.array([[4, 1, 3]]))
     assert kept.tolist() == [1, 3, 4] and nf.tolist() == [[2, 0, 1]] and np.array_equal(nv, v[[1, 3, 4]])
 
 
@@ -161,8 +163,8 @@ def test_corpus_ground_truth_triangles_recovered(path):
     # Clean-up only removes triangles, and never a ground-truth face of non-zero area.  (The removal of flat
     # vertices, its last step, replaces faces by larger ones: tests/test_simplify.py.)
     x = dequantize(q)
-    v, out = fm.mesh_from_adjacency(x, edges_from_faces(f), fm.TriangleConfig(flat_tol=None))
-    nonzero = f[fm.triangle_areas(x, f) > 1e-10]
+    v, out = mesh_from_adjacency(x, edges_from_faces(f), fm.TriangleConfig(flat_tol=None))
+    nonzero = f[triangle_areas(x, f) > 1e-10]
     assert np.isin(key(nonzero), key(out)).all()
     assert len(out) <= len(tri)
 
@@ -186,8 +188,8 @@ def test_mesh_from_adjacency_limits_faces_per_edge_when_asked():
     rng = np.random.default_rng(0)
     v = rng.normal(size=(5, 3))
     edges = np.array([(i, j) for i in range(5) for j in range(i + 1, 5)])
-    _, f_all = fm.mesh_from_adjacency(v, edges, fm.TriangleConfig(orient=False))
-    _, f_lim = fm.mesh_from_adjacency(v, edges, fm.TriangleConfig(orient=False, max_faces_per_edge=2))
+    _, f_all = mesh_from_adjacency(v, edges, fm.TriangleConfig(orient=False))
+    _, f_lim = mesh_from_adjacency(v, edges, fm.TriangleConfig(orient=False, max_faces_per_edge=2))
     assert len(f_all) == 10 and 0 < len(f_lim) < 10
     e = np.sort(np.concatenate([f_lim[:, [0, 1]], f_lim[:, [1, 2]], f_lim[:, [2, 0]]]), axis=1)
     assert np.unique(e, axis=0, return_counts=True)[1].max() <= 2

@@ -17,7 +17,7 @@ import httpx
 import pytest
 from test_preview import served, settings_for
 
-from fastmesh.facecount import TOLERANCE
+from fastmesh.faces.facecount import TOLERANCE
 from service.processes import local_redis
 from service.web.routes import THREE_DIR, WEB_DIR
 

@@ -24,9 +24,10 @@ import httpx
 import pytest
 from stack import assert_error, make_settings, post, sphere_points, wait_final, wp, xyz_bytes
 
+from fastmesh_jobs.runtime import wait_for
+from fastmesh_jobs.store import Store
 from service.errors import ApiError
-from service.processes import ServedApp, wait_for
-from service.store import Store
+from service.processes import ServedApp
 from service.submission import webhook_of
 from service.webhooks import _CLAIM, UnsafeUrl, attempt, is_public, sign, vet
 from service.webhooks import post as post_hook

@@ -16,7 +16,8 @@ import redis
 from stack import flushed_redis, printed
 from test_service_api import assert_error, make_settings, submit, wait_final
 
-from service.processes import ServedApp, WorkerProcess, wait_for
+from fastmesh_jobs.runtime import wait_for
+from service.processes import ServedApp, WorkerProcess
 
 DB = int(os.environ.get("FASTMESH_TEST_REDIS_DB", "13"))
 SLOW = "0.3"  # seconds per progress callback (~10 per job with the tiny model): jobs last seconds, not 0.1 s

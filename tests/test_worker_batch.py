@@ -15,11 +15,11 @@ from stack import flushed_redis
 from test_service_api import sphere_xyz, submit, wait_final
 from test_worker import DB, DOOMED, SLOW, Env, job, wait_running
 
-from fastmesh.io import with_normals
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from service.processes import wait_for
-from service.store import mesh_from_bytes, shape_from_bytes
+from fastmesh.shapes.io import with_normals
+from fastmesh_jobs.runtime import wait_for
+from fastmesh_jobs.store import mesh_from_bytes, shape_from_bytes
 
 BATCH = {"FASTMESH_MAX_BATCH": "4"}
 

@@ -3,7 +3,7 @@ batched (:class:`fastmesh.batch.Batch`).
 
 Continuous batching at the decoder's rounds: whenever a job ends, the next queued one is started and joins the
 next decode round, so the batch stays full while jobs wait.  Jobs are taken off RQ's queue by this loop itself
-(each entry names a job id and attempt: ``service.store.Store.enqueue``), not by RQ's SimpleWorker, which runs one
+(each entry names a job id and attempt: ``fastmesh_jobs.store.Store.enqueue``), not by RQ's SimpleWorker, which runs one
 job at a time; its entry is then deleted, as RQ does with a finished job (``result_ttl=0``).
 
 Each job's life is the one-at-a-time worker's (``worker.jobs``): started by the same compare-and-set, beaten by
@@ -25,8 +25,8 @@ from rq.exceptions import NoSuchJobError
 from rq.job import Job as RQJob
 
 from fastmesh.batch import Batch
-from service.processes import WORKER_EXIT_DEVICE_ERROR, wait_for
-from service.store import Store
+from fastmesh_jobs.runtime import WORKER_EXIT_DEVICE_ERROR, wait_for
+from fastmesh_jobs.store import Store
 
 from .jobs import STATE, Job, _redis_answers, _release, conclude, is_device_error, outcome_recorded, prepare
 

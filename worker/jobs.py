@@ -1,7 +1,7 @@
 """What a worker does with one job: the function RQ calls, and the per-process model cache.
 
 RQ carries only ``(job id, attempt)``.  The job's input, parameters and state live in Redis
-(:mod:`service.store`), so a worker on another machine needs nothing but the Redis URL.
+(:mod:`fastmesh_jobs.store`), so a worker on another machine needs nothing but the Redis URL.
 """
 
 from __future__ import annotations
@@ -21,10 +21,11 @@ from dataclasses import dataclass
 import redis
 from rq.timeouts import JobTimeoutException
 
-from fastmesh.io import ShapeError, with_normals
-from service.processes import wait_for
-from service.settings import Settings
-from service.store import Store, mesh_to_bytes, shape_from_bytes, timeout_error
+from fastmesh.shapes.io import with_normals
+from fastmesh.shapes.shape import ShapeError
+from fastmesh_jobs.runtime import wait_for
+from fastmesh_jobs.settings import Settings
+from fastmesh_jobs.store import Store, mesh_to_bytes, shape_from_bytes, timeout_error
 
 log = logging.getLogger("fastmesh.worker")
 
@@ -231,7 +232,7 @@ class Job:
     params: object  # GenerateParams
     formats: list[str]
     timings: dict[str, float]
-    shape: object = None  # fastmesh.io.Shape
+    shape: object = None  # fastmesh.shapes.shape.Shape
     error: Exception | None = None
     device_errors: int = 0  # device errors it met on earlier attempts
 

@@ -13,7 +13,7 @@ restarts it (``make run``, the compose file's ``restart`` policy, systemd's ``Re
 With ``FASTMESH_MAX_BATCH`` > 1 (unset: 8 on a GPU, 1 on a CPU) it runs that many jobs at once instead, their
 vertex decoding batched (``worker.batch``), with the same job life.
 
-Configuration: the ``FASTMESH_*`` environment (see ``service.settings.Settings``).
+Configuration: the ``FASTMESH_*`` environment (see ``fastmesh_jobs.settings.Settings``).
 """
 
 from __future__ import annotations
@@ -28,10 +28,10 @@ import redis
 from rq import SimpleWorker
 from rq.exceptions import StopRequested
 
-from service.processes import WORKER_EXIT_DEVICE_ERROR
-from service.reaper import reap_logged
-from service.settings import Settings
-from service.store import Store
+from fastmesh_jobs.reaper import reap_logged
+from fastmesh_jobs.runtime import WORKER_EXIT_DEVICE_ERROR
+from fastmesh_jobs.settings import Settings
+from fastmesh_jobs.store import Store
 
 from .batch import BatchWorker
 from .jobs import STATE

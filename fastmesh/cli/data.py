@@ -6,7 +6,7 @@ import json
 import sys
 import time
 
-from fastmesh.data import VAL_PACKAGES
+from fastmesh.training.data import VAL_PACKAGES
 
 
 def register(sub) -> None:
@@ -56,7 +56,7 @@ def register(sub) -> None:
 
 
 def _build(args) -> int:
-    from fastmesh.data import build_dataset
+    from fastmesh.training.data import build_dataset
 
     if args.max_vertices < 3:
         raise ValueError("--max-vertices must be at least 3")
@@ -79,15 +79,15 @@ def _build(args) -> int:
 
 
 def _stats(args) -> int:
-    from fastmesh.data import dataset_stats, load_dataset
+    from fastmesh.training.data import dataset_stats, load_dataset
 
     print(json.dumps(dataset_stats(load_dataset(args.file)), indent=2))
     return 0
 
 
 def _cells(args) -> int:
-    from fastmesh.data import build_cell_cache, load_dataset
     from fastmesh.models.checkpoint import load_model
+    from fastmesh.training.data import build_cell_cache, load_dataset
 
     net = load_model(args.weights, device="cpu")[0]  # forked workers score on the CPU
     if net.cfg.__class__.__name__ != "CellNetConfig":
@@ -104,8 +104,8 @@ def _cells(args) -> int:
 
 
 def _eval_set(args) -> int:
-    from fastmesh.data import load_dataset
-    from fastmesh.eval import export_eval_set
+    from fastmesh.evaluation.eval import export_eval_set
+    from fastmesh.training.data import load_dataset
 
     n = export_eval_set(load_dataset(args.file), args.source, args.out, split=args.split, n_points=args.points,
                         max_vertices=args.max_vertices or None, per_package=args.per_package or None,

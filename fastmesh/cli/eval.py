@@ -40,8 +40,8 @@ def register(sub) -> None:
 
 
 def _run(args) -> int:
-    from fastmesh.eval import evaluate_end_to_end, evaluate_gt_vertices, pair_inputs
-    from fastmesh.io import load_shape
+    from fastmesh.evaluation.eval import evaluate_end_to_end, evaluate_gt_vertices, pair_inputs
+    from fastmesh.shapes.io import load_shape
 
     pairs = pair_inputs(args.inputs, args.reference)
     if args.limit:

@@ -12,7 +12,7 @@ import json
 import sys
 import time
 
-from fastmesh.io import EXPORT_FORMATS
+from fastmesh.shapes.shape import EXPORT_FORMATS
 
 TIMING_KEYS = ("load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total")
 
@@ -46,7 +46,7 @@ def add_sampling_args(p) -> None:
 
 
 def add_output_args(p, defaults: bool = True) -> None:
-    """Flags of the written result (``fastmesh.output``), shared by ``generate`` and ``submit``; without
+    """Flags of the written result (``fastmesh.export.output``), shared by ``generate`` and ``submit``; without
     ``defaults`` an unset flag is None (the server's default)."""
     from fastmesh.params import ORIGIN_CHOICES, TOPOLOGY_CHOICES, UP_CHOICES, GenerateParams
 
@@ -88,7 +88,7 @@ def params_from_args(args):
 def faces_text(faces: int, quality: dict) -> str:
     """The faces of a result as the summaries print them: ``"812 faces"``, or with a face count asked for
     ``"812 / 1000 faces (within ±20 %)"`` (``quality``'s ``target_faces`` and ``target_met``)."""
-    from fastmesh.facecount import TOLERANCE
+    from fastmesh.faces.facecount import TOLERANCE
 
     target = quality.get("target_faces")
     if target is None:
@@ -119,7 +119,8 @@ def register(sub) -> None:
 
 
 def _run(args) -> int:
-    from fastmesh.io import ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     from .inputs import generate_jobs
 

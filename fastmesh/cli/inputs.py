@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fastmesh.io import EXPORT_FORMATS, SUPPORTED_FORMATS
+from fastmesh.shapes.shape import EXPORT_FORMATS, SUPPORTED_FORMATS
 
 TEXT_POINT_FORMATS = ("xyz", "txt")
 SNIFF_BYTES = 4096  # enough for a comment header and the first row of numbers

@@ -44,7 +44,7 @@ def _loadtest(args) -> int:
 
     import httpx
 
-    from fastmesh.loadtest import LoadConfig, format_report, input_files, run
+    from fastmesh.remote.loadtest import LoadConfig, format_report, input_files, run
 
     params = {k: str(getattr(args, k)) for k in PARAMS if getattr(args, k) is not None}
     if args.no_enhancer:

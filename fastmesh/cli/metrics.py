@@ -16,8 +16,9 @@ def register(sub) -> None:
 
 
 def _run(args) -> int:
-    from fastmesh.io import ShapeError, load_shape
-    from fastmesh.metrics import surface_distance
+    from fastmesh.evaluation.metrics import surface_distance
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import ShapeError
 
     if args.samples < 1:
         raise ValueError("--samples must be positive")

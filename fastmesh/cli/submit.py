@@ -39,7 +39,7 @@ def register(sub) -> None:
 
 
 def _submit(args) -> int:
-    from fastmesh.client import Client, ServiceError
+    from fastmesh.remote.client import Client, ServiceError
 
     from .generate import output_params
 

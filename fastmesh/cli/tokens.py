@@ -6,7 +6,7 @@ import json
 import sys
 from pathlib import Path
 
-from fastmesh.io import MESH_FORMATS
+from fastmesh.shapes.shape import MESH_FORMATS
 
 
 def register(sub) -> None:
@@ -30,7 +30,8 @@ def mesh_files(paths: list[str]) -> list[str]:
 
 def count_tokens(path: str) -> dict:
     """Token counts of one mesh file; ``{"file", "error", "code"}`` when it cannot be used."""
-    from fastmesh.io import Normalization, ShapeError, load_shape
+    from fastmesh.shapes.io import load_shape
+    from fastmesh.shapes.shape import Normalization, ShapeError
     from fastmesh.tokenizer import bpt, quantize_mesh, vanilla, vertex
 
     try:

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..filtering import FilterConfig, predict_edges
+from ..faces.filtering import FilterConfig, predict_edges
 from ..tokenizer.grid import dequantize
 from .backbone import VertexSetBackbone
 from .encoder import EncoderConfig

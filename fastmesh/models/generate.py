@@ -29,7 +29,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 
@@ -39,16 +38,20 @@ from .evidence import Evidence, read_counts
 from .kv_cache import KVCache
 from .vertex import VertexDecoder, add_count_bias, grammar_mask, grammar_mask_rows, grammar_state
 
-if TYPE_CHECKING:
-    from .onnx_decode import OrtDecoder
-
-
 PACE_SLACK = 4  # vertices a sequence may run ahead of pace x the cells' expected count
 KIND_EOS, KIND_BLOCK, KIND_OFFSET = 0, 1, 2  # token kinds of ``choose_next`` (PAD counts as EOS)
 
 
 class Cancelled(Exception):
     """Raised when a ``should_cancel`` callback asks generation to stop."""
+
+
+class GenerationError(RuntimeError):
+    """The networks ran but produced no usable mesh (``code`` says why)."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code, self.message = code, message
 
 
 class StackedEvidence:
@@ -207,8 +210,9 @@ def pace_mask(through: torch.Tensor, prev: torch.Tensor, n_vert: torch.Tensor) -
     return (prev >= vt.OFFSET0) & (n_vert >= through + PACE_SLACK)
 
 
-def new_cache(model: VertexDecoder | OrtDecoder, batch: int, length: int, device, dtype) -> KVCache:
-    """An empty cache of ``length`` positions for ``batch`` rows (another backend brings its own layout)."""
+def new_cache(model: VertexDecoder, batch: int, length: int, device, dtype) -> KVCache:
+    """An empty cache of ``length`` positions for ``batch`` rows (another backend, ``onnx_decode.OrtDecoder``,
+    brings its own layout)."""
     if hasattr(model, "new_cache"):  # models.onnx_decode
         return model.new_cache(batch, length, device, dtype)
     c = model.cfg
@@ -309,7 +313,7 @@ def sequences(tokens: torch.Tensor) -> list[torch.Tensor]:
 
 
 @torch.inference_mode()
-def generate(model: VertexDecoder | OrtDecoder, prefix: torch.Tensor, cfg: SamplingConfig,
+def generate(model: VertexDecoder, prefix: torch.Tensor, cfg: SamplingConfig,
              progress: Callable[[int, int], None] | None = None,
              should_cancel: Callable[[], bool] | None = None, progress_every: int = 16,
              evidence: Evidence | StackedEvidence | None = None, seeds: list[int] | None = None,

@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..io import sample_triangles
+from ..faces.meshops import face_sides
+from ..shapes.io import sample_triangles
 from ..tokenizer import dequantize, quantize_mesh
 from ..tokenizer.grid import LEVELS
 
@@ -110,7 +111,7 @@ def perturb_vertex_set(q: np.ndarray, faces: np.ndarray, cfg: AugmentConfig,
     n = len(q)
     if cfg.vertex_drop > 0 and len(f):
         drop = rng.random(n) < cfg.vertex_drop
-        e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        e = face_sides(f)
         e = np.concatenate([e, e[:, ::-1]])
         e = e[drop[e[:, 0]] & ~drop[e[:, 1]]]
         e = e[rng.permutation(len(e))]

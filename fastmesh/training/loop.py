@@ -26,9 +26,9 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from ..data import MeshDataset, load_dataset
 from ..models.checkpoint import config_from_dict, load_model, save_model
 from .augment import AugmentConfig
+from .data import MeshDataset, load_dataset
 from .prefetch import BatchMaker
 
 

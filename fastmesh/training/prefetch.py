@@ -17,7 +17,7 @@ from collections.abc import Iterator
 import numpy as np
 import torch
 
-from ..data import one_thread
+from .data import one_thread
 
 AHEAD = 3  # batches in flight per worker: enough to hide the variance of batch cost, bounded in memory
 

@@ -14,8 +14,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..filtering import adjacency_bandwidth, band_mask, edges_from_logits, neighbour_radius, rcm_order
-from ..metrics import edge_metrics, edges_from_faces
+from ..evaluation.metrics import edge_metrics
+from ..faces.filtering import adjacency_bandwidth, band_mask, edges_from_logits, neighbour_radius, rcm_order
+from ..faces.meshops import edges_from_faces
 from ..models.checkpoint import config_from_dict, registry
 from ..tokenizer import dequantize
 from ..tokenizer import vertex as vt

@@ -13,13 +13,14 @@ import contextlib
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse
 
+from fastmesh_jobs.settings import Settings
+from fastmesh_jobs.store import QueueFull, Store
+
 from ..deps import Owner, Parses, ParseSlots, SettingsDep, StoreDep
 from ..errors import ApiError
 from ..forms import safe_filename, strict_form
 from ..idempotency import Idempotency
 from ..schemas import Batch, error_responses
-from ..settings import Settings
-from ..store import QueueFull, Store
 from ..submission import charge, parse_slot, read_upload
 from .form import BatchForm
 from .jobs import create_once, fingerprinted, parse_timed, queue_full, submitted_params

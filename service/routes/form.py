@@ -15,9 +15,9 @@ from typing import Annotated, Literal
 from fastapi import Depends, File, Form, Header, UploadFile
 
 from fastmesh.params import BOUNDS
+from fastmesh_jobs.settings import Settings
 
 from ..forms import generation_defaults
-from ..settings import Settings
 
 DEFAULTS = generation_defaults()
 

@@ -1,6 +1,6 @@
 """The jobs resource: ``/v1/jobs`` to submit a shape, ``/v1/jobs/{id}`` to watch, download, cancel or delete it.
 
-Routes are thin: checks and answers here, the form in :mod:`.form`, state in :mod:`service.store`, the
+Routes are thin: checks and answers here, the form in :mod:`.form`, state in :mod:`fastmesh_jobs.store`, the
 ``Idempotency-Key`` protocol in :mod:`service.idempotency`, access (API key, rate limit, a job's owner) and the
 app's objects in :mod:`service.deps`.
 """
@@ -19,8 +19,10 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import Field, TypeAdapter, ValidationError
 
-from fastmesh.io import EXPORT_FORMATS
-from fastmesh.output import MeshOut
+from fastmesh.export.output import MeshOut
+from fastmesh.shapes.shape import EXPORT_FORMATS
+from fastmesh_jobs.settings import Settings
+from fastmesh_jobs.store import FINAL, STATUSES, QueueFull, Store
 
 from ..children import CappedPool, ChildFailed, ChildShapeError
 from ..deps import JobId, Owner, Parses, ParseSlots, SettingsDep, StoreDep, owned_job
@@ -30,8 +32,6 @@ from ..idempotency import Idempotency
 from ..listing import MAX_LIMIT, list_jobs
 from ..parsing import parse_upload
 from ..schemas import Job, JobPage, error_responses
-from ..settings import Settings
-from ..store import FINAL, STATUSES, QueueFull, Store
 from ..submission import charge, parse_slot, read_upload, webhook_of
 from .form import JobForm, Submission, formats_description
 

@@ -16,12 +16,12 @@ from pathlib import Path
 from fastapi import APIRouter
 from fastapi.responses import FileResponse, JSONResponse, Response
 
-from fastmesh.facecount import TOLERANCE
-from fastmesh.io import EXPORT_FORMATS, SUPPORTED_FORMATS
+from fastmesh.faces.facecount import TOLERANCE
 from fastmesh.params import BOUNDS
+from fastmesh.shapes.shape import EXPORT_FORMATS, SUPPORTED_FORMATS
+from fastmesh_jobs.settings import Settings
 
 from ..errors import ApiError
-from ..settings import Settings
 
 WEB_DIR = Path(__file__).resolve().parent
 STATIC_DIR = WEB_DIR / "static"

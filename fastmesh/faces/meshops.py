@@ -1,0 +1,133 @@
+"""Small operations on triangle meshes that the face stage, the measures and the tokenizers' tests share: a
+mesh's sides and edges, the faces on each edge, areas, welding, unused vertices, the fans around each vertex
+and the pieces joined edge to edge.  Faces are (F, 3) int arrays, vertices (N, 3) float arrays."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+
+def face_sides(faces: np.ndarray) -> np.ndarray:
+    """(3F, 2) int64 the sides of each face as it winds: all (0, 1) sides, then all (1, 2), then all (2, 0);
+    side ``i * F + k`` is side i of face k."""
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    return np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+
+
+def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) areas of ``vertices[faces]`` in squared input units."""
+    t = np.asarray(vertices, dtype=np.float64)[faces]
+    return 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+
+
+def remove_unreferenced(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Drop vertices no face uses.
+
+    Returns
+    -------
+    vertices : (M, 3), faces : (F, 3) remapped, kept : (M,) int64 original index of each kept vertex.
+    """
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    used = np.zeros(len(vertices), dtype=bool)
+    used[f.ravel()] = True
+    remap = np.cumsum(used) - 1
+    return np.asarray(vertices)[used], remap[f], np.flatnonzero(used)
+
+
+def edges_from_faces(faces: np.ndarray) -> np.ndarray:
+    """(F, 3) triangles -> (E, 2) int64 unique undirected edges, each (i, j) with i < j, sorted."""
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    e = face_sides(f)
+    return normalize_edges(e)
+
+
+def normalize_edges(edges: np.ndarray) -> np.ndarray:
+    """(E, 2) int pairs -> unique (i, j) rows with i < j, self-loops dropped, sorted."""
+    e = np.sort(np.asarray(edges, dtype=np.int64).reshape(-1, 2), axis=1)
+    e = e[e[:, 0] != e[:, 1]]
+    return np.unique(e, axis=0) if len(e) else e
+
+
+def edge_face_counts(faces: np.ndarray) -> np.ndarray:
+    """How many faces use each undirected edge.
+
+    Parameters
+    ----------
+    faces : (F, 3) int
+
+    Returns
+    -------
+    (E,) int64 : one count per distinct edge (order unspecified).
+    """
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    e = np.sort(face_sides(f), axis=1)
+    if len(e) == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.unique(e, axis=0, return_counts=True)[1].astype(np.int64)
+
+
+def corner_fans(faces: np.ndarray) -> np.ndarray:
+    """(3F,) the fan of each face corner around its vertex: corners of one vertex share a label exactly when
+    their faces are joined edge to edge around it.  Corner i of face k is entry ``i * F + k``.
+
+    Parameters
+    ----------
+    faces : (F, 3) int
+    """
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    # Each corner (v; x, y) joins the spokes v-x and v-y of v's fan: a vertex with one fan has one
+    # connected set of spokes.
+    corners = np.concatenate([f, f[:, [1, 2, 0]], f[:, [2, 0, 1]]])
+    spokes = np.concatenate([corners[:, [0, 1]], corners[:, [0, 2]]])
+    keys, ids = np.unique(spokes, axis=0, return_inverse=True)
+    ids = ids.reshape(-1)
+    half = len(corners)
+    graph = coo_matrix((np.ones(half, dtype=np.int8), (ids[:half], ids[half:])), shape=(len(keys), len(keys)))
+    return connected_components(graph, directed=False)[1][ids[:half]]
+
+
+def piece_labels(faces: np.ndarray) -> np.ndarray:
+    """(F,) the piece of each face (:func:`count_pieces`), labels 0 .. pieces - 1."""
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(f) == 0:
+        return np.zeros(0, dtype=np.int64)
+    e = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1), axis=2).reshape(-1, 2)
+    edge = np.unique(e, axis=0, return_inverse=True)[1].reshape(-1)
+    # Faces and edges as the nodes of one graph, each face joined to its three edges.
+    n = len(f) + int(edge.max()) + 1
+    graph = coo_matrix((np.ones(len(edge), dtype=np.int8), (np.repeat(np.arange(len(f)), 3), len(f) + edge)),
+                       shape=(n, n))
+    return connected_components(graph, directed=False)[1][:len(f)].astype(np.int64)
+
+
+def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6,
+         among: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A mesh's vertices within ``tol`` of its longest side of each other made one, and the faces that
+    collapse dropped: files split vertices along UV seams and hard edges, which are not openings.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float
+    faces : (F, 3) int
+    among : (N,) bool, optional: only these vertices are welded (to each other); the others stay apart even where
+        they coincide (the copies ``pieces.split_pinches`` makes of a pinched vertex)
+
+    Returns
+    -------
+    vertices : (M, 3) float64, the first of each welded group
+    faces : (F', 3) int64
+    """
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(v) == 0:
+        return v, f
+    extent = float(np.ptp(v, axis=0).max()) or 1.0
+    key = np.round((v - v.min(0)) / (extent * tol))
+    if among is not None:  # a vertex outside ``among`` is a group of its own
+        key = np.c_[key, np.where(among, -1, np.arange(len(v)))]
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    f = inverse.reshape(-1)[f]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    return v[first], f

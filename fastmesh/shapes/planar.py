@@ -1,0 +1,424 @@
+"""Piecewise-planar inputs rebuilt exactly: the planes found in the points, each plane's faces cut from the
+arrangement of its neighbours' lines, corners where three planes meet.
+
+A box, an L block or an extruded outline given as points is a handful of planes; its artist mesh is the
+polyhedron they bound, with a vertex exactly where three of them meet.  The decoder places vertices on a grid
+of 128 cells and only sees such shapes in the poses of its training data; this stage needs neither.  It follows
+PolyFit (Nan and Wonka, 2017): candidate faces from the arrangement of the planes' intersection lines, here each
+chosen by whether the plane's own points cover it, and the result kept only where it is closed and explains the
+points both ways (``polyhedron``).  Anything else (a curved part, noise beyond the tolerance, a face the points
+do not decide) gives None, and the networks make the mesh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+@dataclass(frozen=True)
+class PlanarConfig:
+    """Tolerances of :func:`polyhedron`, in the unit frame (the input's longest side 1) or in point spacings."""
+
+    tolerance: float = 2e-4  # a point lies on a plane within this distance (exact data: float32 rounding)
+    normal_degrees: float = 5.0  # ... and with its normal this close to the plane's
+    min_points: int = 12  # points a plane needs
+    inliers: float = 0.998  # share of the points the planes must explain
+    max_planes: int = 40
+    max_seeds: int = 60  # seed points that found no plane before the input is called curved
+    reach: float = 1.5  # cover and neighbour radius, in point spacings (median distance to the 8th neighbour)
+    max_vertices: int = 256
+    max_points: int = 20_000  # points read (a larger cloud is subsampled, fixed seed)
+
+
+def polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = PlanarConfig()
+               ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The closed polyhedron the planes of an oriented point cloud bound, or None where it is not one.
+
+    Parameters
+    ----------
+    points : (N, 3) float, in the unit frame (``shape.Normalization``)
+    normals : (N, 3) float, unit, pointing out of the shape (their sign orients the faces)
+    cfg : tolerances
+
+    Returns
+    -------
+    (V, 3) float64 vertices and (F, 3) int64 faces, closed, edge-manifold and consistently oriented, whose
+    surface and the points are within ``cfg.reach`` spacings of each other both ways; or None.
+    """
+    pts, nrm = _subsample(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.max_points)
+    found = detect_planes(pts, nrm, cfg)
+    if found is None:
+        return None
+    planes, labels = found
+    spacing = float(np.median(cKDTree(pts).query(pts, k=9)[0][:, -1]))
+    reach = cfg.reach * spacing
+    corners, loops = [], []
+    for k, near in enumerate(neighbour_planes(pts, labels, planes, reach)):
+        faces = plane_faces(k, planes, near, pts[labels == k], spacing, reach)
+        if faces is None:
+            return None
+        for outline in faces:
+            loops.append((k, [len(corners) + i for i in range(len(outline))]))
+            corners.extend(outline)
+    if not corners or len(corners) > 8 * cfg.max_vertices:
+        return None
+    # Planes fitted to samples cross a little apart where many meet (a cone's apex): corners within the plane
+    # tolerance are one vertex.
+    vertices, index = _merge(np.array(corners), cfg.tolerance)
+    if len(vertices) > cfg.max_vertices:
+        return None
+    faces = _triangulate(vertices, planes, [(k, _distinct(index[ring])) for k, ring in loops], cfg.tolerance)
+    if faces is None or not _closed(faces) or not _explains(vertices, faces, pts, reach):
+        return None
+    return vertices, faces
+
+
+def _distinct(ring: np.ndarray) -> np.ndarray:
+    """A ring of vertex ids without repeats in a row (corners that merged into one vertex, as at a cone's
+    apex, where several lines cross within rounding of each other)."""
+    return ring[ring != np.roll(ring, 1)] if len(ring) > 1 else ring
+
+
+def _subsample(points: np.ndarray, normals: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    if len(points) <= n:
+        return points, normals
+    keep = np.sort(np.random.default_rng(0).choice(len(points), n, replace=False))
+    return points[keep], normals[keep]
+
+
+def detect_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig
+                  ) -> tuple[np.ndarray, np.ndarray] | None:
+    """(N, 3) points and normals -> (K, 4) planes (unit normal n, offset d: n.x = d, n along the points'
+    normals) and (N,) the plane of each point, or None where planes leave more than ``1 - cfg.inliers`` of the
+    points unexplained.  Greedy: each unexplained point in turn seeds a plane from its own normal, refitted to
+    the points it gathers."""
+    cos = np.cos(np.radians(cfg.normal_degrees))
+    labels = np.full(len(points), -1)
+    planes, failed = [], 0
+    allowed = len(points) * (1 - cfg.inliers)
+    for seed in range(len(points)):
+        if (labels < 0).sum() <= allowed:
+            break
+        if labels[seed] >= 0:
+            continue
+        plane = _grow(points, normals, labels < 0, normals[seed], points[seed] @ normals[seed], cfg.tolerance, cos)
+        if plane is None or len(planes) == cfg.max_planes:
+            failed += 1
+            if failed > cfg.max_seeds or len(planes) == cfg.max_planes:
+                return None
+            continue
+        (n, d), members = plane
+        if (members.sum()) < cfg.min_points:
+            failed += 1
+            if failed > cfg.max_seeds:
+                return None
+            continue
+        labels[members] = len(planes)
+        planes.append(np.r_[n, d])
+    if (labels < 0).sum() > allowed or not planes:
+        return None
+    return np.array(planes), labels
+
+
+def _grow(points, normals, free, n, d, tol, cos):
+    """The plane a seed (normal ``n``, offset ``d``) grows to among the ``free`` points: its members refitted
+    by least squares twice.  Returns ((n, d), member mask), or None when it gathers under three points."""
+    for _ in range(2):
+        members = free & (np.abs(points @ n - d) < tol) & (np.abs(normals @ n) > cos)
+        if members.sum() < 3:
+            return None
+        mine = points[members]
+        centre = mine.mean(0)
+        fitted = np.linalg.svd(mine - centre, full_matrices=False)[2][-1]
+        n = fitted if fitted @ normals[members].sum(0) >= 0 else -fitted
+        d = float(n @ centre)
+    members = free & (np.abs(points @ n - d) < tol) & (np.abs(normals @ n) > cos)
+    return (n, d), members
+
+
+def neighbour_planes(points: np.ndarray, labels: np.ndarray, planes: np.ndarray, reach: float) -> list[set[int]]:
+    """For each plane, the planes that meet it: not parallel, with points of both within ``reach`` of each
+    other at three places or more."""
+    pairs = cKDTree(points).query_pairs(reach, output_type="ndarray")
+    a, b = labels[pairs[:, 0]], labels[pairs[:, 1]]
+    keep = (a >= 0) & (b >= 0) & (a != b)
+    found, count = np.unique(np.sort(np.c_[a[keep], b[keep]], axis=1), axis=0, return_counts=True)
+    near: list[set[int]] = [set() for _ in planes]
+    for (i, j), c in zip(found, count, strict=True):
+        if c >= 3 and abs(planes[i, :3] @ planes[j, :3]) < np.cos(np.radians(10)):
+            near[i].add(int(j))
+            near[j].add(int(i))
+    return near
+
+
+def plane_faces(k: int, planes: np.ndarray, near: set[int], points: np.ndarray, spacing: float, reach: float
+                ) -> list[np.ndarray] | None:
+    """The outlines of plane ``k``'s faces as (L, 3) corner rings in 3D, each corner where plane k meets two of
+    ``near``: the boundary of the cells of the arrangement of the lines where plane k meets them that its own
+    ``points`` cover (``chosen``; ``spacing``: the points' median distance to their 8th neighbour).  None where
+    a face reaches the box around the points (no neighbour bounds it) or two boundaries touch at a corner."""
+    n, d = planes[k, :3], planes[k, 3]
+    u = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
+    u /= np.linalg.norm(u)
+    basis = np.c_[u, np.cross(n, u)]  # (3, 2): u x v = n, so counter-clockwise in 2D is outward in 3D
+    flat = (points - n * d) @ basis
+    margin = 0.2 + 4 * reach
+    cells = [Cell.box(flat.min(0) - margin, flat.max(0) + margin)]
+    for j in sorted(near):  # plane j's line on plane k: n_j . (n d + basis @ x) = d_j
+        coef = planes[j, :3] @ basis
+        scale = np.linalg.norm(coef)
+        cells = [part for cell in cells for part in cell.split(j, coef / scale, (planes[j, 3] - d * planes[j, :3] @ n)
+                                                                / scale)]
+    rings = outline(cells, chosen(cells, flat, spacing))
+    if rings is None:
+        return None
+    out = []
+    for ring in rings:
+        lines = [line for _, line in ring]
+        if min(lines) < 0:  # an edge of the box around the points: no plane ends this face
+            return None
+        # A corner's 2D point is where two lines cross, so lifted it lies on plane k and both neighbours.
+        corners = [ring[i][0] for i in range(len(ring))
+                   if _turns(ring[i - 1][0], ring[i][0], ring[(i + 1) % len(ring)][0])]
+        out.append(n * d + np.array(corners) @ basis.T)
+    return out
+
+
+def _turns(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> bool:
+    """Whether a 2D boundary a -> b -> c turns at b (b is no point along one straight edge)."""
+    ab, bc = b - a, c - b
+    return abs(ab[0] * bc[1] - ab[1] * bc[0]) > 1e-10 * np.linalg.norm(ab) * np.linalg.norm(bc)
+
+
+class Cell:
+    """A convex cell of a plane's line arrangement: (m, 2) corners counter-clockwise, and for each the line its
+    edge to the next corner lies on (a plane's index; -1 for the box around the points)."""
+
+    def __init__(self, corners: np.ndarray, lines: list[int]):
+        self.corners, self.lines = corners, lines
+
+    @classmethod
+    def box(cls, lo: np.ndarray, hi: np.ndarray) -> Cell:
+        return cls(np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]]), [-1] * 4)
+
+    def split(self, line: int, normal: np.ndarray, offset: float) -> list[Cell]:
+        """The parts of the cell on either side of ``normal . x = offset`` (those with area)."""
+        side = self.corners @ normal - offset
+        side = np.where(np.abs(side) < 1e-12, 0.0, side)
+        if (side >= 0).all() or (side <= 0).all():  # the line misses the cell (or runs along an edge)
+            return [self]
+        parts = [self._keep(sign * side, line) for sign in (1.0, -1.0)]
+        return [p for p in parts if p is not None and p.area() > 1e-14]
+
+    def _keep(self, side: np.ndarray, line: int) -> Cell | None:
+        """The part where ``side`` (signed distances of the corners) is not negative (Sutherland-Hodgman)."""
+        corners, lines = [], []
+        for i in range(len(side)):
+            j = (i + 1) % len(side)
+            a, b = side[i], side[j]
+            cut = self.corners[i] + a / (a - b) * (self.corners[j] - self.corners[i]) if a * b < 0 else None
+            if a > 0:
+                corners.append(self.corners[i])
+                lines.append(self.lines[i])
+                if b < 0:
+                    corners.append(cut)
+                    lines.append(line)
+            elif a == 0:
+                corners.append(self.corners[i])
+                lines.append(self.lines[i] if b > 0 else line)
+            elif b > 0:
+                corners.append(cut)
+                lines.append(self.lines[i])
+        return Cell(np.array(corners), lines) if len(corners) >= 3 else None
+
+    def count(self, points: np.ndarray) -> int:
+        """How many of the (N, 2) points lie inside the cell."""
+        edge = np.roll(self.corners, -1, axis=0) - self.corners
+        rel = points[:, None, :] - self.corners[None]
+        return int(((edge[None, :, 0] * rel[..., 1] - edge[None, :, 1] * rel[..., 0]) >= 0).all(1).sum())
+
+    def area(self) -> float:
+        x, y = self.corners.T
+        return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
+
+
+def chosen(cells: list[Cell], flat: np.ndarray, spacing: float) -> np.ndarray:
+    """(C,) which cells the plane's face covers.  A cell large enough to hold six points at the points' density
+    is in where it holds half of them; a smaller one (a sliver where lines cross near a corner) sides with the
+    decided cells it shares most edge length with, so such slivers never add corners of their own."""
+    density = 7.67 / (np.pi * spacing**2)  # a disc holding 7.67 points (Poisson) has the 8th neighbour's radius
+    state = np.full(len(cells), -1)
+    for i, c in enumerate(cells):
+        expected = density * c.area()
+        if expected >= 6:
+            state[i] = int(c.count(flat) >= 0.5 * expected)
+    shared = _shared_lengths(cells)
+    while (state < 0).any():
+        vote = {i: sum(length * (1 if state[j] else -1) for j, length in shared[i].items() if state[j] >= 0)
+                for i in np.nonzero(state < 0)[0]}
+        decided = {i: v for i, v in vote.items() if v != 0}
+        if not decided:
+            break
+        for i, v in decided.items():
+            state[i] = int(v > 0)
+    return state == 1
+
+
+def _shared_lengths(cells: list[Cell]) -> list[dict[int, float]]:
+    """For each cell, the length of edge it shares with each other cell."""
+    ids, allc = _corner_ids(cells)
+    owner, start = {}, 0
+    for i, c in enumerate(cells):
+        k = len(c.corners)
+        for e in range(k):
+            owner[(int(ids[start + e]), int(ids[start + (e + 1) % k]))] = (i, float(
+                np.linalg.norm(allc[start + (e + 1) % k] - allc[start + e])))
+        start += k
+    shared: list[dict[int, float]] = [{} for _ in cells]
+    for (a, b), (i, length) in owner.items():
+        if (b, a) in owner:
+            j = owner[(b, a)][0]
+            shared[i][j] = shared[i].get(j, 0.0) + length
+    return shared
+
+
+def _corner_ids(cells: list[Cell]) -> tuple[np.ndarray, np.ndarray]:
+    """The corners of all cells stacked, (N, 2), and (N,) one id per distinct point."""
+    allc = np.vstack([c.corners for c in cells])
+    return _merge(allc, 1e-9)[1], allc
+
+
+def outline(cells: list[Cell], keep: np.ndarray) -> list[list[tuple[np.ndarray, int]]] | None:
+    """The boundary of the union of the ``keep`` cells of a line arrangement: rings of (2D corner, line of the
+    edge that leaves it), outer rings counter-clockwise and holes clockwise.  Adjacent cells of a line arrangement
+    share whole edges, so the boundary is the set of edges only one kept cell has.  None where two rings touch
+    at a corner."""
+    ids, allc = _corner_ids(cells)
+    edges, start = {}, 0
+    for c, kept in zip(cells, keep, strict=True):
+        k = len(c.corners)
+        mine = ids[start:start + k]
+        for i in range(k):
+            a, b = int(mine[i]), int(mine[(i + 1) % k])
+            if kept and a != b:
+                edges[(a, b)] = (allc[start + i], c.lines[i])
+        start += k
+    leaving: dict[int, tuple[int, np.ndarray, int]] = {}
+    for (a, b), (point, line) in edges.items():
+        if (b, a) in edges:
+            continue
+        if a in leaving:  # two boundary edges leave one corner: rings touching there
+            return None
+        leaving[a] = (b, point, line)
+    rings = []
+    while leaving:
+        a = next(iter(leaving))
+        ring = []
+        while a in leaving:
+            b, point, line = leaving.pop(a)
+            ring.append((point, line))
+            a = b
+        rings.append(ring)
+    return rings
+
+
+def _merge(points: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """(N, d) points -> (M, d) distinct ones (those within ``eps`` of each other, chained, as their mean) and (N,)
+    the index of each (groups numbered by their first point)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    pairs = cKDTree(points).query_pairs(eps, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points),) * 2)
+    group = connected_components(graph, directed=False)[1]
+    index = np.unique(group, return_index=True)[1].argsort().argsort()[group]  # in order of first appearance
+    sums = np.zeros((index.max() + 1, points.shape[1]))
+    np.add.at(sums, index, points)
+    return sums / np.bincount(index)[:, None], index
+
+
+def _triangulate(vertices: np.ndarray, planes: np.ndarray, loops: list[tuple[int, np.ndarray]], tol: float
+                 ) -> np.ndarray | None:
+    """Faces filling each plane's rings of ``vertices`` ids (outer counter-clockwise seen along the plane's
+    normal, holes clockwise), with the vertices other planes put on a ring's edges (within ``tol``) inserted, so that
+    neighbouring faces share every edge.  Triangles by ear clipping (``mapbox_earcut``)."""
+    import mapbox_earcut
+
+    faces = []
+    for k in sorted({k for k, _ in loops}):
+        n = planes[k, :3]
+        u = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
+        u /= np.linalg.norm(u)
+        basis = np.c_[u, np.cross(n, u)]
+        rings = [_with_points_on_edges(vertices, ring, tol) for kk, ring in loops if kk == k]
+        flat = [vertices[r] @ basis for r in rings]
+        areas = [_area(f) for f in flat]
+        outers = [i for i, a in enumerate(areas) if a > 0]
+        for o in outers:
+            members = [o] + [h for h, a in enumerate(areas) if a < 0 and _inside(flat[h][0], flat[o])]
+            coords = np.vstack([flat[i] for i in members])
+            ends = np.cumsum([len(flat[i]) for i in members]).astype(np.uint32)
+            tri = mapbox_earcut.triangulate_float64(coords, ends).reshape(-1, 3)
+            ids = np.concatenate([rings[i] for i in members])[tri]
+            normal = np.cross(vertices[ids[:, 1]] - vertices[ids[:, 0]], vertices[ids[:, 2]] - vertices[ids[:, 0]])
+            flip = normal @ n < 0
+            ids[flip] = ids[flip][:, ::-1]
+            faces.append(ids)
+        if sum(len(f) for f in flat if _area(f) < 0) and len(outers) == 0:
+            return None
+    return np.vstack(faces).astype(np.int64) if faces else None
+
+
+def _with_points_on_edges(vertices: np.ndarray, ring: np.ndarray, tol: float) -> np.ndarray:
+    """``ring`` of vertex ids with every other vertex lying inside one of its edges (within ``tol``) inserted in
+    order."""
+    out = []
+    for a, b in zip(ring, np.roll(ring, -1), strict=True):
+        out.append(a)
+        ab = vertices[b] - vertices[a]
+        t = (vertices - vertices[a]) @ ab / max(ab @ ab, 1e-30)
+        off = np.linalg.norm(vertices - vertices[a] - t[:, None] * ab, axis=1)
+        inside = np.nonzero((t > 1e-6) & (t < 1 - 1e-6) & (off < tol))[0]
+        out.extend(inside[np.argsort(t[inside])])
+    return np.array(out, dtype=np.int64)
+
+
+def _area(flat: np.ndarray) -> float:
+    x, y = flat.T
+    return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
+
+
+def _inside(point: np.ndarray, ring: np.ndarray) -> bool:
+    """Whether a 2D point lies inside a ring (even-odd rule)."""
+    x, y = ring.T
+    x2, y2 = np.roll(x, -1), np.roll(y, -1)
+    crosses = (y > point[1]) != (y2 > point[1])
+    at = x + (point[1] - y) * (x2 - x) / np.where(y2 == y, 1.0, y2 - y)
+    return bool(np.sum(crosses & (point[0] < at)) % 2)
+
+
+def _closed(faces: np.ndarray) -> bool:
+    """Whether every edge has two faces, one each way (closed, edge-manifold and consistently oriented)."""
+    e = np.c_[faces.ravel(), faces[:, [1, 2, 0]].ravel()]
+    if len(np.unique(e, axis=0)) != len(e):
+        return False
+    count = np.unique(np.sort(e, axis=1), axis=0, return_counts=True)[1]
+    return bool((count == 2).all())
+
+
+def _explains(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, reach: float) -> bool:
+    """Whether the surface and the points lie within twice ``reach`` of each other both ways (at the points'
+    own sampling density)."""
+    from .io import sample_triangles
+
+    area = np.linalg.norm(np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                                   vertices[faces[:, 2]] - vertices[faces[:, 0]]), axis=1)
+    if (area < 1e-12).any():
+        return False
+    samples = sample_triangles(vertices, faces, len(points), np.random.default_rng(0))[0]
+    there = cKDTree(points).query(samples)[0].max()
+    back = cKDTree(samples).query(points)[0].max()
+    return bool(max(there, back) < 2 * reach)

@@ -139,15 +139,14 @@ def _whole(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nd
     it is a low-poly surface with no more faces (``req.count.low_poly_input``).  Returns vertices, faces, where
     they come from ("model" or "input") and how many vertices were pulled in to the input."""
     shape = req.shape
-    vertices, faces = split_pinches(vertices, faces)
-    vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, req.pieces_in))[:2]
     vertices, pulled = pull_in(vertices, req.surface_points, far_limit(shape.vertices))
     if pulled.any():
-        # Vertices pulled onto one sample coincide: made one, the faces between them (no area) dropped.  Only
-        # those: the copies of a pinched vertex coincide too, and stay apart.  Pulled vertices made one can
-        # crowd an edge with faces and pinch the surface again.
-        vertices, faces = remove_unreferenced(*weld(vertices, faces, tol=1e-12, among=pulled))[:2]
-        vertices, faces = remove_unreferenced(*split_pinches(vertices, thin_crowded_edges(vertices, faces)))[:2]
+        # Vertices pulled onto one sample made one, the faces between them (no area) dropped, before pinches are
+        # split into coincident copies that must stay apart; an edge the welding crowds keeps two faces.
+        vertices, faces = remove_unreferenced(*weld(vertices, faces, tol=1e-12))[:2]
+        faces = thin_crowded_edges(vertices, faces)
+    vertices, faces = split_pinches(vertices, faces)
+    vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, req.pieces_in))[:2]
     # In the unit cube: the areas of a shape 1e-200 across underflow to 0 in its own units.
     if not len(faces) or not triangle_areas(req.frame.norm.apply(vertices), faces).any():
         raise GenerationError("no_faces", "every face of the result collapsed onto the input surface")

@@ -216,3 +216,13 @@ def test_the_cli_summary_says_faces_achieved_over_target(tmp_path, capsys, weigh
     made = len(trimesh.load(out, force="mesh").faces)
     held = "within" if abs(made - 60) <= TOLERANCE * 60 else "outside"
     assert f"{made} / 60 faces ({held} ±20 %)" in err, err
+
+
+def test_a_mesh_with_no_valid_collapse_left_stops_short_of_the_target():
+    """A box asked for 2 faces: once every collapse left would break the surface, a pass collapses nothing and
+    decimation stops (it passed over the same vertices forever)."""
+    box = trimesh.creation.box()
+    tet = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    for mesh in (box, tet):
+        faces = decimate(mesh.vertices, mesh.faces, 2)
+        assert len(faces) == 4 and topology(faces)["watertight"]

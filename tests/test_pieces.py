@@ -112,6 +112,7 @@ def test_making_whole_keeps_a_split_pinch_apart_when_it_welds_pulled_vertices():
     vertex pulled onto the square, and the welding of pulled vertices leaves the pinch's two copies apart."""
     from types import SimpleNamespace
 
+    from fastmesh.evaluation.metrics import mesh_topology
     from fastmesh.pipeline import _whole
     from fastmesh.shapes.shape import Normalization, Shape
 
@@ -126,3 +127,4 @@ def test_making_whole_keeps_a_split_pinch_apart_when_it_welds_pulled_vertices():
     assert pulled == 1 and source == "model" and len(faces) == 3
     t = topology(faces)
     assert t["non_manifold_vertices"] == 0 and t["non_manifold_edges"] == 0 and t["pieces"] == 2
+    assert mesh_topology(vertices, faces)["edge_manifold"]  # also with coincident vertices taken as one

@@ -206,8 +206,9 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, target: int, area_tol: flo
         return False
 
     # A collapse changes the link condition up to two rings away: passes over every vertex repeat until the
-    # target is reached or one finds nothing.
+    # target is reached or a pass collapses nothing (the next would be the same pass).
     while alive > target and any([push(v) for v in range(len(mesh.p))]):
+        before = alive
         while heap and alive > target:
             _, _, v, u, ver = heapq.heappop(heap)
             if ver != version[v]:
@@ -224,6 +225,8 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, target: int, area_tol: flo
             for x in mesh.neighbours(u) | {u}:
                 push(x)
         heap.clear()
+        if alive == before:
+            break
     return np.array([f for f, a in zip(mesh.faces, mesh.alive, strict=True) if a], dtype=np.int64).reshape(-1, 3)
 
 

@@ -102,8 +102,7 @@ def piece_labels(faces: np.ndarray) -> np.ndarray:
     return connected_components(graph, directed=False)[1][:len(f)].astype(np.int64)
 
 
-def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6,
-         among: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
     """A mesh's vertices within ``tol`` of its longest side of each other made one, and the faces that
     collapse dropped: files split vertices along UV seams and hard edges, which are not openings.
 
@@ -111,8 +110,6 @@ def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6,
     ----------
     vertices : (N, 3) float
     faces : (F, 3) int
-    among : (N,) bool, optional: only these vertices are welded (to each other); the others stay apart even where
-        they coincide (the copies ``pieces.split_pinches`` makes of a pinched vertex)
 
     Returns
     -------
@@ -124,10 +121,8 @@ def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6,
     if len(v) == 0:
         return v, f
     extent = float(np.ptp(v, axis=0).max()) or 1.0
-    key = np.round((v - v.min(0)) / (extent * tol))
-    if among is not None:  # a vertex outside ``among`` is a group of its own
-        key = np.c_[key, np.where(among, -1, np.arange(len(v)))]
-    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    _, first, inverse = np.unique(np.round((v - v.min(0)) / (extent * tol)), axis=0, return_index=True,
+                                  return_inverse=True)
     f = inverse.reshape(-1)[f]
     f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
     return v[first], f

@@ -154,6 +154,14 @@ def _whole(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nd
     return (vertices, faces, "model", int(pulled.sum())) if low is None else (*low, "input", 0)
 
 
+def _unsplit(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The copies of split pinches (vertices at one position) made one again, where there are any: collapses and
+    splits see a vertex's every face, and none moves a vertex onto another's copy."""
+    if len(np.unique(vertices, axis=0)) == len(vertices):
+        return vertices, faces
+    return remove_unreferenced(*weld(vertices, faces, tol=1e-12))[:2]
+
+
 def _low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:
     """A mesh input, welded, when it has at most ``faces`` faces and is a surface (no edge in three faces):
     a result never has more faces than a low-poly input unless a count is asked for."""
@@ -456,7 +464,9 @@ class Pipeline:
         if req.count.hold:  # the count asked for holds (``facecount``)
             info = {**info, "model_faces": int(len(faces))}
             with stage("faces", timings):
+                vertices, faces = _unsplit(vertices, faces)
                 vertices, faces, step = hold_count(vertices, faces, params.target_faces, *req.count_samples)
+                vertices, faces = split_pinches(vertices, faces)
             met = bool(abs(len(faces) - params.target_faces) <= COUNT_TOLERANCE * params.target_faces)
         why = req.reason
         quality = {**mesh_quality(vertices, faces, req.shape, pieces_in=req.pieces_in), "faces": int(len(faces)),

@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 
 from ..shapes.shape import Normalization
 from ..tokenizer.grid import CELL
-from .meshops import corner_fans, piece_labels
+from .meshops import corner_fans, face_sides, piece_labels, triangle_areas
 
 # A piece is a stray when it has at most this many faces or this share of the result's area, and spans at most
 # STRAY_SPAN of the result's bounding-box diagonal: dropping it moves the result at most that far from the
@@ -75,14 +75,13 @@ def thin_crowded_edges(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     if len(f) == 0:
         return f
     f = f[np.sort(np.unique(np.sort(f, axis=1), axis=0, return_index=True)[1])]
-    sides = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    sides = np.sort(face_sides(f), axis=1)
     edges = np.unique(sides, axis=0, return_inverse=True)[1].reshape(3, -1).T  # (F, 3) edge ids of each face
     crowded = (np.bincount(edges.ravel())[edges] > 2).any(axis=1)
     if not crowded.any():
         return f
     used = np.bincount(edges[~crowded].ravel(), minlength=int(edges.max()) + 1)
-    p = np.asarray(vertices, dtype=np.float64)[f]
-    area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    area = triangle_areas(vertices, f)
     keep = ~crowded
     candidates = np.flatnonzero(crowded)
     for i in candidates[np.argsort(-area[candidates], kind="stable")]:

@@ -63,9 +63,10 @@ def paths(pipe: Pipeline) -> dict:
         out["onnx"] = OrtDecoder(pipe.vertex)
         out["static"] = StaticDecoder(pipe.vertex)
     else:
-        out["static"] = StaticDecoder(pipe.vertex, capture=False)
+        out["static"] = StaticDecoder(pipe.vertex, capture=False, compiled=False)
         if pipe.device.type == "cuda":
-            out["static_graph"] = StaticDecoder(pipe.vertex, capture=True)
+            out["static_graph"] = StaticDecoder(pipe.vertex, capture=True, compiled=False)
+            out["static_graph_fused"] = StaticDecoder(pipe.vertex, capture=True, compiled=True)
     return out
 
 

@@ -9,6 +9,7 @@ import torch
 from test_batched_decode import B, _crowded, _inputs, _model
 from test_cells import _cell_grids
 
+from fastmesh.models import decode
 from fastmesh.models.decode import StaticDecoder, stack_evidence
 from fastmesh.models.generate import (
     Cancelled,
@@ -163,6 +164,37 @@ def test_progress_and_cancel_at_the_checks_and_a_row_with_no_finite_logit_fails_
         generate(StaticDecoder(m), torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
 
 
+@pytest.mark.parametrize("temperature", [0.0, 1.0])
+def test_the_compiled_step_gives_the_eager_steps_tokens(temperature):
+    """The network's step fused by ``torch.compile`` (``FASTMESH_COMPILE=1`` on CUDA), run on this CPU, against the
+    same static step run eagerly; a second call reuses the compiled program."""
+    m = _model(8, True, True)
+    prefix, evidence = _inputs(m, 9)
+    cfg = _cfg(temperature=temperature, max_vertices=20)
+    fused, eager = StaticDecoder(m, window=False, compiled=True), StaticDecoder(m, window=False, compiled=False)
+    for _ in range(2):
+        got = generate(fused, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
+        want = generate(eager, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
+        assert [r.tolist() for r in got] == [r.tolist() for r in want]
+    assert next(iter(fused._batches.values())).fused is not None  # it compiled, not fell back
+
+
+def test_a_step_that_fails_to_compile_runs_uncompiled(monkeypatch, caplog):
+    m = _model(8, True, True)
+    prefix, evidence = _inputs(m, 9)
+    cfg = _cfg(temperature=1.0)
+
+    def broken(*a, **k):
+        raise RuntimeError("no compiler here")
+
+    monkeypatch.setattr(decode, "_FUSED", [broken])
+    dec = StaticDecoder(m, window=False, compiled=True)
+    got = generate(dec, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
+    want = generate(StaticDecoder(m, window=False), torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
+    assert [r.tolist() for r in got] == [r.tolist() for r in want]
+    assert next(iter(dec._batches.values())).fused is None and "compiling the decode step failed" in caplog.text
+
+
 def test_capture_needs_cuda():
     if CUDA:
         pytest.skip("CUDA present: the captured path is tested under -m gpu")
@@ -185,20 +217,22 @@ def _inputs_on(m, seed: int, device: str):
 @pytest.mark.gpu
 @pytest.mark.skipif(not CUDA, reason="needs CUDA")
 @pytest.mark.parametrize("temperature", [0.0, 1.0])
-def test_cuda_graph_gives_the_eager_static_steps_tokens(temperature):
-    """Three rows: the graph's batch is padded to four (a finished copy of row 0), the eager one is not."""
+@pytest.mark.parametrize("compiled", [False, True])
+def test_cuda_graph_gives_the_eager_static_steps_tokens(temperature, compiled):
+    """Three rows: the graph's batch is padded to four (a finished copy of row 0), the eager one is not; the
+    captured step with the network's step compiled or as it is."""
     xs = torch.randint(0, 2**32, (4096,), generator=torch.Generator().manual_seed(0))
     assert torch.equal(hash32(xs.cuda()).cpu(), hash32(xs))  # int64 products wrap alike on both devices
     m = _model(6, True, True).cuda()
     prefix, evidence = (x[:3] for x in _inputs_on(m, 7, "cuda"))
     cfg = _cfg(temperature=temperature, max_vertices=40)
-    graph, eager = StaticDecoder(m, capture=True), StaticDecoder(m, capture=False)
+    graph, eager = StaticDecoder(m, capture=True, compiled=compiled), StaticDecoder(m, capture=False, compiled=False)
     for _ in range(2):  # the first call captures, the second replays the kept graph
         got = generate(graph, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
         want = generate(eager, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
         assert [r.tolist() for r in got] == [r.tolist() for r in want]
     batch = next(iter(graph._batches.values()))
-    assert batch.graph is not None and batch.state["out"].shape[0] == 4
+    assert batch.graph is not None and batch.state["out"].shape[0] == 4 and (batch.fused is not None) == compiled
     if temperature == 0:  # and greedy, the eager loop's tokens on the same device
         assert [r.tolist() for r in got] == [r.tolist() for r in generate(m, torch.cat(prefix), cfg,
                                                                           evidence=StackedEvidence(evidence))]

@@ -29,6 +29,7 @@ temperature 0 both loops take the same argmax.
 from __future__ import annotations
 
 import logging
+import os
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import astuple
@@ -133,6 +134,20 @@ def decode_one_token(model: VertexDecoder, cache: StaticCache, tokens: torch.Ten
     return model.head(model.norm(x))[:, -1].float()
 
 
+_FUSED: list = []
+
+
+def fused_network() -> Callable:
+    """``decode_one_token`` compiled by ``torch.compile`` (made once per process; its programs, one per batch
+    and cache shape, kept by torch).  The network's step is some 250 of the eager step's 450 kernels, most of them
+    tiny elementwise ones a captured graph still launches one by one; fused, a few dozen.  The sampling part
+    stays as it is: it reads the request's settings as constants, so compiled it would be compiled again for
+    each setting a worker meets."""
+    if not _FUSED:
+        _FUSED.append(torch.compile(decode_one_token, dynamic=False, fullgraph=True))
+    return _FUSED[0]
+
+
 def bias_table(evidence: Evidence, out: torch.Tensor) -> torch.Tensor:
     """Fill ``out`` (B, 1 + N_BLOCKS, VOCAB) with ``evidence.logit_bias`` of every current block (row j: block
     j - 1, so row 0 is "no block yet"): a step then reads its bias with one gather.  One shape at a time (the
@@ -187,10 +202,14 @@ class _Batch:
     """The static buffers of one batch shape, and its step (captured as a graph on CUDA)."""
 
     def __init__(self, model: VertexDecoder, cfg: SamplingConfig, batch: int, m: int, device, dtype,
-                 evidence: Evidence | None, window: bool, table: bool):
+                 evidence: Evidence | None, window: bool, table: bool, compiled: bool = False):
         self.model, self.cfg, self.m, self.window = model, cfg, m, window
         self.max_tokens = 2 * cfg.max_vertices + 2  # a block token for every vertex, plus BOS and EOS
-        self.cache = StaticCache(model, batch, m + self.max_tokens, device, dtype)
+        # The network's step fused (``fused_network``): its cache as long as the decoder's own limit asks, so the
+        # compiled program depends on the batch size alone, whatever a request's vertex budget.
+        self.fused = fused_network() if compiled else None
+        length = m + (2 * max(model.cfg.max_vertices, cfg.max_vertices) + 2 if compiled else self.max_tokens)
+        self.cache = StaticCache(model, batch, length, device, dtype)
         self.evidence = evidence
         self.counts = evidence is not None and model.cfg.evidence_counts
         z = dict(dtype=torch.long, device=device)
@@ -236,8 +255,8 @@ class _Batch:
         s["stuck"] |= stuck & ~s["done"]
         nxt = torch.where(s["done"], vt.PAD, nxt)  # a row ended (EOS) or stopped by the caller takes PAD
         advance(s, nxt)
-        s["logits"].copy_(decode_one_token(self.model, self.cache, nxt[:, None], s["block"][:, None],
-                                           self.m + s["step"], span))
+        network = self.fused or decode_one_token
+        s["logits"].copy_(network(self.model, self.cache, nxt[:, None], s["block"][:, None], self.m + s["step"], span))
         s["step"].add_(1)
 
     def capture(self) -> None:
@@ -270,13 +289,16 @@ class StaticDecoder:
     (B, 513, VOCAB), and a step reads its row (default: on CUDA, where it replaces some 40 launches a step by
     one; on a CPU making it costs more than reading the current blocks' rows at every step).  The buffers and graph
     of the last ``MAX_GRAPHS`` shapes (batch, prefix, vertex budget, sampling settings) are kept, so a
-    worker's jobs reuse them; each job's prefix, evidence and seeds are copied into them.
+    worker's jobs reuse them; each job's prefix, evidence and seeds are copied into them.  ``compiled``: the
+    network's step fused by ``torch.compile`` (``fused_network``) before it is captured (default: with capture
+    where ``FASTMESH_COMPILE=1``): some seconds once per batch size and process (inductor's cache on disk shortens
+    the next process's), then fewer kernels a step.  Where compiling fails the step runs as it is.
     """
 
     backend = "static"
 
     def __init__(self, model: VertexDecoder, capture: bool | None = None, window: bool | None = None,
-                 table: bool | None = None):
+                 table: bool | None = None, compiled: bool | None = None):
         self.model = model.eval()
         self.cfg = model.cfg
         device = next(model.parameters()).device
@@ -285,6 +307,9 @@ class StaticDecoder:
             raise ValueError("CUDA graph capture needs the decoder on a CUDA device")
         self.window = device.type == "cpu" if window is None else window
         self.table = device.type == "cuda" if table is None else table
+        if compiled is None:  # off until a card has measured it (benchmarks/decode_paths.py: static_graph_fused)
+            compiled = self.capture and os.environ.get("FASTMESH_COMPILE", "0").strip() in ("1", "true", "yes")
+        self.compiled = compiled
         self._batches: OrderedDict[tuple, _Batch] = OrderedDict()
 
     def _batch(self, prefix: torch.Tensor, cfg: SamplingConfig, evidence: Evidence | None) -> tuple[_Batch, bool]:
@@ -298,7 +323,7 @@ class StaticDecoder:
             self._batches.popitem(last=False)
         own_ev = None if evidence is None else stack_evidence([evidence])
         b = _Batch(self.model, cfg, prefix.shape[0], prefix.shape[1], prefix.device, prefix.dtype, own_ev,
-                   self.window and not self.capture, self.table)
+                   self.window and not self.capture and not self.compiled, self.table, self.compiled)
         self._batches[key] = b
         return b, True
 
@@ -349,12 +374,38 @@ class StaticDecoder:
         batch, new = self._batch(prefix, cfg, ev)
         keys = [seed_key(x) for x in seeds] + [0] * pad
         batch.reset(prefix, keys, ev, live=b)
+        if new and batch.fused is not None and not self.capture:
+            self._fuse(batch)
         if new and self.capture:
-            try:
-                batch.capture()
-            except RuntimeError as e:  # an op the graph cannot hold: the same steps, run eagerly
-                log.warning("CUDA graph capture of the decode step failed (%s); decoding without it", e)
-                batch.graph = None
+            self._capture(batch)
+        if new:
             batch.reset(prefix, keys, ev, live=b)
         return batch
+
+    @staticmethod
+    def _fuse(batch: _Batch) -> None:
+        """Compile the network's step (the batch's first step, whose effect on the state the caller resets); where
+        compiling fails, run it eagerly."""
+        try:
+            batch.step()
+        except Exception as e:  # noqa: BLE001 - any compiler failure: the same step, unfused
+            log.warning("compiling the decode step failed (%s: %s); running it uncompiled", type(e).__name__, e)
+            batch.fused = None
+
+    @staticmethod
+    def _capture(batch: _Batch) -> None:
+        """Capture the step (fused where it compiles); where capture fails, the same steps run eagerly."""
+        if batch.fused is not None:
+            try:
+                batch.capture()
+                return
+            except Exception as e:  # noqa: BLE001 - a compiler or capture failure: capture the unfused step
+                log.warning("capturing the compiled decode step failed (%s: %s); capturing it uncompiled",
+                            type(e).__name__, e)
+                batch.fused, batch.graph = None, None
+        try:
+            batch.capture()
+        except RuntimeError as e:  # an op the graph cannot hold: the same steps, run eagerly
+            log.warning("CUDA graph capture of the decode step failed (%s); decoding without it", e)
+            batch.graph = None
 

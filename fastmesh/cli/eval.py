@@ -1,10 +1,10 @@
 """``fastmesh eval --inputs DIR --reference DIR [--json] [--gt-vertices] [--baseline] [--save DIR] [--sampling JSON]``.
 
-Scores the pipeline (and with ``--baseline`` a convex hull and screened Poisson +
-quadric decimation) on every input that has a reference mesh of the same name, as
-../shared/EVAL.md defines.  With ``--gt-vertices`` the face stage alone runs on each
-reference's vertices; ``--baseline`` then adds the other face selection and the
-surface-restricted Delaunay anchor on the same vertices and points.  ``--save DIR`` writes
+Scores the pipeline (and with ``--baseline`` a convex hull and screened Poisson + quadric
+decimation, to the reference's face count and to ours) on every input that has a reference
+mesh of the same name, as ../shared/EVAL.md defines.  With ``--gt-vertices`` the face stage
+alone runs on each reference's vertices; ``--baseline`` then adds the other face selection and
+the surface-restricted Delaunay anchor on the same vertices and points.  ``--save DIR`` writes
 each result as ``DIR/<input name>.ply`` (the other systems' under ``DIR/<system>/``) in the
 reference's original frame.  Make such folders from a dataset's validation split with
 ``fastmesh data eval-set``.
@@ -27,7 +27,8 @@ def register(sub) -> None:
     p.add_argument("--gt-vertices", action="store_true",
                    help="score the face stage alone on each reference's 7-bit vertices")
     p.add_argument("--baseline", action="store_true",
-                   help="also score convex hull and screened Poisson + decimation (needs pymeshlab), and for mesh "
+                   help="also score convex hull and screened Poisson + decimation to the reference's face count and to "
+                        "ours (needs pymeshlab), and for mesh "
                         "inputs quadric decimation of the input to our face count; with --gt-vertices the other "
                         "face selection and the restricted Delaunay anchor")
     p.add_argument("--save", metavar="DIR", help="write every result as DIR/<input name>.ply (reference frame)")
@@ -67,7 +68,7 @@ def _run(args) -> int:
                 import pymeshlab  # noqa: F401
             except ImportError:
                 raise ValueError("--baseline needs pymeshlab: pip install -e '.[bench]'") from None
-            systems += ["convex_hull", "poisson"]
+            systems += ["convex_hull", "poisson", "poisson_ours"]
             if any(inp.suffix.lower() != ".npz" and load_shape(inp).faces is not None for inp, _ in pairs[:1]):
                 systems.append("decimation")  # mesh inputs: decimated to our face count
         report = evaluate_end_to_end(pipe, pairs, params, systems=systems, log=log, save=args.save)

@@ -183,6 +183,8 @@ def plane_faces(k: int, planes: np.ndarray, near: set[int], points: np.ndarray, 
         # A corner's 2D point is where two lines cross, so lifted it lies on plane k and both neighbours.
         corners = [ring[i][0] for i in range(len(ring))
                    if _turns(ring[i - 1][0], ring[i][0], ring[(i + 1) % len(ring)][0])]
+        if len(corners) < 3:  # a ring without area (cells along one line)
+            return None
         out.append(n * d + np.array(corners) @ basis.T)
     return out
 

@@ -1,0 +1,85 @@
+"""Open piecewise-planar inputs rebuilt from their planes (``fastmesh.shapes.open_planar``), on families drawn at
+random: trays (a box without its lid), roofs (a gable prism without its floor) and flat rectangles."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from fastmesh.evaluation.primitives import point_cloud, random_shape
+from fastmesh.shapes.open_planar import open_polyhedron
+from fastmesh.shapes.shape import Normalization, Shape
+
+
+def tray(rng: np.random.Generator) -> Shape:
+    """A box of random proportions without its top (+Y) side: 8 corners, 10 triangles."""
+    box = trimesh.creation.box(extents=rng.uniform(0.2, 1.0, 3))
+    keep = box.face_normals[:, 1] < 0.5
+    return Shape(vertices=np.asarray(box.vertices), faces=np.asarray(box.faces)[keep])
+
+
+def roof(rng: np.random.Generator) -> Shape:
+    """A gable roof of random proportions, its ridge off centre, without its floor: 6 corners, 2 gables and 2
+    slopes (6 triangles)."""
+    w, h, d = rng.uniform(0.2, 1.0, 3)
+    ridge = rng.uniform(-0.3, 0.3) * w
+    v = np.array([[-w / 2, 0, 0], [w / 2, 0, 0], [ridge, h, 0], [-w / 2, 0, d], [w / 2, 0, d], [ridge, h, d]])
+    f = np.array([[0, 2, 1], [3, 4, 5], [0, 3, 5], [0, 5, 2], [1, 2, 5], [1, 5, 4]])
+    return Shape(vertices=v, faces=f)
+
+
+def rectangle(rng: np.random.Generator) -> Shape:
+    """One flat rectangle of random proportions: 4 corners, 2 triangles."""
+    w, d = rng.uniform(0.1, 1.0, 2)
+    v = np.array([[0, 0, 0], [w, 0, 0], [w, 0, d], [0, 0, d]])
+    return Shape(vertices=v, faces=np.array([[0, 2, 1], [0, 3, 2]]))
+
+
+def _open_edges(faces: np.ndarray) -> int:
+    e = np.sort(np.c_[faces.ravel(), faces[:, [1, 2, 0]].ravel()], axis=1)
+    return int((np.unique(e, axis=0, return_counts=True)[1] == 1).sum())
+
+
+@pytest.mark.parametrize("make,corners,holes", [(tray, 8, 4), (roof, 6, 4), (rectangle, 4, 4)])
+def test_random_open_flat_shapes_come_back_as_their_own_corners(make, corners, holes):
+    """Five of each, half in millimetres far from the origin: exactly the shape's corners, each on one of its own
+    (those on an open edge within an eighth of a 7-bit cell: the points stop short of the edge), its open edges
+    open and no others, faces facing the points' normals."""
+    rng = np.random.default_rng(11)
+    for i in range(5):
+        mesh = make(rng)
+        if i % 2:
+            mesh = Shape(vertices=mesh.vertices * 1000 + rng.uniform(-5e3, 5e3, 3), faces=mesh.faces)
+        cloud = point_cloud(mesh, seed=i)
+        norm = Normalization.fit(cloud.vertices)
+        found = open_polyhedron(norm.apply(cloud.vertices), cloud.normals)
+        assert found is not None
+        vertices, faces = found
+        reference = norm.apply(mesh.vertices)
+        assert len(vertices) == corners
+        assert np.linalg.norm(vertices[:, None] - reference[None], axis=-1).min(1).max() < 1e-3
+        result = trimesh.Trimesh(vertices, faces, process=False)
+        assert result.is_winding_consistent and _open_edges(faces) == holes
+        truth = trimesh.Trimesh(reference, mesh.faces, process=False)
+        assert np.isclose(result.area, truth.area, rtol=1e-2)
+        nearest = cKDTree(norm.apply(cloud.vertices)).query(result.triangles_center)[1]
+        assert (np.einsum("ij,ij->i", result.face_normals, cloud.normals[nearest]) > 0.9).all()
+
+
+def test_closed_curved_or_open_off_the_box_inputs_are_not_open_polyhedra():
+    """A closed box (no side is open), a hemisphere (curved), and a tray with a hole cut in a wall (an open edge
+    on no side of the box) give None: the closed rebuild or the networks decide."""
+    rng = np.random.default_rng(2)
+    box = random_shape("box", rng)
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    cup = Shape(vertices=sphere.vertices, faces=sphere.faces[sphere.triangles_center[:, 1] < 0])
+    walled = trimesh.creation.box(extents=(1.0, 0.6, 0.8)).subdivide().subdivide()
+    centres = walled.triangles_center
+    hole = (centres[:, 0] > 0.49) & (np.abs(centres[:, 1]) < 0.2) & (np.abs(centres[:, 2]) < 0.25)
+    walled = Shape(vertices=walled.vertices, faces=walled.faces[(walled.face_normals[:, 1] < 0.5) & ~hole])
+    for mesh in (box, cup, walled):
+        cloud = point_cloud(mesh, seed=0)
+        norm = Normalization.fit(cloud.vertices)
+        assert open_polyhedron(norm.apply(cloud.vertices), cloud.normals) is None

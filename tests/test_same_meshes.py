@@ -1,7 +1,8 @@
 """The shipped pipeline gives the meshes it gave when ``tests/data/same_meshes.npz`` was written: the same
-tokens, faces and vertices (exactly) on fixed seeds, over varied inputs (``gpu_inputs.varied``: point clouds
-with and without a face-count target, artist meshes, a posed primitive; and a turned 64-sided cylinder,
-which is generated in two frames and kept in the turned one).  A change meant to make the pipeline
+tokens and faces (exactly: the same oriented triangles in the same order) and vertices (to ``ROUNDING``) on
+fixed seeds, over varied inputs (``gpu_inputs.varied``: point clouds with and without a face-count target,
+artist meshes, a posed primitive; and a turned 64-sided cylinder, which is generated in two frames and kept in
+the turned one).  A change meant to make the pipeline
 faster, or to move its code, must leave every one of them as it is.
 
 Rewrite the file only for a change meant to change results, and say so in its commit::
@@ -25,6 +26,9 @@ from fastmesh.pipeline import Pipeline
 from fastmesh.shapes.shape import Shape
 
 STORED = Path(__file__).parent / "data" / "same_meshes.npz"
+# Vertices may move by float64 rounding between releases of numpy and scipy (their sums in another order):
+# 1e-16 to 3e-12 seen; any change of the method moves them by far more.
+ROUNDING = 1e-9
 PICKED = (0, 3, 4, 6, 9)  # of varied(12, seed=9): ellipsoid cloud, box mesh, torus cloud with target, f13, wavy
 
 
@@ -42,6 +46,13 @@ def run(pipe: Pipeline, shape, params: GenerateParams) -> dict[str, np.ndarray]:
     result = pipe.generate(shape, params)
     return {"vertices": result.vertices, "faces": result.faces, "tokens": np.array([result.tokens]),
             "turned": np.array([result.info.get("turned_degrees", 0.0)])}
+
+
+def _from_least(faces: np.ndarray) -> np.ndarray:
+    """(F, 3) faces each turned to start at its least vertex id (the same orientation): a triangle whose corners
+    a tie-break on rounded values lists from another corner is the same triangle."""
+    shift = faces.argmin(1)[:, None]
+    return np.take_along_axis(faces, (shift + np.arange(3)) % 3, axis=1)
 
 
 @pytest.fixture(scope="module")
@@ -62,8 +73,13 @@ def test_same_mesh_as_stored(pipe, stored, case):
     for key, value in got.items():
         want = stored[f"{name}/{key}"]
         assert value.shape == want.shape, f"{name} {key}: {value.shape} now, {want.shape} stored"
-        assert np.array_equal(value, want), (
-            f"{name} {key} differs; largest difference {np.abs(value - want).max()}")
+        if key == "vertices":
+            same = np.allclose(value, want, rtol=0, atol=ROUNDING)
+        elif key == "faces":  # the same oriented triangles in the same order, each from any of its corners
+            same = np.array_equal(_from_least(value), _from_least(want))
+        else:
+            same = np.array_equal(value, want)
+        assert same, f"{name} {key} differs; largest difference {np.abs(value - want).max()}"
 
 
 @pytest.mark.parametrize("case", range(len(PICKED) + 1), ids=[name for name, _, _ in inputs()])

@@ -11,7 +11,8 @@ import logging
 import threading
 import time
 
-from .store import Store, timeout_error
+from .states import timeout_error
+from .store import Store
 
 log = logging.getLogger("fastmesh.reaper")
 
@@ -54,12 +55,8 @@ def reap(store: Store) -> list[tuple[str, str]]:
                     actions.append((job_id, "timeout"))
             continue
         if attempt < s.max_attempts:
-            ok = store.transition(job_id, "running", {
-                "status": "queued", "attempt": attempt + 1, "stage": "queued", "fraction": 0.0,
-                "worker": ""}, attempt=attempt, final=True)
-            if ok:
-                store.redis.hincrby(f"{store.prefix}:stats:jobs", "retried", 1)
-                store.enqueue(job_id, attempt + 1)
+            if store.requeue(job_id, attempt):
+                store.count_job("retried")
                 actions.append((job_id, "requeued"))
         else:
             err = {"code": "worker_lost",

@@ -27,7 +27,7 @@ ORPHAN_CHECK_SECONDS = 1.0  # how often a child checks that the API process stil
 STOP_WAIT_SECONDS = 2.0  # a recycled child gets this long to exit before it is killed
 # Imported by a child before its memory is capped, so the cap is spent on the work, not on imports.
 PRELOAD = ("numpy", "scipy.spatial", "trimesh", "fastmesh.shapes.io", "fastmesh.shapes.precheck",
-           "fastmesh.shapes.pointfiles", "fastmesh.preview.render", "fastmesh.preview.overlay", "fastmesh_jobs.store",
+           "fastmesh.shapes.pointfiles", "fastmesh.preview.render", "fastmesh.preview.overlay", "fastmesh_jobs.blobs",
            "service.parsing", "service.render_pool")
 # One thread per library: every thread reserves address space (stacks, malloc arenas) inside the cap.
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")

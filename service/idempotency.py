@@ -12,8 +12,8 @@ the fingerprint hashes the upload and the parameters.  A submission with a key:
    seconds), else ``409 conflict`` + ``Retry-After``;
 3. :meth:`Idempotency.confirm` after the job is created, :meth:`Idempotency.release` when creating failed.
 
-A pending claim expires after ``fastmesh_jobs.store.PENDING_TTL`` seconds, so one whose API process died before
-creating the job does not block the key.  Without a key every step does nothing.
+A pending claim expires after ``fastmesh_jobs.idempotency.PENDING_TTL`` seconds, so one whose API process died
+before creating the job does not block the key.  Without a key every step does nothing.
 """
 
 from __future__ import annotations

@@ -25,7 +25,7 @@ def parse_upload(data: bytes, filename: str, max_points: int, max_faces: int, te
     A point cloud's normals are left as the file gives them: estimating them takes seconds for a large
     cloud and is the worker's.  ``texture``: keep a glTF's base-colour texture (``bake``).
     """
-    from fastmesh_jobs.store import shape_to_bytes
+    from fastmesh_jobs.blobs import shape_to_bytes
 
     shape = load_shape(data, filename=filename, max_points=max_points, max_faces=max_faces, normals=False,
                        texture=texture)

@@ -23,7 +23,7 @@ def render_blob(blob: bytes, of: str, size: int, wireframe: bool) -> bytes:
     shows what came out.  Raises :class:`fastmesh.shapes.shape.ShapeError` when there is nothing drawable.
     """
     from fastmesh.preview.render import render_mesh, render_points, render_shape, to_png
-    from fastmesh_jobs.store import mesh_from_bytes, shape_from_bytes
+    from fastmesh_jobs.blobs import mesh_from_bytes, shape_from_bytes
 
     if of == "result":
         vertices, faces = mesh_from_bytes(blob)
@@ -38,7 +38,7 @@ def render_blob(blob: bytes, of: str, size: int, wireframe: bool) -> bytes:
 def overlay_blob(blob: bytes, n: int) -> bytes:
     """``input.ply``: up to ``n`` points of a stored input (a Shape's npz) as a binary PLY."""
     from fastmesh.preview.overlay import overlay_points, points_ply
-    from fastmesh_jobs.store import shape_from_bytes
+    from fastmesh_jobs.blobs import shape_from_bytes
 
     return points_ply(overlay_points(shape_from_bytes(blob), n))
 

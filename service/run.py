@@ -18,6 +18,7 @@ import socket
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -98,81 +99,126 @@ def _restart(worker: WorkerProcess, restarts: list[float]) -> WorkerProcess | No
     return WorkerProcess(worker.settings, worker.name, log_path="-")
 
 
+class _StopOnce:
+    """The SIGTERM and SIGINT handler: the first signal raises KeyboardInterrupt, a later one only says so.
+
+    Once: a second Ctrl-C or SIGTERM (a supervisor sending TERM twice) must not break off the shutdown the first
+    one began, which would leave the worker and Redis running.
+    """
+
+    def __init__(self):
+        self.stopping = False
+
+    def __call__(self, *_) -> None:
+        if self.stopping:
+            os.write(1, b"[fastmesh run] already stopping\n")  # print() is not safe inside a signal handler
+            return
+        self.stopping = True
+        raise KeyboardInterrupt
+
+
+@dataclass
+class _Started:
+    """What ``make run`` started (each None until it is), stopped by :meth:`stop` in reverse order."""
+
+    workdir: Path
+    server: RedisServer | None = None
+    worker: WorkerProcess | None = None
+    api: ApiProcess | None = None
+
+    def stop(self) -> None:
+        if self.api is not None:
+            self.api.stop()
+        if self.worker is not None:
+            self.worker.stop(15)
+        if self.server is not None:
+            self.server.stop()
+        shutil.rmtree(self.workdir, ignore_errors=True)
+
+
+def _use_redis(settings: Settings, started: _Started) -> Settings | None:
+    """``settings`` pointing at the Redis to use: ``FASTMESH_REDIS_URL``'s when it is set and answers, else a
+    redis-server started in ``started.workdir``; None, once said why, when neither can be."""
+    if "FASTMESH_REDIS_URL" in os.environ:
+        try:
+            redis.Redis.from_url(settings.redis_url, socket_connect_timeout=3).ping()
+        except redis.RedisError as e:
+            _say(f"cannot reach Redis at FASTMESH_REDIS_URL={settings.redis_url}: {e}")
+            return None
+        _say(f"using Redis at {settings.redis_url}")
+        return settings
+    if shutil.which("redis-server") is None:
+        _say("redis-server is not installed. Install it with:\n\n    apt-get install redis-server\n\n"
+             "or point at a running one: FASTMESH_REDIS_URL=redis://HOST:6379/0 make run")
+        return None
+    server = started.server = RedisServer(directory=str(started.workdir), maxmemory=settings.redis_maxmemory)
+    _say(f"started redis-server on port {server.port} (at most {settings.redis_maxmemory}; data in "
+         f"{started.workdir}, not kept: stopping `make run` or a restart of this Redis forgets its jobs)")
+    return settings.model_copy(update={"redis_url": server.url})
+
+
+def _announce(settings: Settings, url: str, workdir: Path) -> None:
+    """Say where the API serves, with a curl example (and the CLI's) that upload a sample point cloud."""
+    example = example_input(workdir / "example.xyz")
+    key = settings.api_keys[0] if settings.api_keys else None
+    print(f"\nFastMesh is serving on {url}  (API docs: {url}/docs, metrics: {url}/metrics)\n"
+          f"Try it (uploads a sample point cloud, waits, downloads the mesh):\n\n"
+          f"{_curl(url, example, key)}\n\n"
+          f"or: {_fastmesh_cli()} submit {example} --url {url} -o example.glb"
+          f"{' --api-key ' + shlex.quote(key) if key else ''}\n\nCtrl-C stops everything.\n", flush=True)
+
+
+def _supervise(started: _Started) -> int:
+    """Watch the API and the worker until the API exits or the worker exits once too often (status 1); a worker
+    that exits is started again (:func:`_restart`)."""
+    restarts: list[float] = []
+    while True:
+        if started.api.proc.poll() is not None:
+            _say(f"the API exited with code {started.api.proc.returncode}; stopping")
+            return 1
+        if started.worker.proc.poll() is not None:
+            started.worker = _restart(started.worker, restarts)
+            if started.worker is None:
+                return 1
+        time.sleep(0.5)
+
+
+def _serve(settings: Settings, started: _Started) -> int:
+    """Start Redis (or use the given one), the worker and the API into ``started``, and supervise them."""
+    settings = _use_redis(settings, started)
+    if settings is None:
+        return 1
+    if _port_busy(settings.host, settings.port):
+        _say(f"port {settings.port} on {settings.host} is in use; choose another with FASTMESH_PORT=8001 make run")
+        return 1
+    worker = started.worker = WorkerProcess(settings, f"fastmesh-run-{os.getpid()}", log_path="-")
+    api = started.api = ApiProcess(settings, settings.host, settings.port, log_path="-", args=("--no-access-log",))
+    _say("loading the model and starting the API ...")
+
+    def ready():
+        if worker.proc.poll() is not None:
+            raise RuntimeError(f"the worker exited with code {worker.proc.returncode} (its messages are above)")
+        return api.answers("/readyz")
+
+    wait_for(ready, 300, 0.25, what="the worker and the API to be ready")
+    _announce(settings, api.url, started.workdir)
+    return _supervise(started)
+
+
 def main() -> int:
     try:
         settings = Settings()
     except Exception as e:
         _say(f"bad FASTMESH_* configuration: {e}")
         return 2
-    workdir = Path(tempfile.mkdtemp(prefix="fastmesh-run-"))
-    server: RedisServer | None = None
-    worker: WorkerProcess | None = None
-    api: ApiProcess | None = None
-
-    stopping = False
-
-    def stop(*_):
-        # Once: a second Ctrl-C or SIGTERM (a supervisor sending TERM twice) must not break off the shutdown
-        # the first one began, which would leave the worker and Redis running.
-        nonlocal stopping
-        if stopping:
-            os.write(1, b"[fastmesh run] already stopping\n")  # print() is not safe inside a signal handler
-            return
-        stopping = True
-        raise KeyboardInterrupt
-
+    started = _Started(Path(tempfile.mkdtemp(prefix="fastmesh-run-")))
+    stop = _StopOnce()
     signal.signal(signal.SIGTERM, stop)
     # Also Ctrl-C, explicitly: a process started with SIGINT ignored (a parent that ignores it, as some
     # launchers and test runners leave it) would otherwise never see KeyboardInterrupt and never stop.
     signal.signal(signal.SIGINT, stop)
     try:
-        if "FASTMESH_REDIS_URL" in os.environ:
-            try:
-                redis.Redis.from_url(settings.redis_url, socket_connect_timeout=3).ping()
-            except redis.RedisError as e:
-                _say(f"cannot reach Redis at FASTMESH_REDIS_URL={settings.redis_url}: {e}")
-                return 1
-            _say(f"using Redis at {settings.redis_url}")
-        else:
-            if shutil.which("redis-server") is None:
-                _say("redis-server is not installed. Install it with:\n\n    apt-get install redis-server\n\n"
-                     "or point at a running one: FASTMESH_REDIS_URL=redis://HOST:6379/0 make run")
-                return 1
-            server = RedisServer(directory=str(workdir), maxmemory=settings.redis_maxmemory)
-            settings = settings.model_copy(update={"redis_url": server.url})
-            _say(f"started redis-server on port {server.port} (at most {settings.redis_maxmemory}; data in {workdir}, "
-                 "not kept: stopping `make run` or a restart of this Redis forgets its jobs)")
-        if _port_busy(settings.host, settings.port):
-            _say(f"port {settings.port} on {settings.host} is in use; choose another with FASTMESH_PORT=8001 make run")
-            return 1
-        worker = WorkerProcess(settings, f"fastmesh-run-{os.getpid()}", log_path="-")
-        api = ApiProcess(settings, settings.host, settings.port, log_path="-", args=("--no-access-log",))
-        url = api.url
-        _say("loading the model and starting the API ...")
-
-        def ready():
-            if worker.proc.poll() is not None:
-                raise RuntimeError(f"the worker exited with code {worker.proc.returncode} (its messages are above)")
-            return api.answers("/readyz")
-
-        wait_for(ready, 300, 0.25, what="the worker and the API to be ready")
-        example = example_input(workdir / "example.xyz")
-        key = settings.api_keys[0] if settings.api_keys else None
-        print(f"\nFastMesh is serving on {url}  (API docs: {url}/docs, metrics: {url}/metrics)\n"
-              f"Try it (uploads a sample point cloud, waits, downloads the mesh):\n\n"
-              f"{_curl(url, example, key)}\n\n"
-              f"or: {_fastmesh_cli()} submit {example} --url {url} -o example.glb"
-              f"{' --api-key ' + shlex.quote(key) if key else ''}\n\nCtrl-C stops everything.\n", flush=True)
-        restarts: list[float] = []
-        while True:
-            if api.proc.poll() is not None:
-                _say(f"the API exited with code {api.proc.returncode}; stopping")
-                return 1
-            if worker.proc.poll() is not None:
-                worker = _restart(worker, restarts)
-                if worker is None:
-                    return 1
-            time.sleep(0.5)
+        return _serve(settings, started)
     except KeyboardInterrupt:
         _say("stopping ...")
         return 0
@@ -180,14 +226,8 @@ def main() -> int:
         _say(str(e))
         return 1
     finally:
-        stopping = True  # however we got here (an error, the API exiting): a signal now must not interrupt this
-        if api is not None:
-            api.stop()
-        if worker is not None:
-            worker.stop(15)
-        if server is not None:
-            server.stop()
-        shutil.rmtree(workdir, ignore_errors=True)
+        stop.stopping = True  # however we got here (an error, the API exiting): a signal now must not interrupt this
+        started.stop()
 
 
 if __name__ == "__main__":

@@ -12,7 +12,8 @@ import logging
 from prometheus_client import CollectorRegistry, Counter, Histogram, disable_created_metrics, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
 
-from fastmesh_jobs.store import DISTANCE_BUCKETS, STAGE_BUCKETS, Store
+from fastmesh_jobs.store import Store
+from fastmesh_jobs.telemetry import DISTANCE_BUCKETS, STAGE_BUCKETS
 
 log = logging.getLogger("fastmesh.service")
 disable_created_metrics()  # the *_created series only add noise to every scrape

@@ -36,7 +36,8 @@ import httpcore
 import httpx
 
 from fastmesh_jobs.settings import Settings
-from fastmesh_jobs.store import FINAL, Store, iso
+from fastmesh_jobs.states import FINAL, iso
+from fastmesh_jobs.store import Store
 
 log = logging.getLogger("fastmesh.webhooks")
 

@@ -107,7 +107,7 @@ def test_one_file_field_per_job_and_files_for_a_batch(idle):
 def test_a_failure_while_creating_deletes_the_jobs_made(idle, monkeypatch):
     """The queue filling between the check and the second job (other submissions racing): the first job is
     deleted, and the batch is answered 429 as a whole."""
-    from fastmesh_jobs.store import QueueFull
+    from fastmesh_jobs.limits import QueueFull
 
     store = idle.app.state.store
     real, calls = store.create, []

@@ -23,8 +23,9 @@ import redis
 import trimesh
 from test_render import decode_png
 
+from fastmesh_jobs.blobs import mesh_to_bytes
 from fastmesh_jobs.settings import Settings
-from fastmesh_jobs.store import Store, mesh_to_bytes
+from fastmesh_jobs.store import Store
 from service.preview import cache_field, cache_key
 from service.processes import ServedApp, local_redis
 
@@ -356,7 +357,7 @@ def test_render_processes_end_with_the_api_process_even_when_it_is_killed():
     from pathlib import Path
 
     code = ("import trimesh\nfrom service.render_pool import RenderPool\n"
-            "from fastmesh_jobs.store import mesh_to_bytes\n"
+            "from fastmesh_jobs.blobs import mesh_to_bytes\n"
             "m = trimesh.creation.box()\npool = RenderPool(2)\n"
             "print(len(pool.render('result', mesh_to_bytes(m.vertices, m.faces), 64, False, 60)), flush=True)\n"
             "import time; time.sleep(120)\n")

@@ -20,7 +20,8 @@ from testdata import committed_meshes
 
 from fastmesh.pipeline import GenerateParams, Pipeline
 from fastmesh.shapes.io import load_shape
-from fastmesh_jobs.store import Store, mesh_from_bytes
+from fastmesh_jobs.blobs import mesh_from_bytes
+from fastmesh_jobs.store import Store
 from service.processes import ServedApp, local_redis
 
 PARAMS = {"seed": 3, "max_vertices": 20}

@@ -18,7 +18,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from stack import flushed_redis
 
-from fastmesh_jobs import store as store_module
+from fastmesh_jobs.idempotency import PENDING_TTL
 from fastmesh_jobs.runtime import wait_for
 from fastmesh_jobs.settings import Settings
 from fastmesh_jobs.store import Store
@@ -423,7 +423,7 @@ def test_idempotency_key_of_a_request_whose_api_died(keyed):
     claim = store.idempotency_get(who, "died-1")
     assert claim.startswith(f"{job_id} ") and not claim.endswith(" pending")
     # Killed after creating the job, before naming it final.
-    store.redis.set(store._k_idem(who, "died-1"), f"{claim} pending", ex=store_module.PENDING_TTL)
+    store.redis.set(store._k_idem(who, "died-1"), f"{claim} pending", ex=PENDING_TTL)
     again = submit(keyed.url, headers={**auth, "Idempotency-Key": "died-1"}, seed=8)
     assert again.status_code == 200 and again.json()["id"] == job_id
     # Killed before creating the job: the retry waits for the claim to expire, then creates the job.

@@ -21,7 +21,8 @@ import redis
 from stack import assert_error, make_settings, post, sphere_points, xyz_bytes
 
 import service.http
-from fastmesh_jobs.store import Store, shape_from_bytes
+from fastmesh_jobs.blobs import shape_from_bytes
+from fastmesh_jobs.store import Store
 from service.processes import RedisServer, ServedApp
 
 KEY = "attack-test-key"

@@ -13,8 +13,9 @@ import pytest
 from stack import assert_error, make_settings, post, sphere_points, xyz_bytes
 
 import service.render_pool
+from fastmesh_jobs.blobs import mesh_to_bytes
 from fastmesh_jobs.settings import Settings, settings_table
-from fastmesh_jobs.store import Store, mesh_to_bytes
+from fastmesh_jobs.store import Store
 from service.processes import ServedApp
 
 KEY, KEY2 = "limits-test-key", "limits-test-key-2"

@@ -18,8 +18,8 @@ from test_worker import DB, DOOMED, SLOW, Env, job, wait_running
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.shapes.io import with_normals
+from fastmesh_jobs.blobs import mesh_from_bytes, shape_from_bytes
 from fastmesh_jobs.runtime import wait_for
-from fastmesh_jobs.store import mesh_from_bytes, shape_from_bytes
 
 BATCH = {"FASTMESH_MAX_BATCH": "4"}
 

@@ -23,9 +23,11 @@ from rq.timeouts import JobTimeoutException
 
 from fastmesh.shapes.io import with_normals
 from fastmesh.shapes.shape import ShapeError
+from fastmesh_jobs.blobs import mesh_to_bytes, shape_from_bytes
 from fastmesh_jobs.runtime import wait_for
 from fastmesh_jobs.settings import Settings
-from fastmesh_jobs.store import Store, mesh_to_bytes, shape_from_bytes, timeout_error
+from fastmesh_jobs.states import timeout_error
+from fastmesh_jobs.store import Store
 
 log = logging.getLogger("fastmesh.worker")
 
@@ -327,10 +329,8 @@ def _redis_answers(store: Store) -> bool:
 def _release(store: Store, job_id: str, attempt: int, reason: str, **fields) -> bool:
     """Give a job back to the queue for a reason that is not the job's fault (``fields``: more to record in the
     job's hash).  False when the job was no longer this attempt's (cancelled, taken over)."""
-    ok = store.transition(job_id, "running", {"status": "queued", "attempt": attempt + 1, "stage": "queued",
-                                              "fraction": 0.0, "worker": "", **fields}, attempt=attempt, final=True)
+    ok = store.requeue(job_id, attempt, **fields)
     if ok:
-        store.enqueue(job_id, attempt + 1)
         log.warning("job %s handed back to the queue (%s)", job_id, reason)
     return ok
 
@@ -351,7 +351,7 @@ def _device_failure(store: Store, job_id: str, attempt: int, error: BaseExceptio
     earlier = int((store.get(job_id) or {}).get("device_errors") or 0)
     if earlier == 0 and attempt < store.settings.max_attempts:
         if _release(store, job_id, attempt, "device error, for another worker", device_errors=1):
-            store.redis.hincrby(f"{store.prefix}:stats:jobs", "retried", 1)
+            store.count_job("retried")
         return
     again = ("; it had failed this way on another worker before, so it is likely to keep failing (report it with "
              "its input)" if earlier else "")

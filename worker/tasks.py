@@ -2,7 +2,7 @@
 
 RQ imports a job's function by the name stored with the job, so a job still waiting in a queue while
 the workers are upgraded runs through this alias instead of failing to import (no accepted job is
-lost).  New jobs are enqueued as ``fastmesh_jobs.store.TASK``.
+lost).  New jobs are enqueued as ``fastmesh_jobs.states.TASK``.
 """
 
 from .jobs import run_job

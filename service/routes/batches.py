@@ -13,8 +13,9 @@ import contextlib
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse
 
+from fastmesh_jobs.limits import QueueFull
 from fastmesh_jobs.settings import Settings
-from fastmesh_jobs.store import QueueFull, Store
+from fastmesh_jobs.store import Store
 
 from ..deps import Owner, Parses, ParseSlots, SettingsDep, StoreDep
 from ..errors import ApiError

@@ -21,8 +21,10 @@ from pydantic import Field, TypeAdapter, ValidationError
 
 from fastmesh.export.output import MeshOut
 from fastmesh.shapes.shape import EXPORT_FORMATS
+from fastmesh_jobs.limits import QueueFull
 from fastmesh_jobs.settings import Settings
-from fastmesh_jobs.store import FINAL, STATUSES, QueueFull, Store
+from fastmesh_jobs.states import FINAL, STATUSES
+from fastmesh_jobs.store import Store
 
 from ..children import CappedPool, ChildFailed, ChildShapeError
 from ..deps import JobId, Owner, Parses, ParseSlots, SettingsDep, StoreDep, owned_job

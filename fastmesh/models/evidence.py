@@ -78,6 +78,7 @@ from ..tokenizer import vertex as vt
 from ..tokenizer.grid import (
     BLOCK_SIDE,
     BLOCKS_PER_AXIS,
+    LEVELS,
     N_OFFSETS,
     OFFSET_BITS,
     block_coords,
@@ -85,11 +86,10 @@ from ..tokenizer.grid import (
     offset_coords,
     quantize,
 )
-from ..tokenizer.grid import LEVELS as CELLS
 from .cells import FLOOR
 
 SHIFTS = (1, 2, 3)  # cube sides 2, 4, 8 cells: the 2048 condition points cover a surface sparsely at 1 cell
-LEVELS = 6  # count levels 0, 1, 2-3, 4-7, 8-15, 16+
+POINT_LEVELS = 6  # count levels 0, 1, 2-3, 4-7, 8-15, 16+
 BLOCK_LEVELS = 8
 SEQ_LEVELS = 8  # occupied blocks remaining / skipped: 0, 1, 2-3, ..., 64+
 NORMAL_SHIFTS = (1, 2)  # cubes of side 2 and 4 cells for the normal spread
@@ -99,7 +99,7 @@ SPREAD_STATES = len(SPREAD_EDGES) + 2
 # would need thousands of steps to reach a bias of a few nats.  Scaling its output lets it get
 # there in about a hundred, at the learning rate the transformer needs.
 GAIN = 32.0
-CELL_LEVELS = 10  # expected vertices: 0, 1, 2-3, ..., 256+
+EXPECTED_LEVELS = 10  # expected vertices: 0, 1, 2-3, ..., 256+
 STAY_LEVELS = 8  # vertices emitted in the current block: 0, 1, 2-3, ..., 64+
 # log2(emitted / expected) bucket edges of the EOS count reading: a ratio of 1 is the edge at 0.
 RATIO_EDGES = (-2.0, -1.0, -0.5, -0.25, -0.1, 0.0, 0.1, 0.25, 0.5, 1.0, 2.0)
@@ -161,10 +161,10 @@ class Evidence:
         b = points.shape[0]
         point_cells = quantize(points.detach().float())  # (B, P, 3)
         self.levels = []  # per shift: (B, res^3) count level of every coarse cube
-        for s, n_levels in [(s, LEVELS) for s in SHIFTS] + [(OFFSET_BITS, BLOCK_LEVELS)]:
-            flat = flat_index(point_cells >> s, CELLS >> s)
+        for s, n_levels in [(s, POINT_LEVELS) for s in SHIFTS] + [(OFFSET_BITS, BLOCK_LEVELS)]:
+            flat = flat_index(point_cells >> s, LEVELS >> s)
             # Counted as integers: exact on every device, so the levels cannot depend on summation order.
-            grid = torch.zeros(b, (CELLS >> s) ** 3, dtype=torch.long, device=points.device)
+            grid = torch.zeros(b, (LEVELS >> s) ** 3, dtype=torch.long, device=points.device)
             grid.scatter_add_(1, flat, torch.ones_like(flat))
             self.levels.append(_level(grid, n_levels))
         # Occupied blocks up to and including each block id (the order blocks are emitted in), as integers.
@@ -173,14 +173,14 @@ class Evidence:
         self.occ_excl = self.occ_incl - occupied
         # The coarse index of cell (block * BLOCK_SIDE + offset) is linear: base(block) + part(offset).
         oxyz = offset_coords(torch.arange(N_OFFSETS, device=points.device))
-        self.parts = [flat_index(oxyz >> s, CELLS >> s) for s in SHIFTS]
+        self.parts = [flat_index(oxyz >> s, LEVELS >> s) for s in SHIFTS]
         self.spread = None  # per NORMAL_SHIFTS: (B, res^3) spread state of every cube
         if module.corner_table is not None:
             if normals is None:
                 raise ValueError("this decoder's evidence reads the input normals: pass them")
-            self.spread = [_spread_states(point_cells >> s, normals.detach().float(), CELLS >> s)
+            self.spread = [_spread_states(point_cells >> s, normals.detach().float(), LEVELS >> s)
                            for s in NORMAL_SHIFTS]
-            self.spread_parts = [flat_index(oxyz >> s, CELLS >> s) for s in NORMAL_SHIFTS]
+            self.spread_parts = [flat_index(oxyz >> s, LEVELS >> s) for s in NORMAL_SHIFTS]
         self.cells = None  # (B, 128^3) cell log-odds
         # (B,) 1 where a face-count target scaled the expected amounts (only a decoder reading its counts reads one)
         self.given = torch.zeros(b, dtype=torch.long, device=points.device)
@@ -239,9 +239,9 @@ class Evidence:
             special[:, vt.EOS] = self.tables.eos_table(_level(remaining, SEQ_LEVELS)).squeeze(-1)
         if self.cells is not None:  # the same reading of the sequence, in expected vertices
             ahead, skipped = _ahead(self.cell_incl, self.cell_excl, rows, block)
-            block_bias = block_bias + (self.tables.cell_block_table(_level(self.cell_expected[rows], CELL_LEVELS))
-                                       + self.tables.cell_skip_table(_level(skipped, CELL_LEVELS))).squeeze(-1)
-            special[:, vt.EOS] += self.tables.cell_eos_table(_level(ahead, CELL_LEVELS)).squeeze(-1)
+            block_bias = block_bias + (self.tables.cell_block_table(_level(self.cell_expected[rows], EXPECTED_LEVELS))
+                                       + self.tables.cell_skip_table(_level(skipped, EXPECTED_LEVELS))).squeeze(-1)
+            special[:, vt.EOS] += self.tables.cell_eos_table(_level(ahead, EXPECTED_LEVELS)).squeeze(-1)
         return [GAIN * special, GAIN * block_bias]
 
     def _offset_rows(self, rows: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
@@ -250,13 +250,13 @@ class Evidence:
         bxyz = block_coords(blk)  # (U, 3)
         idx = None
         for s, lev, part in zip(SHIFTS, self.levels, self.parts, strict=False):
-            lv = lev[rows[:, None], flat_index(bxyz * (BLOCK_SIDE >> s), CELLS >> s)[:, None] + part]  # (U, 4096)
-            idx = lv if idx is None else idx * LEVELS + lv
+            lv = lev[rows[:, None], flat_index(bxyz * (BLOCK_SIDE >> s), LEVELS >> s)[:, None] + part]  # (U, 4096)
+            idx = lv if idx is None else idx * POINT_LEVELS + lv
         bias = self.tables.table(idx).squeeze(-1)
         if self.spread is not None:
             idx = None
             for s, st, part in zip(NORMAL_SHIFTS, self.spread, self.spread_parts, strict=True):
-                sv = st[rows[:, None], flat_index(bxyz * (BLOCK_SIDE >> s), CELLS >> s)[:, None] + part]
+                sv = st[rows[:, None], flat_index(bxyz * (BLOCK_SIDE >> s), LEVELS >> s)[:, None] + part]
                 idx = sv if idx is None else idx * SPREAD_STATES + sv
             bias = bias + self.tables.corner_table(idx).squeeze(-1)
         bias = GAIN * bias
@@ -317,8 +317,8 @@ def read_counts(tables: PointEvidence, expected: torch.Tensor, cum: torch.Tensor
     end = cum[rows, blk * N_OFFSETS + N_OFFSETS - 1]
     key = blk * N_OFFSETS + offset.clamp(-1, N_OFFSETS - 1)
     rest = (end - torch.where(key >= 0, cum[rows, key.clamp(min=0)], 0.0)).clamp(min=0)
-    stay = (tables.stay_table(_level(n_in_block, STAY_LEVELS) * CELL_LEVELS + _level(in_block, CELL_LEVELS))
-            + tables.rest_table(_level(rest, CELL_LEVELS))).squeeze(-1)
+    stay = (tables.stay_table(_level(n_in_block, STAY_LEVELS) * EXPECTED_LEVELS + _level(in_block, EXPECTED_LEVELS))
+            + tables.rest_table(_level(rest, EXPECTED_LEVELS))).squeeze(-1)
     total = cum[:, -1].clamp(min=1.0)[:, None]
     ratio = torch.bucketize(torch.log2(n_vert.float().clamp(min=0.5) / total), ratio_edges)
     eos = tables.count_table(given[:, None] * RATIO_LEVELS + ratio).squeeze(-1)
@@ -356,9 +356,9 @@ def _spread_states(coarse: torch.Tensor, normals: torch.Tensor, res: int) -> tor
 
 
 class PointEvidence(nn.Module):
-    """The learned tables of :class:`Evidence` (LEVELS^3 + BLOCK_LEVELS scalars, 2 * SEQ_LEVELS with
-    ``blocks_ahead``, SPREAD_STATES^2 with ``normals``, 1 + 3 * CELL_LEVELS with ``cells``,
-    (STAY_LEVELS + 1) * CELL_LEVELS + 2 * RATIO_LEVELS with ``counts``)."""
+    """The learned tables of :class:`Evidence` (POINT_LEVELS^3 + BLOCK_LEVELS scalars, 2 * SEQ_LEVELS with
+    ``blocks_ahead``, SPREAD_STATES^2 with ``normals``, 1 + 3 * EXPECTED_LEVELS with ``cells``,
+    (STAY_LEVELS + 1) * EXPECTED_LEVELS + 2 * RATIO_LEVELS with ``counts``)."""
 
     def __init__(self, normals: bool = False, cells: bool = False, blocks_ahead: bool = True, counts: bool = False):
         super().__init__()
@@ -366,7 +366,7 @@ class PointEvidence(nn.Module):
             raise ValueError("the sequence needs one reading of what is ahead: occupied blocks or the cells")
         if counts and not cells:
             raise ValueError("the count reading compares the sequence with the cells: it needs cells=True")
-        self.table = nn.Embedding(LEVELS ** len(SHIFTS), 1)
+        self.table = nn.Embedding(POINT_LEVELS ** len(SHIFTS), 1)
         self.block_table = nn.Embedding(BLOCK_LEVELS, 1)
         self.skip_table = nn.Embedding(SEQ_LEVELS, 1) if blocks_ahead else None
         self.eos_table = nn.Embedding(SEQ_LEVELS, 1) if blocks_ahead else None
@@ -375,11 +375,11 @@ class PointEvidence(nn.Module):
         # scaled by GAIN like the tables: its gradient (a mean of log-odds, several nats) would then dominate
         # the clipped gradient norm (56 against ~3) and stall the transformer.
         self.cell_gain = nn.Parameter(torch.ones(())) if cells else None
-        self.cell_block_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
-        self.cell_skip_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
-        self.cell_eos_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
-        self.stay_table = nn.Embedding(STAY_LEVELS * CELL_LEVELS, 1) if counts else None
-        self.rest_table = nn.Embedding(CELL_LEVELS, 1) if counts else None
+        self.cell_block_table = nn.Embedding(EXPECTED_LEVELS, 1) if cells else None
+        self.cell_skip_table = nn.Embedding(EXPECTED_LEVELS, 1) if cells else None
+        self.cell_eos_table = nn.Embedding(EXPECTED_LEVELS, 1) if cells else None
+        self.stay_table = nn.Embedding(STAY_LEVELS * EXPECTED_LEVELS, 1) if counts else None
+        self.rest_table = nn.Embedding(EXPECTED_LEVELS, 1) if counts else None
         self.count_table = nn.Embedding(2 * RATIO_LEVELS, 1) if counts else None
         for t in (self.table, self.block_table, self.skip_table, self.eos_table, self.corner_table,
                   self.cell_block_table, self.cell_skip_table, self.cell_eos_table, self.stay_table,

@@ -48,7 +48,7 @@ def test_level_of_a_count_is_the_formula():
 def _evidence(target: float | None = None):
     """An Evidence of every kind of table (random weights, so every lookup shows in the bias), on a random shape."""
     torch.manual_seed(0)
-    module = PointEvidence(normals=True, cells=True, blocks_ahead=True, counts=True)
+    module = PointEvidence(normals=True, logodds=True, blocks_ahead=True, counts=True)
     for p in module.parameters():
         torch.nn.init.normal_(p)
     points = torch.rand(1, 300, 3) - 0.5
@@ -143,12 +143,12 @@ def test_nan_cell_scores_are_no_candidates():
     from fastmesh.models.cells import FLOOR
 
     torch.manual_seed(0)
-    module = PointEvidence(cells=True, counts=True)
+    module = PointEvidence(logodds=True, counts=True)
     cells = torch.randn(1, LEVELS ** 3)
     cells[:, ::2] = float("nan")
     ev = module(torch.rand(1, 300, 3) - 0.5, None, cells)
-    assert torch.equal(ev.cells[:, ::2], torch.full_like(ev.cells[:, ::2], FLOOR))
-    assert torch.equal(ev.cells[:, 1::2], cells[:, 1::2])
+    assert torch.equal(ev.logodds[:, ::2], torch.full_like(ev.logodds[:, ::2], FLOOR))
+    assert torch.equal(ev.logodds[:, 1::2], cells[:, 1::2])
     for block in range(0, N_BLOCKS, 37):
         assert torch.isfinite(ev.weighted_cells(torch.tensor([block]), 6.0)).all()
     assert torch.isfinite(ev.cell_cum).all() and torch.isfinite(ev.cell_expected).all()
@@ -192,14 +192,14 @@ def test_generate_with_nan_cell_scores_gives_a_mesh(shipped, monkeypatch):
     from fastmesh.evaluation.primitives import point_cloud, primitive
     from fastmesh.pipeline import GenerateParams
 
-    grid = shipped.cells.grid
+    grid = shipped.cell_net.grid
 
     def poisoned(*args, **kwargs):
         g = grid(*args, **kwargs).clone()
         g.view(-1)[::3] = float("nan")
         return g
 
-    monkeypatch.setattr(shipped.cells, "grid", poisoned)
+    monkeypatch.setattr(shipped.cell_net, "grid", poisoned)
     res = shipped.generate(point_cloud(primitive("box"), n=2048), GenerateParams(seed=1, candidates=1,
                                                                                   max_vertices=40))
     _assert_valid(res)

@@ -290,7 +290,7 @@ def test_without_blocks_ahead_the_sequence_reads_the_cells_alone():
     """``evidence_blocks_ahead=False``: EOS and skipped blocks are priced in the cells' expected vertices only, so
     occupied blocks where the cells expect no vertex (a box's flat walls) cost nothing to leave out."""
     with pytest.raises(ValueError, match="occupied blocks or the cells"):
-        PointEvidence(cells=False, blocks_ahead=False)
+        PointEvidence(logodds=False, blocks_ahead=False)
     torch.manual_seed(0)
     enc = EncoderConfig(n_points=64, n_latents=4, dim=32, depth=1, heads=2, n_freqs=4, anchors=8)
     m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, evidence=True, evidence_cells=True,

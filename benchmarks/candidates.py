@@ -80,7 +80,7 @@ def time_decoding(pipe: Pipeline, inputs: list[Path], k: int, rounds: int) -> No
         shape = load_shape(f)
         # Candidate k's own surface sample and condition, as Pipeline.generate makes them.
         frame = Frame.of(shape)
-        cells = pipe._cell_grid(frame)
+        cells = pipe._logodds(frame)
         encoded = [pipe._encode(frame, seed, GenerateParams(), cells) for seed in range(k)]
         prefix, evidence = [e[2] for e in encoded], [e[3] for e in encoded]
         med, lengths = _decode_times(pipe, prefix, evidence, rounds)

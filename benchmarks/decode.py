@@ -84,8 +84,8 @@ def time_generate(pipe: Pipeline, dec, rec, seed: int = 0) -> tuple[int, float, 
     pts_t, nrm_t = torch.from_numpy(pts)[None], torch.from_numpy(nrm)[None]
     cells = None
     if pipe.vertex.cfg.evidence_cells:  # the cell network reads its own, larger sample
-        c_pts, c_nrm = sample_triangles(v, rec.faces, pipe.cells.cfg.n_points, np.random.default_rng(seed))
-        cells = pipe.cells.grid(c_pts, c_nrm)[None]
+        c_pts, c_nrm = sample_triangles(v, rec.faces, pipe.cell_net.cfg.n_points, np.random.default_rng(seed))
+        cells = pipe.cell_net.grid(c_pts, c_nrm)[None]
     with torch.inference_mode():
         prefix = pipe.vertex.condition(pts_t, nrm_t)
         evidence = pipe.vertex.point_evidence(pts_t, nrm_t, cells)

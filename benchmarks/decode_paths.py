@@ -48,7 +48,7 @@ def encoded(pipe: Pipeline, shape, params: GenerateParams) -> tuple[torch.Tensor
     """The decoder's inputs for ``shape`` as ``Pipeline._decode`` makes them: (C, M, dim) prefixes and the
     evidence of the C candidates."""
     frame = Frame.of(shape)
-    cells = pipe._cell_grid(frame)
+    cells = pipe._logodds(frame)
     encs = [pipe._encode(frame, params.seed + k, params, cells) for k in range(params.candidates)]
     evidence = [e[3] for e in encs]
     return torch.cat([e[2] for e in encs]), None if evidence[0] is None else StackedEvidence(evidence)

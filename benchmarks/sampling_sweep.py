@@ -49,7 +49,7 @@ def candidates(pipe: Pipeline, shape, params: GenerateParams) -> list[np.ndarray
     (seqs,) = decode(pipe.decoder, [next(steps)])
     out = []
     for seq in seqs:
-        q = pipe.vertex_cells(seq.cpu().numpy(), frame.cells, params)
+        q = pipe.vertex_cells(seq.cpu().numpy(), frame.logodds, params)
         out.append(frame.norm.invert(dequantize(q)) if len(q) else np.zeros((0, 3)))
     return out
 

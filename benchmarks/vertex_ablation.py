@@ -65,7 +65,7 @@ def _without(path: str, pipe: Pipeline) -> Pipeline:
     if vertex.cfg.evidence_cells:
         raise SystemExit(f"{path}: this decoder reads the cell evidence; --without wants one that does not")
     return Pipeline(vertex, pipe.enhancer, pipe.face, device=pipe.device, filter_config=pipe.filter_config,
-                    triangle_config=pipe.triangle_config, source=path, threads=pipe.threads, cells=pipe.cells,
+                    triangle_config=pipe.triangle_config, source=path, threads=pipe.threads, cell_net=pipe.cell_net,
                     fit_config=pipe.fit_config)
 
 
@@ -85,7 +85,7 @@ def main() -> int:
     torch.set_num_threads(1)
     pairs = pair_inputs(args.inputs, args.reference)[: args.limit or None]
     pipe = Pipeline.from_pretrained(args.weights)
-    if pipe.cells is None:
+    if pipe.cell_net is None:
         raise SystemExit(f"{pipe.source} has no cell evidence network")
     other = _without(args.without, pipe) if args.without else None
     params = GenerateParams(seed=args.seed, candidates=args.candidates)
@@ -109,8 +109,8 @@ def main() -> int:
         if other is not None:
             row["decoder"] = score(other.generate(shape, params).vertices)
         unit = in_norm.apply(shape.vertices)
-        pts, nrm = sample_surface(shape, pipe.cells.cfg.n_points, seed=CELL_SEED, vertices=unit)
-        cells, logits = pipe.cells.score(pts, nrm)
+        pts, nrm = sample_surface(shape, pipe.cell_net.cfg.n_points, seed=CELL_SEED, vertices=unit)
+        cells, logits = pipe.cell_net.score(pts, nrm)
         own = max(3, int(round(float(torch.sigmoid(logits).sum()))))
         for name, chosen in (("cells@decoder", select_cells(cells, logits, count=n_dec)),
                              ("cells@own", select_cells(cells, logits, count=own)),

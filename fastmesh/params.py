@@ -1,14 +1,18 @@
 """User-facing generation parameters and the values each accepts (no torch import: the CLI and service read
 them cheaply).
 
-``BOUNDS`` is the one statement of those values: ``GenerateParams.validate`` (library, CLI, worker) and
-``SamplingConfig.validate`` (the decoder's loop) check it, and the service declares its integer form fields
-from it, so the OpenAPI schema states the same ranges.
+Each parameter is declared once, as a field of :class:`GenerateParams` (its type, default and help), with its
+values in ``BOUNDS`` (numbers) or ``CHOICES`` (strings).  :data:`PARAMETERS` presents them to the interfaces,
+which make their own from it: the service's form fields (``service.routes.form``, whose OpenAPI schema states
+the same ranges), the command-line flags (``fastmesh.cli.flags``), the web page's inputs
+(``service.web.routes.page_config``).  ``GenerateParams.validate`` (library, CLI, worker) and
+``SamplingConfig.validate`` (the decoder's loop) check ``BOUNDS``.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields, replace
+import typing
+from dataclasses import asdict, dataclass, field, fields, replace
 
 MAX_CANDIDATES = 16  # each candidate costs a full generation
 TARGET_FACES = (4, 8000)  # faces a user may ask for; the decoder's vertex limit still caps the result
@@ -63,7 +67,10 @@ class Bound:
                              f"{'(' if self.lo_open else '['}{self.lo:g}, {hi:g}]")
 
     def form_range(self) -> dict:
-        """``ge``/``le`` of a form field or schema holding this bound."""
+        """``ge``/``le`` of a form field or schema holding this bound (with ``zero``, from 0: the values between
+        0 and ``lo`` are refused by :meth:`check` alone)."""
+        if self.zero:
+            return {"ge": 0, "le": self.hi}
         return {"gt" if self.lo_open else "ge": self.lo, "le": self.hi}
 
 
@@ -88,35 +95,59 @@ BOUNDS = {
 CHOICES = {"closed": CLOSED_CHOICES, "topology": TOPOLOGY_CHOICES, "origin": ORIGIN_CHOICES, "up": UP_CHOICES}
 
 
+def _param(default, help: str, **presented):
+    """A ``GenerateParams`` field: its default, and how the interfaces present it (:class:`Parameter`).
+
+    ``help`` says what the parameter does (lower case, no final stop); ``presented`` may hold ``unset`` (what
+    None does, for a field whose default is None), ``output`` (True: a setting of the written result,
+    ``fastmesh.export.output``), ``metavar`` (the CLI's name of its value) and ``example`` (the schema's).
+    """
+    return field(default=default, metadata={"help": help, **presented})
+
+
 @dataclass
 class GenerateParams:
-    """User-facing generation settings (the service's form fields have the same names).
+    """User-facing generation settings: the one declaration of each parameter.
 
-    Where a default is None the pipeline decides: ``max_vertices`` the vertex model's limit,
-    ``target_faces`` the face count (the model chooses it itself).
+    The service's form fields, the ``generate`` / ``submit`` / ``loadtest`` flags, the web page's inputs and
+    the HTTP client's fields are made from these fields (:data:`PARAMETERS`), with the values ``BOUNDS`` and
+    ``CHOICES`` state.  Where a default is None the pipeline decides: ``max_vertices`` the vertex model's
+    limit, ``target_faces`` the face count (the model chooses it itself).
     """
 
-    seed: int = 0
-    temperature: float = 0.3
-    top_k: int = 50
-    top_p: float = 0.95
-    max_vertices: int | None = None
-    enhancer: bool = True
+    seed: int = _param(0, "sampling seed", example=0)
+    temperature: float = _param(0.3, "sampling temperature, 0 = greedy")
+    top_k: int = _param(50, "top-k sampling, 0 = off")
+    top_p: float = _param(0.95, "nucleus sampling")
+    max_vertices: int | None = _param(None, "vertex budget", unset="the model's limit", metavar="N")
+    enhancer: bool = _param(True, "run the fidelity enhancer (7-bit cell centres)")
     # Prediction filtering (masked re-predictions of the edges) changes none of the faces the surface
     # selection keeps, on the out-of-package eval set (docs/results.md), and costs four more network
     # passes: available, off by default.
-    filtering: bool = False
-    candidates: int = 2  # meshes made (seeds seed, seed+1, ...); the one nearest the input is returned
-    target_faces: int | None = None
-    # Whether the result is closed: "auto" closes it when the input is (``fastmesh.faces.closure.decide_closed``).
-    closed: str = "auto"
+    filtering: bool = _param(False, "prediction filtering: masked re-predictions of the edges")
+    candidates: int = _param(2, "meshes sampled (seeds seed, seed+1, ...); the one nearest the input is returned; "
+                                "1 is fastest")
+    target_faces: int | None = _param(
+        None, "faces to aim for, held within 20 % (the result's quality gives target_faces, faces and target_met)",
+        unset="the model chooses the count from the shape", metavar="N", example=300)
+    # "auto" closes the result when the input is closed (``fastmesh.faces.closure.decide_closed``).
+    closed: str = _param("auto", "close the result's holes: auto = when the input is closed (a closed mesh, or "
+                                 "oriented points that enclose a volume); the decision is in the result's quality",
+                         example="auto")
     # The written result (fastmesh.export.output): quads, a UV layout, the input's texture baked onto it, placement.
-    topology: str = "triangle"
-    uv: bool = False
-    bake: bool = False  # needs uv; bakes the base-colour texture of a textured glTF input
-    origin: str = "input"
-    height: float | None = None  # metres the result stands along its up axis; None keeps the input's size
-    up: str = "y"
+    topology: str = _param("triangle", "triangles, or quad: pairs of triangles that make a near-planar, "
+                                       "well-shaped quad become one, in the OBJ and PLY files (GLB holds triangles); "
+                                       "the result's quality.quad_share says how many", output=True, example="quad")
+    uv: bool = _param(False, "give the result a UV layout (xatlas), in the GLB (TEXCOORD_0) and OBJ (vt) files",
+                      output=True)
+    bake: bool = _param(False, "with uv: bake a textured glTF input's base colour onto the layout, into the GLB's "
+                               "texture", output=True)
+    origin: str = _param("input", "where the result's origin lies: the input's own frame, its bounding box's centre "
+                                  "or its bottom centre (Y up)", output=True, example="bottom")
+    height: float | None = _param(None, "scale the result to stand this many metres tall along Y",
+                                  unset="the input's size", output=True, metavar="METRES", example=1.8)
+    up: str = _param("y", "up axis of the OBJ and PLY files; GLB is always Y-up, as glTF requires", output=True,
+                     example="z")
 
     def validate(self, limit: int = LARGEST_VERTEX_LIMIT) -> None:
         """Raise ValueError naming the first bad field; ``limit`` is the vertex decoder's ``max_vertices``."""
@@ -198,3 +229,45 @@ class TunedParams(GenerateParams):
     def sampling(self, limit: int) -> SamplingConfig:
         return replace(super().sampling(limit), **self.overrides)
 
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One ``GenerateParams`` field as the interfaces present it: form field, CLI flag, page input.
+
+    ``type`` is int, float, bool or str (a choice among ``choices``); ``bound`` its ``BOUNDS`` entry, if any.
+    """
+
+    name: str
+    type: type
+    default: object
+    help: str
+    unset: str = ""
+    bound: Bound | None = None
+    choices: tuple[str, ...] = ()
+    output: bool = False
+    metavar: str | None = None
+    example: object = None
+
+    @property
+    def flag(self) -> str:
+        """The command-line flag: ``--target-faces`` for ``target_faces`` (a bool adds ``--no-...``)."""
+        return "--" + self.name.replace("_", "-")
+
+    def described(self, default: str) -> str:
+        """``help`` with what an unset value does: ``default`` words the default (``"default 0.3"``)."""
+        return f"{self.help}; unset = {self.unset}" if self.default is None and self.unset else \
+            f"{self.help} ({default})"
+
+
+def _parameters() -> tuple[Parameter, ...]:
+    hints = typing.get_type_hints(GenerateParams)
+    out = []
+    for f in fields(GenerateParams):
+        kind = next(t for t in typing.get_args(hints[f.name]) or (hints[f.name],) if t is not type(None))
+        out.append(Parameter(f.name, kind, f.default, bound=BOUNDS.get(f.name), choices=CHOICES.get(f.name, ()),
+                             **f.metadata))
+    return tuple(out)
+
+
+PARAMETERS = _parameters()  # in the order of GenerateParams' fields

@@ -75,7 +75,7 @@ __all__ = ["STAGES", "Cancelled", "GenerateParams", "GenerateResult", "Generatio
            "default_weights_dir"]
 
 NETWORKS = ("vertex", "enhancer", "face")
-CELLS = "cells"  # the cell evidence network (models.cells), needed by a decoder trained with it
+CELL_NET_DIR = "cells"  # weights folder of the cell network (models.cells.CellNet), for decoders that read it
 CELL_SEED = 0  # of the input sample the cell evidence reads
 # A result made in the canonical frame (``canonical``) is kept unless its surface_fit exceeds the input frame's
 # by more than this factor.
@@ -233,7 +233,8 @@ class Pipeline:
 
     def __init__(self, vertex, enhancer, face, device: torch.device | str = "cpu",
                  filter_config: FilterConfig | None = None, triangle_config: TriangleConfig | None = None,
-                 source: str = "", threads: int | None = None, cells=None, fit_config: FitConfig | None = None):
+                 source: str = "", threads: int | None = None, cell_net=None,
+                 fit_config: FitConfig | None = None):
         self.device = torch.device(device)
         # Process-wide (torch has one thread pool), and before the decoder is built: its ONNX session
         # takes torch's count.  See choose_threads.
@@ -241,9 +242,9 @@ class Pipeline:
         self.stage_threads = dict(STAGE_THREADS)
         if self.threads is not None:
             torch.set_num_threads(self.threads)
-        if vertex.cfg.evidence_cells and cells is None:
-            raise ValueError("this vertex decoder reads the cell evidence network: pass `cells`")
-        self.cells = cells.to(self.device).eval() if cells is not None else None
+        if vertex.cfg.evidence_cells and cell_net is None:
+            raise ValueError("this vertex decoder reads the cell network's log-odds: pass `cell_net`")
+        self.cell_net = cell_net.to(self.device).eval() if cell_net is not None else None
         self.vertex = vertex.to(self.device).eval()
         self.enhancer = enhancer.to(self.device).eval()
         self.face = face.to(self.device).eval()
@@ -293,13 +294,14 @@ class Pipeline:
                                     "(each needs model.safetensors + config.json)")
         dev = auto_device(device)
         nets = {n: load_model(root / n, device=dev)[0] for n in NETWORKS}
-        cells = load_model(root / CELLS, device=dev)[0] if (root / CELLS / "model.safetensors").exists() else None
+        cell_net = (load_model(root / CELL_NET_DIR, device=dev)[0]
+                    if (root / CELL_NET_DIR / "model.safetensors").exists() else None)
         settings = root / "pipeline.json"
         extra = json.loads(settings.read_text()) if settings.exists() else {}
         fcfg = FilterConfig(**extra.get("filtering", {}))
         triangle_cfg = TriangleConfig(**{"remove_unreferenced": True, **extra.get("faces", {})})
         return cls(nets["vertex"], nets["enhancer"], nets["face"], device=dev, filter_config=fcfg,
-                   triangle_config=triangle_cfg, source=str(root), threads=threads, cells=cells,
+                   triangle_config=triangle_cfg, source=str(root), threads=threads, cell_net=cell_net,
                    fit_config=FitConfig(**extra.get("fit", {})))
 
     @classmethod
@@ -334,8 +336,8 @@ class Pipeline:
         root = Path(directory)
         for name, net in zip(NETWORKS, (self.vertex, self.enhancer, self.face), strict=True):
             save_model(net, name, root / name)
-        if self.cells is not None:
-            save_model(self.cells, CELLS, root / CELLS)
+        if self.cell_net is not None:
+            save_model(self.cell_net, CELL_NET_DIR, root / CELL_NET_DIR)
         settings = {"filtering": asdict(self.filter_config), "faces": asdict(self.triangle_config),
                     "fit": asdict(self.fit_config)}
         (root / "pipeline.json").write_text(json.dumps(settings, indent=2))
@@ -557,8 +559,8 @@ class Pipeline:
         # Candidate k is exactly what seed + k gives alone; all are scored against one sample of the input.
         frame.reference = frame.surface(self.triangle_config.support_points, seed) if n_cand > 1 else None
         with stage("encode", req.timings):
-            frame.cells = self._cell_grid(frame)
-            frame.encoded = [self._encode(frame, seed + k, req.params, frame.cells) for k in range(n_cand)]
+            frame.logodds = self._logodds(frame)
+            frame.encoded = [self._encode(frame, seed + k, req.params, frame.logodds) for k in range(n_cand)]
         return frame
 
     def _choose(self, req: Request, frame: Frame) -> dict:
@@ -594,7 +596,7 @@ class Pipeline:
             raise ValueError("target_faces: this vertex decoder was not trained with a face-count condition")
         return torch.tensor([params.target_faces], device=self.device)
 
-    def _cell_grid(self, frame: Frame) -> torch.Tensor | None:
+    def _logodds(self, frame: Frame) -> torch.Tensor | None:
         """(1, 128^3) cell log-odds of the input in ``frame`` for a decoder that reads them (``models.cells``),
         else None.
 
@@ -603,13 +605,13 @@ class Pipeline:
         """
         if not self.vertex.cfg.evidence_cells:
             return None
-        pts, nrm = frame.samples(self.cells.cfg.n_points, CELL_SEED)
-        return self.cells.grid(pts, nrm)[None].to(self.device)
+        pts, nrm = frame.samples(self.cell_net.cfg.n_points, CELL_SEED)
+        return self.cell_net.grid(pts, nrm)[None].to(self.device)
 
-    def _encode(self, frame: Frame, seed: int, params: GenerateParams, cells: torch.Tensor | None = None) -> tuple:
+    def _encode(self, frame: Frame, seed: int, params: GenerateParams, logodds: torch.Tensor | None = None) -> tuple:
         """The surface sample of ``seed`` in ``frame`` (points, normals: (n, 3) float32 in its unit cube) and the
-        vertex decoder's condition on it: (points, normals, prefix (1, M, dim), evidence); ``cells`` from
-        :meth:`_cell_grid`."""
+        vertex decoder's condition on it: (points, normals, prefix (1, M, dim), evidence); ``logodds`` from
+        :meth:`_logodds`."""
         pts, nrm = frame.samples(self._n_points(), seed)
         n_vp = self.vertex.cfg.encoder.n_points
         pts_t = torch.from_numpy(pts).to(self.device)[None, :n_vp]
@@ -617,7 +619,7 @@ class Pipeline:
         with torch.inference_mode():
             target = self._target(params)
             prefix = self.vertex.condition(pts_t, nrm_t, target)
-            evidence = self.vertex.point_evidence(pts_t, nrm_t, cells, target)
+            evidence = self.vertex.point_evidence(pts_t, nrm_t, logodds, target)
         return pts, nrm, prefix, evidence
 
     def _decode(self, req: Request, frames: list[Frame], report: Callable[[float], None]
@@ -649,17 +651,17 @@ class Pipeline:
                                    req.should_cancel, req.timings)
         return [(pts, nrm, seq.cpu().numpy()) for (pts, nrm, _, _), seq in zip(encoded, seqs, strict=True)]
 
-    def vertex_cells(self, tokens: np.ndarray, cells: torch.Tensor | None, params: GenerateParams,
+    def vertex_cells(self, tokens: np.ndarray, logodds: torch.Tensor | None, params: GenerateParams,
                      count: CountRule | None = None) -> np.ndarray:
-        """(N, 3) int64 vertex cells of the decoder's ``tokens``, moved by the cell evidence ``cells`` (from
-        :meth:`_cell_grid`) where ``SamplingConfig.snap_margin`` says so (``models.cells.snap_to_cells``) and
+        """(N, 3) int64 vertex cells of the decoder's ``tokens``, moved by the cell log-odds ``logodds`` (from
+        :meth:`_logodds`) where ``SamplingConfig.snap_margin`` says so (``models.cells.snap_to_cells``) and
         the face-count rule allows it (``count``, made from ``params`` when not given: not with a target)."""
         q = vt.decode(tokens, strict=True)
         margin = params.sampling(self.max_vertices).snap_margin
         count = count or count_rule(params.target_faces)
-        if cells is None or margin is None or not count.snap:
+        if logodds is None or margin is None or not count.snap:
             return q
-        return snap_to_cells(q, cells[0].cpu(), margin)
+        return snap_to_cells(q, logodds[0].cpu(), margin)
 
     def _fit(self, frame: Frame, positions: np.ndarray, seed: int) -> np.ndarray:
         """``positions`` (N, 3) moved onto the planes of the input around them (``fitting.fit_to_planes``)."""
@@ -674,7 +676,7 @@ class Pipeline:
         """Candidate ``k`` of the frame as vertex cells and positions in its unit cube: ``(cells (N, 3) int64,
         positions (N, 3), vertices decoded)``, or the GenerationError that stops it; timed as the enhancer."""
         pts, nrm, tokens = frame.decoded[k]
-        q = self.vertex_cells(tokens, frame.cells, req.params, req.count)
+        q = self.vertex_cells(tokens, frame.logodds, req.params, req.count)
         if len(q) < 3:
             return GenerationError("no_vertices", f"the vertex decoder produced {len(q)} vertices; try another seed")
         decoded = len(q)

@@ -41,7 +41,7 @@ class Frame:
     norm : Normalization of the turned shape into the unit cube
     unit : (N, 3) float64, the turned shape's vertices in the unit cube
     reference : (M, 3) float32 or None, the input surface the candidates are scored against
-    cells : torch.Tensor or None, (1, 128^3) cell evidence (``Pipeline._cell_grid``)
+    logodds : torch.Tensor or None, (1, 128^3) the cell network's log-odds (``Pipeline._logodds``)
     encoded, decoded, positions, meshes : per candidate, what ``Pipeline`` made of it stage by stage
     """
 
@@ -50,7 +50,7 @@ class Frame:
     norm: Normalization
     unit: np.ndarray
     reference: np.ndarray | None = None
-    cells: object = None
+    logodds: object = None
     encoded: list = field(default_factory=list)
     decoded: list = field(default_factory=list)
     positions: list = field(default_factory=list)

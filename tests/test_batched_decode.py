@@ -230,8 +230,8 @@ def test_stacked_count_reading_equals_each_row_read_alone():
 def _crowded():
     """A decoder with cell evidence, as if trained, and B shapes whose cells crowd into one block each: it goes
     to the block the cells fill, takes its cells (likelier in sequence order) and ends when they are done."""
-    from fastmesh.models.cells import CELLS, FLOOR
-    from fastmesh.tokenizer.grid import sort_key
+    from fastmesh.models.cells import FLOOR
+    from fastmesh.tokenizer.grid import LEVELS, sort_key
 
     m = _model(2, cells=True)
     with torch.no_grad():
@@ -243,7 +243,7 @@ def _crowded():
     nrm = torch.nn.functional.normalize(torch.randn(B, 64, 3, generator=g), dim=-1)
     prefix, evidence = [], []
     for i in range(B):  # 80 likely cells in one block, likelier in sequence order: the decoder stays there
-        grid = torch.full((1, CELLS ** 3), FLOOR)
+        grid = torch.full((1, LEVELS ** 3), FLOOR)
         cells = torch.randint(16 * i, 16 * i + 16, (80, 3), generator=g).unique(dim=0)
         cells = cells[sort_key(cells).argsort()]
         grid[0, flat_index(cells)] = 8.0 - 0.1 * torch.arange(len(cells))

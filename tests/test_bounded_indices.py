@@ -14,19 +14,18 @@ import pytest
 import torch
 
 import fastmesh.models.evidence as evidence_module
-from fastmesh.models.evidence import CELL_LEVELS, LEVELS, SEQ_LEVELS, STAY_LEVELS, PointEvidence, _level
+from fastmesh.models.evidence import EXPECTED_LEVELS, POINT_LEVELS, SEQ_LEVELS, STAY_LEVELS, PointEvidence, _level
 from fastmesh.models.generate import choose_next
 from fastmesh.models.layers import CoordEmbedding
 from fastmesh.models.vertex import VertexConfig, VertexDecoder
 from fastmesh.params import SamplingConfig
 from fastmesh.tokenizer import vertex as vt
-from fastmesh.tokenizer.grid import LEVELS as CELLS
-from fastmesh.tokenizer.grid import N_BLOCKS, N_OFFSETS, quantize
+from fastmesh.tokenizer.grid import LEVELS, N_BLOCKS, N_OFFSETS, quantize
 
 BAD = [-0.5, -1e-7, -1.0, -3.0, float("nan"), float("inf"), float("-inf"), 1e30, -1e30]
 
 
-@pytest.mark.parametrize("levels", [LEVELS, SEQ_LEVELS, CELL_LEVELS, STAY_LEVELS])
+@pytest.mark.parametrize("levels", [POINT_LEVELS, SEQ_LEVELS, EXPECTED_LEVELS, STAY_LEVELS])
 def test_level_is_a_row_for_any_count(levels):
     counts = torch.tensor(BAD + [0.0, 0.4, 1.0, 2.0, 3.99, 1e6])
     lv = _level(counts, levels)
@@ -41,20 +40,20 @@ def test_level_is_a_row_for_any_count(levels):
 def test_level_of_a_count_is_the_formula():
     """Counts >= 0 keep their level: min(floor(log2(1 + n)), L - 1), for integer and float counts alike."""
     n = torch.cat([torch.arange(0, 2000), torch.rand(500) * 300])
-    want = [min(math.floor(math.log2(1 + float(x))), CELL_LEVELS - 1) for x in n.float()]
-    assert _level(n, CELL_LEVELS).tolist() == want
-    assert _level(n[:2000].long(), CELL_LEVELS).tolist() == want[:2000]
+    want = [min(math.floor(math.log2(1 + float(x))), EXPECTED_LEVELS - 1) for x in n.float()]
+    assert _level(n, EXPECTED_LEVELS).tolist() == want
+    assert _level(n[:2000].long(), EXPECTED_LEVELS).tolist() == want[:2000]
 
 
 def _evidence(target: float | None = None):
     """An Evidence of every kind of table (random weights, so every lookup shows in the bias), on a random shape."""
     torch.manual_seed(0)
-    module = PointEvidence(normals=True, cells=True, blocks_ahead=True, counts=True)
+    module = PointEvidence(normals=True, logodds=True, blocks_ahead=True, counts=True)
     for p in module.parameters():
         torch.nn.init.normal_(p)
     points = torch.rand(1, 300, 3) - 0.5
     normals = torch.nn.functional.normalize(torch.randn(1, 300, 3), dim=-1)
-    cells = torch.randn(1, CELLS ** 3) * 3
+    cells = torch.randn(1, LEVELS ** 3) * 3
     return module(points, normals, cells, None if target is None else torch.tensor([target]))
 
 
@@ -111,7 +110,7 @@ def test_quantize_puts_every_value_on_the_grid():
     v = [[float("nan"), float("inf"), float("-inf")], [0.0, -0.5, 0.4999], [1e30, -1e30, 0.49]]
     for q in (quantize(np.array(v)), quantize(torch.tensor(v)), quantize(torch.tensor(v).double())):
         q = np.asarray(q)
-        assert q.dtype == np.int64 and q.min() >= 0 and q.max() <= CELLS - 1
+        assert q.dtype == np.int64 and q.min() >= 0 and q.max() <= LEVELS - 1
         assert q.tolist() == [[0, 127, 0], [64, 0, 127], [127, 0, 126]]
 
 
@@ -144,12 +143,12 @@ def test_nan_cell_scores_are_no_candidates():
     from fastmesh.models.cells import FLOOR
 
     torch.manual_seed(0)
-    module = PointEvidence(cells=True, counts=True)
-    cells = torch.randn(1, CELLS ** 3)
+    module = PointEvidence(logodds=True, counts=True)
+    cells = torch.randn(1, LEVELS ** 3)
     cells[:, ::2] = float("nan")
     ev = module(torch.rand(1, 300, 3) - 0.5, None, cells)
-    assert torch.equal(ev.cells[:, ::2], torch.full_like(ev.cells[:, ::2], FLOOR))
-    assert torch.equal(ev.cells[:, 1::2], cells[:, 1::2])
+    assert torch.equal(ev.logodds[:, ::2], torch.full_like(ev.logodds[:, ::2], FLOOR))
+    assert torch.equal(ev.logodds[:, 1::2], cells[:, 1::2])
     for block in range(0, N_BLOCKS, 37):
         assert torch.isfinite(ev.weighted_cells(torch.tensor([block]), 6.0)).all()
     assert torch.isfinite(ev.cell_cum).all() and torch.isfinite(ev.cell_expected).all()
@@ -193,14 +192,14 @@ def test_generate_with_nan_cell_scores_gives_a_mesh(shipped, monkeypatch):
     from fastmesh.evaluation.primitives import point_cloud, primitive
     from fastmesh.pipeline import GenerateParams
 
-    grid = shipped.cells.grid
+    grid = shipped.cell_net.grid
 
     def poisoned(*args, **kwargs):
         g = grid(*args, **kwargs).clone()
         g.view(-1)[::3] = float("nan")
         return g
 
-    monkeypatch.setattr(shipped.cells, "grid", poisoned)
+    monkeypatch.setattr(shipped.cell_net, "grid", poisoned)
     res = shipped.generate(point_cloud(primitive("box"), n=2048), GenerateParams(seed=1, candidates=1,
                                                                                   max_vertices=40))
     _assert_valid(res)

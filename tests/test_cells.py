@@ -9,8 +9,8 @@ import torch
 import trimesh
 
 from fastmesh.models.cells import (
-    CELLS,
     FLOOR,
+    LEVELS,
     PLANE_FIT_RANK,
     SHIFTS,
     CellNet,
@@ -42,10 +42,10 @@ def _box_points(n: int = 2048, seed: int = 0) -> tuple[torch.Tensor, torch.Tenso
 def test_candidates_surround_every_point_and_know_their_nearest_point():
     pts, _ = _box_points(300)
     cells, nearest = candidate_cells(pts, radius=1)
-    own = ((pts.double() + 0.5) * CELLS).floor().long()
+    own = ((pts.double() + 0.5) * LEVELS).floor().long()
     assert np.isin(flat_index(own).numpy(), flat_index(cells).numpy()).all()
     assert torch.equal(flat_index(cells), flat_index(cells).sort().values)  # sorted, unique
-    u = (pts.double() + 0.5) * CELLS
+    u = (pts.double() + 0.5) * LEVELS
     brute = torch.cdist(cells.double() + 0.5, u).amin(1)
     # Each cell knows the points whose own cell is within the radius: the nearest of those.
     assert torch.allclose(nearest, brute) or (nearest >= brute - 1e-9).all()
@@ -55,8 +55,8 @@ def test_candidates_surround_every_point_and_know_their_nearest_point():
 def _neighbourhood(pts: torch.Tensor, nrm: torch.Tensor, cell: torch.Tensor, s: int):
     """The points (in cell units) and normals of the 3 x 3 x 3 coarse neighbourhood of ``cell`` at scale
     ``s``, or None when it holds none."""
-    u = ((pts.double() + 0.5) * CELLS).numpy()
-    coarse = np.floor(u).clip(0, CELLS - 1).astype(int) >> s
+    u = ((pts.double() + 0.5) * LEVELS).numpy()
+    coarse = np.floor(u).clip(0, LEVELS - 1).astype(int) >> s
     near = (np.abs(coarse - (cell.numpy() >> s)) <= 1).all(1)
     return (u[near], nrm.double().numpy()[near]) if near.any() else None
 
@@ -131,7 +131,7 @@ def test_plane_fit_finds_a_box_corner():
     pts, nrm = _box_points(4000)
     cells, nearest = candidate_cells(pts)
     feats = cell_features(pts, nrm, cells, nearest, plane_fit=True).double()
-    corner = ((torch.tensor([0.25, 0.2, 0.15]) + 0.5) * CELLS).floor().long()  # the box's (+, +, +) corner
+    corner = ((torch.tensor([0.25, 0.2, 0.15]) + 0.5) * LEVELS).floor().long()  # the box's (+, +, +) corner
     on_crease = corner - torch.tensor([1, 0, 6])  # inside the x and y faces' crease, 6 cells down
     k = SHIFTS.index(3)
     err, off = feats[:, n_features() + 4 * k].expm1(), feats[:, n_features() + 4 * k + 2].expm1()
@@ -145,7 +145,7 @@ def test_features_do_not_change_when_the_input_moves_by_whole_coarse_cells_or_tu
     pts, nrm = _box_points(800)
     cells, nearest = candidate_cells(pts)
     base = cell_features(pts, nrm, cells, nearest, plane_fit=True)
-    step = (1 << max(SHIFTS)) / CELLS  # a whole coarse cell of the largest scale: every grid stays aligned
+    step = (1 << max(SHIFTS)) / LEVELS  # a whole coarse cell of the largest scale: every grid stays aligned
     moved = pts + torch.tensor([step, -step, 0.0])
     cm, nm = candidate_cells(moved)
     assert torch.equal(cm, cells + torch.tensor([1 << max(SHIFTS), -(1 << max(SHIFTS)), 0]))
@@ -154,7 +154,7 @@ def test_features_do_not_change_when_the_input_moves_by_whole_coarse_cells_or_tu
     turn = lambda p: torch.stack([-p[:, 1], p[:, 0], p[:, 2]], 1)  # noqa: E731
     t_pts, t_nrm = turn(pts), torch.stack([-nrm[:, 1], nrm[:, 0], nrm[:, 2]], 1)
     tc, tn = candidate_cells(t_pts)
-    mapped = torch.stack([CELLS - 1 - cells[:, 1], cells[:, 0], cells[:, 2]], 1)
+    mapped = torch.stack([LEVELS - 1 - cells[:, 1], cells[:, 0], cells[:, 2]], 1)
     order = torch.argsort(flat_index(mapped))
     assert torch.equal(tc, mapped[order])
     assert torch.allclose(cell_features(t_pts, t_nrm, tc, tn, plane_fit=True), base[order], atol=1e-4)
@@ -174,14 +174,14 @@ def _snap_loop(q, grid, margin):
     """``snap_to_cells`` one vertex at a time: the slow twin."""
     out = []
     for x, y, z in np.asarray(q).tolist():
-        own = float(grid[(x * CELLS + y) * CELLS + z])
+        own = float(grid[(x * LEVELS + y) * LEVELS + z])
         best, at = -np.inf, (x, y, z)
         for dx in (-1, 0, 1):
             for dy in (-1, 0, 1):
                 for dz in (-1, 0, 1):
                     c = (x + dx, y + dy, z + dz)
-                    if all(0 <= v < CELLS for v in c) and float(grid[(c[0] * CELLS + c[1]) * CELLS + c[2]]) > best:
-                        best, at = float(grid[(c[0] * CELLS + c[1]) * CELLS + c[2]]), c
+                    if all(0 <= v < LEVELS for v in c) and float(grid[(c[0] * LEVELS + c[1]) * LEVELS + c[2]]) > best:
+                        best, at = float(grid[(c[0] * LEVELS + c[1]) * LEVELS + c[2]]), c
         c = at if best > own + margin else (x, y, z)
         if list(c) not in out:
             out.append(list(c))
@@ -193,10 +193,10 @@ def test_snap_to_cells_equals_a_loop_over_each_vertex(margin):
     """Vertices move to the best of the 27 cells around them when it beats their own by the margin, those that
     meet become one (first vertex's place in the order), border cells included."""
     rng = np.random.default_rng(0)
-    grid = np.full(CELLS ** 3, FLOOR, dtype=np.float32)
+    grid = np.full(LEVELS ** 3, FLOOR, dtype=np.float32)
     q = np.unique(np.concatenate([rng.integers(10, 14, (40, 3)), [[0, 0, 0], [127, 5, 127], [126, 127, 0]]]), axis=0)
     q = q[rng.permutation(len(q))]  # sequence order is not sorted order
-    near = (q[:, None] + rng.integers(-1, 2, (len(q), 6, 3))).reshape(-1, 3).clip(0, CELLS - 1)
+    near = (q[:, None] + rng.integers(-1, 2, (len(q), 6, 3))).reshape(-1, 3).clip(0, LEVELS - 1)
     grid[flat_index(near)] = rng.normal(0, 3, len(near))
     got = snap_to_cells(q, torch.from_numpy(grid), margin)
     assert got.tolist() == _snap_loop(q, grid, margin)
@@ -212,9 +212,9 @@ def test_dense_grid_and_net_scores_line_up():
     net = CellNet(CellNetConfig(hidden=16, depth=1, n_points=600)).eval()
     cells, logits = net.score(pts, nrm)
     grid = net.grid(pts, nrm)
-    assert grid.shape == (CELLS ** 3,)
+    assert grid.shape == (LEVELS ** 3,)
     assert torch.allclose(grid[flat_index(cells)], logits.clamp(min=FLOOR))
-    off = torch.ones(CELLS ** 3, dtype=torch.bool)
+    off = torch.ones(LEVELS ** 3, dtype=torch.bool)
     off[flat_index(cells)] = False
     assert (grid[off] == FLOOR).all()
     assert torch.equal(dense_grid(cells, logits), grid)
@@ -237,8 +237,8 @@ def _decoder(seed: int = 0, counts: bool = False) -> VertexDecoder:
 
 def _cell_grids(b: int, seed: int = 0) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
-    grid = torch.full((b, CELLS ** 3), FLOOR)
-    idx = torch.randint(0, CELLS ** 3, (b, 400), generator=g)
+    grid = torch.full((b, LEVELS ** 3), FLOOR)
+    idx = torch.randint(0, LEVELS ** 3, (b, 400), generator=g)
     grid.scatter_(1, idx, torch.randn(b, 400, generator=g) * 4)
     return grid
 
@@ -264,7 +264,7 @@ def test_decoder_reads_the_cell_log_odds():
             want = m.evidence.cell_gain * (grid[r, flat_index(cell)] - FLOOR)
             assert torch.allclose(diff[r, t, vt.OFFSET0:], want, atol=1e-4)
     # The expected vertex count of a block is the sum of its cells' probabilities.
-    p = torch.where(grid[0] > FLOOR, torch.sigmoid(grid[0]), 0.0).reshape(CELLS, CELLS, CELLS)
+    p = torch.where(grid[0] > FLOOR, torch.sigmoid(grid[0]), 0.0).reshape(LEVELS, LEVELS, LEVELS)
     assert torch.allclose(ev.cell_expected[0, 7], p[0:16, 0:16, 112:128].sum(), rtol=1e-4)
 
 
@@ -290,7 +290,7 @@ def test_without_blocks_ahead_the_sequence_reads_the_cells_alone():
     """``evidence_blocks_ahead=False``: EOS and skipped blocks are priced in the cells' expected vertices only, so
     occupied blocks where the cells expect no vertex (a box's flat walls) cost nothing to leave out."""
     with pytest.raises(ValueError, match="occupied blocks or the cells"):
-        PointEvidence(cells=False, blocks_ahead=False)
+        PointEvidence(logodds=False, blocks_ahead=False)
     torch.manual_seed(0)
     enc = EncoderConfig(n_points=64, n_latents=4, dim=32, depth=1, heads=2, n_freqs=4, anchors=8)
     m = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, evidence=True, evidence_cells=True,
@@ -301,7 +301,7 @@ def test_without_blocks_ahead_the_sequence_reads_the_cells_alone():
                   m.evidence.cell_eos_table):
             t.weight.normal_(0, 3.0 / GAIN)
     pts = torch.rand(1, 64, 3) - 0.5
-    empty = torch.full((1, CELLS ** 3), FLOOR)  # no candidate cell: no expected vertex anywhere
+    empty = torch.full((1, LEVELS ** 3), FLOOR)  # no candidate cell: no expected vertex anywhere
     ev = m.point_evidence(pts, None, empty)
     block = torch.tensor([[-1, 3, 200]])
     bias = ev.logit_bias(block)[0]
@@ -319,13 +319,13 @@ def test_count_reading_weighs_the_vertices_emitted_against_the_cells():
     Checked per position against sums over the cells, taken one by one in sequence order."""
     import bisect
 
-    from fastmesh.models.evidence import CELL_LEVELS, RATIO_EDGES, RATIO_LEVELS, STAY_LEVELS
+    from fastmesh.models.evidence import EXPECTED_LEVELS, RATIO_EDGES, RATIO_LEVELS, STAY_LEVELS
     from fastmesh.models.vertex import grammar_state, sequence_counts
     from fastmesh.tokenizer.grid import sort_key, unflat_index
 
     m = _decoder(5, counts=True)
     g = torch.Generator().manual_seed(2)
-    grid = torch.full((1, CELLS ** 3), FLOOR)  # candidates in the eight blocks of one 32-cell cube
+    grid = torch.full((1, LEVELS ** 3), FLOOR)  # candidates in the eight blocks of one 32-cell cube
     grid[0, flat_index(torch.randint(16, 48, (400, 3), generator=g))] = torch.randn(400, generator=g) * 4
     pts = torch.rand(1, 64, 3) - 0.5
     ev = m.point_evidence(pts, None if m.evidence.corner_table is None else torch.nn.functional.normalize(
@@ -361,8 +361,8 @@ def test_count_reading_weighs_the_vertices_emitted_against_the_cells():
         in_block = float(probs[keys // vt.N_OFFSETS == b].sum())
         rest = float(probs[(keys // vt.N_OFFSETS == b) & (keys % vt.N_OFFSETS > o)].sum())
         assert (emitted, in_blk) == (int(n_vert[0, t]), int(n_in_block[0, t]))
-        stay_row = level(in_blk, STAY_LEVELS) * CELL_LEVELS + level(in_block, CELL_LEVELS)
-        want_stay = GAIN * (t_.stay_table.weight[stay_row] + t_.rest_table.weight[level(rest, CELL_LEVELS)])
+        stay_row = level(in_blk, STAY_LEVELS) * EXPECTED_LEVELS + level(in_block, EXPECTED_LEVELS)
+        want_stay = GAIN * (t_.stay_table.weight[stay_row] + t_.rest_table.weight[level(rest, EXPECTED_LEVELS)])
         ratio = bisect.bisect_left(RATIO_EDGES, np.log2(max(emitted, 0.5) / max(total, 1.0)))
         assert ratio < RATIO_LEVELS
         if not any(abs(x - round(x)) < 1e-3 for x in (in_block, rest)):  # sums in another order: same level

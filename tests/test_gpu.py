@@ -113,7 +113,7 @@ def test_a_batch_gives_each_job_what_it_gives_alone(pipe):
     shape = smooth_cloud("wavy", 7)
     frame = Frame.of(shape)
     params = GenerateParams(seed=11, candidates=3)
-    cells = pipe._cell_grid(frame)
+    cells = pipe._logodds(frame)
     encoded = [pipe._encode(frame, params.seed + k, params, cells) for k in range(3)]
     prefix, evidence = [e[2] for e in encoded], [e[3] for e in encoded]
     cfg = params.sampling(pipe.max_vertices)
@@ -131,7 +131,7 @@ def test_the_cell_grid_on_the_device_matches_the_cpu(pipe):
     shape = smooth_cloud("wavy", 3)
     unit = Normalization.fit(shape.vertices).apply(shape.vertices).astype(np.float32)
     normals = shape.normals.astype(np.float32)
-    on_device = pipe.cells.grid(unit, normals)
-    on_cpu = copy.deepcopy(pipe.cells).cpu().grid(unit, normals)
+    on_device = pipe.cell_net.grid(unit, normals)
+    on_cpu = copy.deepcopy(pipe.cell_net).cpu().grid(unit, normals)
     assert on_device.device.type == "cuda"
     assert torch.allclose(on_device.cpu(), on_cpu, atol=1e-3)

@@ -31,7 +31,7 @@ def reference(m, prefix, cfg: SamplingConfig, evidence, seed: int) -> list[int]:
     """One shape decoded alone, one token at a time, each step a full uncached pass of the decoder (which adds the
     evidence and count bias and the grammar mask itself) and the draw of ``sampling.choose_static``."""
     keys = torch.tensor([seed_key(seed)])
-    cells = evidence is not None and evidence.reads_cells
+    cells = evidence is not None and evidence.reads_logodds
     tokens = torch.tensor([[vt.BOS]])
     for step in range(1, 2 * cfg.max_vertices + 2):
         logits = m(tokens, prefix=prefix, evidence=evidence)[:, -1]
@@ -136,7 +136,7 @@ def test_seeds_per_row_and_a_stacked_evidence_read_as_its_rows():
     assert rows[0].tolist() == dec.generate(prefix[0], cfg, evidence=evidence[0], seeds=[40])[0].tolist()
     assert rows[3].tolist() == dec.generate(prefix[3], _cfg(temperature=1.0, seed=9), evidence=evidence[3])[0].tolist()
     stacked = stack_evidence(evidence)
-    assert torch.equal(stacked.cells[2], evidence[2].cells[0]) and len(stacked.levels) == len(evidence[0].levels)
+    assert torch.equal(stacked.logodds[2], evidence[2].logodds[0]) and len(stacked.levels) == len(evidence[0].levels)
     with pytest.raises(ValueError, match="seeds"):
         dec.generate(torch.cat(prefix), cfg, evidence=StackedEvidence(evidence), seeds=[1])
 

@@ -28,7 +28,7 @@ def test_without_takes_a_decoder_folder_and_keeps_the_rest_of_the_pipeline(tmp_p
     save_model(Pipeline.random("tiny").vertex, "vertex", tmp_path / "no-cells")
     other = ablation._without(str(tmp_path / "no-cells"), pipe)
     assert not other.vertex.cfg.evidence_cells and pipe.vertex.cfg.evidence_cells
-    assert other.face is pipe.face and other.enhancer is pipe.enhancer and other.cells is pipe.cells
+    assert other.face is pipe.face and other.enhancer is pipe.enhancer and other.cell_net is pipe.cell_net
     assert other.fit_config == pipe.fit_config and other.triangle_config == pipe.triangle_config
     with pytest.raises(SystemExit, match="reads the cell evidence"):
         ablation._without(str(default_weights_dir() / "vertex"), pipe)

@@ -17,7 +17,8 @@ import sys
 
 from fastmesh.params import TunedParams
 
-from .generate import add_sampling_args, load_pipeline, params_from_args
+from .flags import params_from_args
+from .generate import add_sampling_args, load_pipeline
 
 
 def register(sub) -> None:

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 
-PARAMS = ("seed", "temperature", "top_k", "top_p", "max_vertices", "candidates", "formats")
+from .flags import add_param_flags, given_params
 
 
 def register(sub) -> None:
@@ -25,16 +24,8 @@ def register(sub) -> None:
                    help="seconds accepted jobs may still take after uploading stops (default 60)")
     p.add_argument("--api-key", default=None, help="bearer key (default: $FASTMESH_API_KEY)")
     p.add_argument("--format", default="glb", choices=("glb", "obj", "ply"), help="result format downloaded")
-    p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--temperature", type=float, default=None)
-    p.add_argument("--top-k", type=int, default=None)
-    p.add_argument("--top-p", type=float, default=None)
-    p.add_argument("--max-vertices", type=int, default=None)
-    p.add_argument("--candidates", type=int, default=None, help="meshes sampled per job (1 = fastest)")
     p.add_argument("--formats", default=None, help="formats exported with each job (e.g. glb,obj)")
-    p.add_argument("--no-enhancer", action="store_true", help="skip the fidelity enhancer")
-    p.add_argument("--filtering", action=argparse.BooleanOptionalAction, default=None,
-                   help="prediction filtering on or off (default: the server's, off)")
+    add_param_flags(p, defaults=False)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_loadtest)
 
@@ -44,13 +35,10 @@ def _loadtest(args) -> int:
 
     import httpx
 
+    from fastmesh.remote.client import form_values
     from fastmesh.remote.loadtest import LoadConfig, format_report, input_files, run
 
-    params = {k: str(getattr(args, k)) for k in PARAMS if getattr(args, k) is not None}
-    if args.no_enhancer:
-        params["enhancer"] = "false"
-    if args.filtering is not None:
-        params["filtering"] = str(args.filtering).lower()
+    params = form_values({**given_params(args), "formats": args.formats})
     input_files(args.inputs)  # a missing or empty input folder is a usage error, before any request
     key = args.api_key if args.api_key is not None else os.environ.get("FASTMESH_API_KEY")
     try:

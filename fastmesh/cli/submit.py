@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -10,7 +9,7 @@ from pathlib import Path
 
 
 def register(sub) -> None:
-    from .generate import add_output_args
+    from .flags import add_param_flags
 
     p = sub.add_parser("submit", help="send a shape to a FastMesh service and download the mesh")
     p.add_argument("file", help="mesh or point cloud (obj, glb, gltf, ply, stl, off, xyz, txt, npy, npz)")
@@ -18,20 +17,7 @@ def register(sub) -> None:
     p.add_argument("-o", "--out", default=None, help="where to write the result (default: FILE's name + .glb); "
                                                      "the extension picks glb, obj or ply")
     p.add_argument("--api-key", default=None, help="bearer key (default: $FASTMESH_API_KEY)")
-    p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--temperature", type=float, default=None)
-    p.add_argument("--top-k", type=int, default=None)
-    p.add_argument("--top-p", type=float, default=None)
-    p.add_argument("--max-vertices", type=int, default=None)
-    p.add_argument("--candidates", type=int, default=None, help="meshes sampled; the nearest the input is kept")
-    p.add_argument("--target-faces", type=int, default=None, metavar="N",
-                   help="faces to aim for (default: the model chooses)")
-    p.add_argument("--closed", choices=("auto", "true", "false"), default=None,
-                   help="close the result's holes (default: the server's, auto: when the input is closed)")
-    p.add_argument("--no-enhancer", action="store_true", help="skip the fidelity enhancer")
-    p.add_argument("--filtering", action=argparse.BooleanOptionalAction, default=None,
-                   help="prediction filtering on or off (default: the server's, off)")
-    add_output_args(p, defaults=False)
+    add_param_flags(p, defaults=False)
     p.add_argument("--timeout", type=float, default=None, help="give up after this many seconds")
     p.add_argument("--json", action="store_true", help="print the finished job as JSON on stdout")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
@@ -41,7 +27,7 @@ def register(sub) -> None:
 def _submit(args) -> int:
     from fastmesh.remote.client import Client, ServiceError
 
-    from .generate import output_params
+    from .flags import given_params
 
     src = Path(args.file)
     if not src.is_file():
@@ -62,11 +48,7 @@ def _submit(args) -> int:
 
     try:
         with Client(args.url, api_key=args.api_key) as client:
-            job = client.submit(src, seed=args.seed, temperature=args.temperature, top_k=args.top_k,
-                                top_p=args.top_p, max_vertices=args.max_vertices, candidates=args.candidates,
-                                target_faces=args.target_faces, closed=args.closed,
-                                enhancer=False if args.no_enhancer else None,
-                                filtering=args.filtering, formats=fmt, **output_params(args))
+            job = client.submit(src, formats=fmt, **given_params(args))
             job = client.wait(job["id"], progress=show, timeout=args.timeout)
             client.download(job["id"], out)
     except (ServiceError, TimeoutError) as e:

@@ -41,8 +41,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..tokenizer.grid import LEVELS as CELLS
-from ..tokenizer.grid import N_CELLS, flat_index, grid_coords, quantize, unflat_index
+from ..tokenizer.grid import LEVELS, N_CELLS, flat_index, grid_coords, quantize, unflat_index
 
 SHIFTS = (1, 2, 3, 4)  # coarse cells of 2, 4, 8, 16 cells: neighbourhoods 6 to 48 cells wide
 CANDIDATE_RADIUS = 2  # cells within this Chebyshev distance of a point's cell are candidates
@@ -81,7 +80,7 @@ def candidate_cells(points: torch.Tensor, radius: int = CANDIDATE_RADIUS) -> tup
     offs = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
     around = (own[:, None] + offs[None]).reshape(-1, 3)
     dist = (u[:, None] - (around.reshape(len(u), -1, 3) + 0.5)).norm(dim=-1).reshape(-1)
-    ok = ((around >= 0) & (around < CELLS)).all(-1)
+    ok = ((around >= 0) & (around < LEVELS)).all(-1)
     flat, inv = torch.unique(flat_index(around[ok]), return_inverse=True)
     nearest = torch.full((len(flat),), float("inf"), dtype=dist.dtype, device=dist.device).scatter_reduce(
         0, inv, dist[ok], "amin")
@@ -119,7 +118,7 @@ def cell_features(points: torch.Tensor, normals: torch.Tensor, cells: torch.Tens
     mom = torch.cat(parts, 1)
     feats, fits = [], []
     for s in SHIFTS:
-        res = CELLS >> s
+        res = LEVELS >> s
         coarse = own >> s
         around = (coarse[:, None] + _NEIGHBOURS.to(dev)[None]).reshape(-1, 3)  # (P*27, 3)
         ok = ((around >= 0) & (around < res)).all(-1)
@@ -280,7 +279,7 @@ def select_cells(cells: torch.Tensor | np.ndarray, logits: torch.Tensor | np.nda
     order = np.argsort(-logits, kind="stable")
     if count is None:
         order = order[logits[order] >= threshold]
-    taken = np.zeros((CELLS + 2,) * 3, dtype=bool)  # padded by one so neighbours of border cells index safely
+    taken = np.zeros((LEVELS + 2,) * 3, dtype=bool)  # padded by one so neighbours of border cells index safely
     out = []
     for i in order:
         x, y, z = cells[i] + 1
@@ -316,8 +315,8 @@ def snap_to_cells(q: np.ndarray, grid: torch.Tensor | np.ndarray, margin: float)
         return q
     g = np.asarray(grid, dtype=np.float32).reshape(-1)
     around = q[:, None] + _NEIGHBOURS.numpy()[None]  # (N, 27, 3)
-    inside = ((around >= 0) & (around < CELLS)).all(-1)
-    score = np.where(inside, g[flat_index(np.clip(around, 0, CELLS - 1))], -np.inf)
+    inside = ((around >= 0) & (around < LEVELS)).all(-1)
+    score = np.where(inside, g[flat_index(np.clip(around, 0, LEVELS - 1))], -np.inf)
     best = score.argmax(1)
     rows = np.arange(len(q))
     moved = np.where((score[rows, best] > g[flat_index(q)] + margin)[:, None], around[rows, best], q)

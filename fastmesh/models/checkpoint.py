@@ -32,7 +32,7 @@ def registry(kind: str) -> tuple[type, type]:
         from .face import FaceModel, FaceModelConfig
 
         return FaceModel, FaceModelConfig
-    if kind == "cells":
+    if kind == "cells":  # the cell network: the kind its saved config.json files carry
         from .cells import CellNet, CellNetConfig
 
         return CellNet, CellNetConfig

@@ -49,7 +49,7 @@ log = logging.getLogger(__name__)
 CHECK_EVERY = 16  # steps between two reads of the loop's state by the host
 MAX_GRAPHS = 8  # captured batch shapes kept per decoder (batch sizes 1, 2, 4, ... 128)
 # Evidence attributes with one row per shape (the others are shared tables and index helpers).
-_ROWS = ("levels", "occ_incl", "occ_excl", "spread", "cells", "given", "cell_expected", "cell_cum", "cell_incl",
+_ROWS = ("levels", "occ_incl", "occ_excl", "spread", "logodds", "given", "cell_expected", "cell_cum", "cell_incl",
          "cell_excl")
 
 
@@ -175,7 +175,7 @@ def masked_logits(logits: torch.Tensor, state: dict, cfg: SamplingConfig, eviden
             eos, stay = evidence.count_bias(block[:, None], offset[:, None], n_vert[:, None],
                                             state["n_in_block"][:, None])
             logits = add_count_bias(logits, eos[:, 0], stay[:, 0])
-        if evidence.reads_cells:
+        if evidence.reads_logodds:
             cell_bias = evidence.weighted_cells(block, cfg.cell_weight)
             through = evidence.expected_through(block, cfg.pace)
     mask = grammar_mask(prev, block, offset, eos_only=n_vert >= cfg.max_vertices)

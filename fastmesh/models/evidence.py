@@ -43,8 +43,8 @@ with hundreds of vertices).  Per cube of side 2^s cells, the spread of the norma
 is 0 on a plane and grows with the bend; it is cut into SPREAD_EDGES levels (and one for "no points"),
 and an offset token gets  corner_table[state_1, state_2]  from its cubes of side 2 and 4 cells.
 
-With ``PointEvidence(cells=True)`` the decoder also reads the *cell log-odds* of ``models.cells``
-(a network that scores every cell near the surface for "an artist vertex lies here" from its
+With ``PointEvidence(logodds=True)`` the decoder also reads the *cell log-odds* of ``models.cells``
+(``CellNet``, a network that scores every cell near the surface for "an artist vertex lies here" from its
 local geometry), given as a dense (B, 128^3) grid:
 
     offset token (cell c):      cell_gain * logodds(c)   (cell_gain starts at 1)
@@ -78,6 +78,7 @@ from ..tokenizer import vertex as vt
 from ..tokenizer.grid import (
     BLOCK_SIDE,
     BLOCKS_PER_AXIS,
+    LEVELS,
     N_OFFSETS,
     OFFSET_BITS,
     block_coords,
@@ -85,11 +86,10 @@ from ..tokenizer.grid import (
     offset_coords,
     quantize,
 )
-from ..tokenizer.grid import LEVELS as CELLS
 from .cells import FLOOR
 
 SHIFTS = (1, 2, 3)  # cube sides 2, 4, 8 cells: the 2048 condition points cover a surface sparsely at 1 cell
-LEVELS = 6  # count levels 0, 1, 2-3, 4-7, 8-15, 16+
+POINT_LEVELS = 6  # count levels 0, 1, 2-3, 4-7, 8-15, 16+
 BLOCK_LEVELS = 8
 SEQ_LEVELS = 8  # occupied blocks remaining / skipped: 0, 1, 2-3, ..., 64+
 NORMAL_SHIFTS = (1, 2)  # cubes of side 2 and 4 cells for the normal spread
@@ -99,7 +99,7 @@ SPREAD_STATES = len(SPREAD_EDGES) + 2
 # would need thousands of steps to reach a bias of a few nats.  Scaling its output lets it get
 # there in about a hundred, at the learning rate the transformer needs.
 GAIN = 32.0
-CELL_LEVELS = 10  # expected vertices: 0, 1, 2-3, ..., 256+
+EXPECTED_LEVELS = 10  # expected vertices: 0, 1, 2-3, ..., 256+
 STAY_LEVELS = 8  # vertices emitted in the current block: 0, 1, 2-3, ..., 64+
 # log2(emitted / expected) bucket edges of the EOS count reading: a ratio of 1 is the edge at 0.
 RATIO_EDGES = (-2.0, -1.0, -0.5, -0.25, -0.1, 0.0, 0.1, 0.25, 0.5, 1.0, 2.0)
@@ -156,15 +156,15 @@ class Evidence:
     """Point counts of one batch of shapes; turns the current block into a logit bias."""
 
     def __init__(self, module: PointEvidence, points: torch.Tensor, normals: torch.Tensor | None = None,
-                 cells: torch.Tensor | None = None, target_vertices: torch.Tensor | None = None):
+                 logodds: torch.Tensor | None = None, target_vertices: torch.Tensor | None = None):
         self.tables = module
         b = points.shape[0]
         point_cells = quantize(points.detach().float())  # (B, P, 3)
         self.levels = []  # per shift: (B, res^3) count level of every coarse cube
-        for s, n_levels in [(s, LEVELS) for s in SHIFTS] + [(OFFSET_BITS, BLOCK_LEVELS)]:
-            flat = flat_index(point_cells >> s, CELLS >> s)
+        for s, n_levels in [(s, POINT_LEVELS) for s in SHIFTS] + [(OFFSET_BITS, BLOCK_LEVELS)]:
+            flat = flat_index(point_cells >> s, LEVELS >> s)
             # Counted as integers: exact on every device, so the levels cannot depend on summation order.
-            grid = torch.zeros(b, (CELLS >> s) ** 3, dtype=torch.long, device=points.device)
+            grid = torch.zeros(b, (LEVELS >> s) ** 3, dtype=torch.long, device=points.device)
             grid.scatter_add_(1, flat, torch.ones_like(flat))
             self.levels.append(_level(grid, n_levels))
         # Occupied blocks up to and including each block id (the order blocks are emitted in), as integers.
@@ -173,29 +173,29 @@ class Evidence:
         self.occ_excl = self.occ_incl - occupied
         # The coarse index of cell (block * BLOCK_SIDE + offset) is linear: base(block) + part(offset).
         oxyz = offset_coords(torch.arange(N_OFFSETS, device=points.device))
-        self.parts = [flat_index(oxyz >> s, CELLS >> s) for s in SHIFTS]
+        self.parts = [flat_index(oxyz >> s, LEVELS >> s) for s in SHIFTS]
         self.spread = None  # per NORMAL_SHIFTS: (B, res^3) spread state of every cube
         if module.corner_table is not None:
             if normals is None:
                 raise ValueError("this decoder's evidence reads the input normals: pass them")
-            self.spread = [_spread_states(point_cells >> s, normals.detach().float(), CELLS >> s)
+            self.spread = [_spread_states(point_cells >> s, normals.detach().float(), LEVELS >> s)
                            for s in NORMAL_SHIFTS]
-            self.spread_parts = [flat_index(oxyz >> s, CELLS >> s) for s in NORMAL_SHIFTS]
-        self.cells = None  # (B, 128^3) cell log-odds
+            self.spread_parts = [flat_index(oxyz >> s, LEVELS >> s) for s in NORMAL_SHIFTS]
+        self.logodds = None  # (B, 128^3) cell log-odds
         # (B,) 1 where a face-count target scaled the expected amounts (only a decoder reading its counts reads one)
         self.given = torch.zeros(b, dtype=torch.long, device=points.device)
         if module.cell_gain is not None:
-            if cells is None:
+            if logodds is None:
                 raise ValueError("this decoder's evidence reads the cell log-odds of models.cells: pass them")
             # A NaN log-odds is no candidate (FLOOR): it would otherwise reach the offsets' logits, and sampling
             # from NaN is an error (on CUDA a device-side assert).
-            self.cells = cells.float().reshape(b, -1)
-            self.cells = torch.where(self.cells.isnan(), FLOOR, self.cells)
+            self.logodds = logodds.float().reshape(b, -1)
+            self.logodds = torch.where(self.logodds.isnan(), FLOOR, self.logodds)
             # Expected vertices per block, in block id order (the block of cell (x, y, z) is its top 3 bits).
             per_block = (BLOCKS_PER_AXIS, BLOCK_SIDE) * 3  # (bx, ox, by, oy, bz, oz)
             # Cells at FLOOR are no candidates: they expect nothing (sigmoid(FLOOR) over the 2M cells of the grid
             # would add 13 phantom vertices, and "nothing ahead" would never be seen before the last blocks).
-            p = torch.where(self.cells > FLOOR, torch.sigmoid(self.cells), 0.0)
+            p = torch.where(self.logodds > FLOOR, torch.sigmoid(self.logodds), 0.0)
             expected = p.reshape(b, *per_block).sum((2, 4, 6)).reshape(b, -1)
             if module.count_table is not None:
                 # A target scales what the cells expect to it: (B,) target / expected in all, or 1.
@@ -237,11 +237,11 @@ class Evidence:
             remaining, skipped = _ahead(self.occ_incl, self.occ_excl, rows, block)
             block_bias = block_bias + self.tables.skip_table(_level(skipped, SEQ_LEVELS)).squeeze(-1)
             special[:, vt.EOS] = self.tables.eos_table(_level(remaining, SEQ_LEVELS)).squeeze(-1)
-        if self.cells is not None:  # the same reading of the sequence, in expected vertices
+        if self.logodds is not None:  # the same reading of the sequence, in expected vertices
             ahead, skipped = _ahead(self.cell_incl, self.cell_excl, rows, block)
-            block_bias = block_bias + (self.tables.cell_block_table(_level(self.cell_expected[rows], CELL_LEVELS))
-                                       + self.tables.cell_skip_table(_level(skipped, CELL_LEVELS))).squeeze(-1)
-            special[:, vt.EOS] += self.tables.cell_eos_table(_level(ahead, CELL_LEVELS)).squeeze(-1)
+            block_bias = block_bias + (self.tables.cell_block_table(_level(self.cell_expected[rows], EXPECTED_LEVELS))
+                                       + self.tables.cell_skip_table(_level(skipped, EXPECTED_LEVELS))).squeeze(-1)
+            special[:, vt.EOS] += self.tables.cell_eos_table(_level(ahead, EXPECTED_LEVELS)).squeeze(-1)
         return [GAIN * special, GAIN * block_bias]
 
     def _offset_rows(self, rows: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
@@ -250,27 +250,27 @@ class Evidence:
         bxyz = block_coords(blk)  # (U, 3)
         idx = None
         for s, lev, part in zip(SHIFTS, self.levels, self.parts, strict=False):
-            lv = lev[rows[:, None], flat_index(bxyz * (BLOCK_SIDE >> s), CELLS >> s)[:, None] + part]  # (U, 4096)
-            idx = lv if idx is None else idx * LEVELS + lv
+            lv = lev[rows[:, None], flat_index(bxyz * (BLOCK_SIDE >> s), LEVELS >> s)[:, None] + part]  # (U, 4096)
+            idx = lv if idx is None else idx * POINT_LEVELS + lv
         bias = self.tables.table(idx).squeeze(-1)
         if self.spread is not None:
             idx = None
             for s, st, part in zip(NORMAL_SHIFTS, self.spread, self.spread_parts, strict=True):
-                sv = st[rows[:, None], flat_index(bxyz * (BLOCK_SIDE >> s), CELLS >> s)[:, None] + part]
+                sv = st[rows[:, None], flat_index(bxyz * (BLOCK_SIDE >> s), LEVELS >> s)[:, None] + part]
                 idx = sv if idx is None else idx * SPREAD_STATES + sv
             bias = bias + self.tables.corner_table(idx).squeeze(-1)
         bias = GAIN * bias
-        if self.cells is not None:
+        if self.logodds is not None:
             bias = bias + self._cell_rows(rows, blk)
         return bias * (block >= 0)[:, None]  # no block yet: no evidence
 
     def _cell_rows(self, rows: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
         """(U,) shape index and block id (>= 0) -> (U, 4096) cell term of every offset token's bias."""
-        return self.tables.cell_gain * self.cells[rows[:, None], block_cells(block)]
+        return self.tables.cell_gain * self.logodds[rows[:, None], block_cells(block)]
 
     @property
-    def reads_cells(self) -> bool:
-        return self.cells is not None
+    def reads_logodds(self) -> bool:
+        return self.logodds is not None
 
     def offset_cells(self, block: torch.Tensor) -> torch.Tensor:
         """(B,) current blocks -> (B, 4096) the cell term of the offsets' bias (0 before the first block)."""
@@ -317,8 +317,8 @@ def read_counts(tables: PointEvidence, expected: torch.Tensor, cum: torch.Tensor
     end = cum[rows, blk * N_OFFSETS + N_OFFSETS - 1]
     key = blk * N_OFFSETS + offset.clamp(-1, N_OFFSETS - 1)
     rest = (end - torch.where(key >= 0, cum[rows, key.clamp(min=0)], 0.0)).clamp(min=0)
-    stay = (tables.stay_table(_level(n_in_block, STAY_LEVELS) * CELL_LEVELS + _level(in_block, CELL_LEVELS))
-            + tables.rest_table(_level(rest, CELL_LEVELS))).squeeze(-1)
+    stay = (tables.stay_table(_level(n_in_block, STAY_LEVELS) * EXPECTED_LEVELS + _level(in_block, EXPECTED_LEVELS))
+            + tables.rest_table(_level(rest, EXPECTED_LEVELS))).squeeze(-1)
     total = cum[:, -1].clamp(min=1.0)[:, None]
     ratio = torch.bucketize(torch.log2(n_vert.float().clamp(min=0.5) / total), ratio_edges)
     eos = tables.count_table(given[:, None] * RATIO_LEVELS + ratio).squeeze(-1)
@@ -356,17 +356,18 @@ def _spread_states(coarse: torch.Tensor, normals: torch.Tensor, res: int) -> tor
 
 
 class PointEvidence(nn.Module):
-    """The learned tables of :class:`Evidence` (LEVELS^3 + BLOCK_LEVELS scalars, 2 * SEQ_LEVELS with
-    ``blocks_ahead``, SPREAD_STATES^2 with ``normals``, 1 + 3 * CELL_LEVELS with ``cells``,
-    (STAY_LEVELS + 1) * CELL_LEVELS + 2 * RATIO_LEVELS with ``counts``)."""
+    """The learned tables of :class:`Evidence` (POINT_LEVELS^3 + BLOCK_LEVELS scalars, 2 * SEQ_LEVELS with
+    ``blocks_ahead``, SPREAD_STATES^2 with ``normals``, 1 + 3 * EXPECTED_LEVELS with ``logodds``,
+    (STAY_LEVELS + 1) * EXPECTED_LEVELS + 2 * RATIO_LEVELS with ``counts``)."""
 
-    def __init__(self, normals: bool = False, cells: bool = False, blocks_ahead: bool = True, counts: bool = False):
+    def __init__(self, normals: bool = False, logodds: bool = False, blocks_ahead: bool = True,
+                 counts: bool = False):
         super().__init__()
-        if not (blocks_ahead or cells):
+        if not (blocks_ahead or logodds):
             raise ValueError("the sequence needs one reading of what is ahead: occupied blocks or the cells")
-        if counts and not cells:
-            raise ValueError("the count reading compares the sequence with the cells: it needs cells=True")
-        self.table = nn.Embedding(LEVELS ** len(SHIFTS), 1)
+        if counts and not logodds:
+            raise ValueError("the count reading compares the sequence with the cells: it needs logodds=True")
+        self.table = nn.Embedding(POINT_LEVELS ** len(SHIFTS), 1)
         self.block_table = nn.Embedding(BLOCK_LEVELS, 1)
         self.skip_table = nn.Embedding(SEQ_LEVELS, 1) if blocks_ahead else None
         self.eos_table = nn.Embedding(SEQ_LEVELS, 1) if blocks_ahead else None
@@ -374,12 +375,12 @@ class PointEvidence(nn.Module):
         # The cell log-odds are calibrated: added at full weight from the start (a product of experts).  Not
         # scaled by GAIN like the tables: its gradient (a mean of log-odds, several nats) would then dominate
         # the clipped gradient norm (56 against ~3) and stall the transformer.
-        self.cell_gain = nn.Parameter(torch.ones(())) if cells else None
-        self.cell_block_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
-        self.cell_skip_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
-        self.cell_eos_table = nn.Embedding(CELL_LEVELS, 1) if cells else None
-        self.stay_table = nn.Embedding(STAY_LEVELS * CELL_LEVELS, 1) if counts else None
-        self.rest_table = nn.Embedding(CELL_LEVELS, 1) if counts else None
+        self.cell_gain = nn.Parameter(torch.ones(())) if logodds else None
+        self.cell_block_table = nn.Embedding(EXPECTED_LEVELS, 1) if logodds else None
+        self.cell_skip_table = nn.Embedding(EXPECTED_LEVELS, 1) if logodds else None
+        self.cell_eos_table = nn.Embedding(EXPECTED_LEVELS, 1) if logodds else None
+        self.stay_table = nn.Embedding(STAY_LEVELS * EXPECTED_LEVELS, 1) if counts else None
+        self.rest_table = nn.Embedding(EXPECTED_LEVELS, 1) if counts else None
         self.count_table = nn.Embedding(2 * RATIO_LEVELS, 1) if counts else None
         for t in (self.table, self.block_table, self.skip_table, self.eos_table, self.corner_table,
                   self.cell_block_table, self.cell_skip_table, self.cell_eos_table, self.stay_table,
@@ -388,7 +389,7 @@ class PointEvidence(nn.Module):
                 nn.init.zeros_(t.weight)
 
     def forward(self, points: torch.Tensor, normals: torch.Tensor | None = None,
-                cells: torch.Tensor | None = None, target_vertices: torch.Tensor | None = None) -> Evidence:
+                logodds: torch.Tensor | None = None, target_vertices: torch.Tensor | None = None) -> Evidence:
         """(B, P, 3) points in the unit cube (and their normals, (B, 128^3) cell log-odds and (B,) vertex
         counts asked for, 0: none) -> their :class:`Evidence`."""
-        return Evidence(self, points, normals, cells, target_vertices)
+        return Evidence(self, points, normals, logodds, target_vertices)

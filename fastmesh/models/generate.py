@@ -93,8 +93,8 @@ class StackedEvidence:
         return read_counts(first.tables, *self._counts, first.ratio_edges, block, offset, n_vert, n_in_block)
 
     @property
-    def reads_cells(self) -> bool:
-        return self.rows[0].reads_cells
+    def reads_logodds(self) -> bool:
+        return self.rows[0].reads_logodds
 
     def weighted_cells(self, block: torch.Tensor, weight: float) -> torch.Tensor:
         """(B,) current blocks -> (B, N_OFFSETS) ``Evidence.weighted_cells`` of each row."""
@@ -275,7 +275,7 @@ class BlockReading:
         if self.block is not None and torch.equal(block, self.block):
             return
         self.bias, self.block = evidence.logit_bias(block[:, None])[:, 0], block.clone()
-        if evidence.reads_cells:
+        if evidence.reads_logodds:
             self.cell_bias = evidence.weighted_cells(block, cfg.cell_weight)
             self.through = evidence.expected_through(block, cfg.pace)
 
@@ -394,7 +394,7 @@ def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: 
     cfg = SamplingConfig(temperature=0, max_vertices=max_vertices) if cfg is None else cfg
     if cfg.temperature != 0:
         raise ValueError("generate_uncached decodes greedily: cfg.temperature must be 0")
-    cells = evidence is not None and evidence.reads_cells
+    reads = evidence is not None and evidence.reads_logodds
     tokens = torch.full((prefix.shape[0], 1), vt.BOS, dtype=torch.long, device=prefix.device)
     for _ in range(2 * max_vertices + 1):
         logits = model(tokens, prefix=prefix, evidence=evidence)[:, -1]
@@ -402,10 +402,10 @@ def generate_uncached(model: VertexDecoder, prefix: torch.Tensor, max_vertices: 
         block, offset = grammar_state(tokens)
         eos_only = n_vert >= max_vertices
         mask = grammar_mask(tokens[:, -1], block[:, -1], offset[:, -1], eos_only=eos_only)
-        if cells and cfg.pace > 0:
+        if reads and cfg.pace > 0:
             through = evidence.expected_through(block[:, -1], cfg.pace)
             mask[:, vt.OFFSET0:] &= ~pace_mask(through, tokens[:, -1], n_vert)[:, None]
-        cell_bias = evidence.weighted_cells(block[:, -1], cfg.cell_weight) if cells else None
+        cell_bias = evidence.weighted_cells(block[:, -1], cfg.cell_weight) if reads else None
         nxt = choose_next(logits.masked_fill(~mask, float("-inf")), cfg, None, cell_bias)
         tokens = torch.cat([tokens, nxt[:, None]], dim=1)
         if bool(((tokens == vt.EOS).any(1)).all()):

@@ -155,7 +155,7 @@ class VertexDecoder(nn.Module):
         self.count_emb = nn.Embedding(COUNT_BUCKETS, cfg.dim) if cfg.count_condition else None
         init_weights(self)
         # after init_weights: its tables start at zero (no bias until training finds the evidence useful)
-        self.evidence = PointEvidence(normals=cfg.evidence_normals, cells=cfg.evidence_cells,
+        self.evidence = PointEvidence(normals=cfg.evidence_normals, logodds=cfg.evidence_cells,
                                       blocks_ahead=cfg.evidence_blocks_ahead,
                                       counts=cfg.evidence_counts) if cfg.evidence else None
 
@@ -182,13 +182,13 @@ class VertexDecoder(nn.Module):
         return prefix
 
     def point_evidence(self, points: torch.Tensor, normals: torch.Tensor | None = None,
-                       cells: torch.Tensor | None = None, target_faces: torch.Tensor | None = None
+                       logodds: torch.Tensor | None = None, target_faces: torch.Tensor | None = None
                        ) -> Evidence | None:
         """(B, P, 3) points (and normals, (B, 128^3) cell log-odds from ``models.cells`` and (B,) face counts
         asked for) -> the :class:`Evidence` whose logit bias ``forward``/``generate`` add (None if off)."""
         if self.evidence is None:
             return None
-        return self.evidence(points, normals, cells, target_vertices(target_faces))
+        return self.evidence(points, normals, logodds, target_vertices(target_faces))
 
     def embed(self, tokens: torch.Tensor, block: torch.Tensor) -> torch.Tensor:
         """(B, T) tokens and their current block (from ``grammar_state``) -> (B, T, dim)."""
@@ -211,18 +211,18 @@ class VertexDecoder(nn.Module):
 
     def forward(self, tokens: torch.Tensor, prefix: torch.Tensor | None = None,
                 points: torch.Tensor | None = None, normals: torch.Tensor | None = None,
-                evidence: Evidence | None = None, cells: torch.Tensor | None = None,
+                evidence: Evidence | None = None, logodds: torch.Tensor | None = None,
                 target_faces: torch.Tensor | None = None) -> torch.Tensor:
         """Uncached pass: tokens (B, T) -> logits (B, T, VOCAB) for the *next* token.
 
         The condition is ``prefix`` (B, M, dim) and ``evidence``, or both computed from
-        ``points``/``normals`` (B, P, 3), ``cells`` (B, 128^3) and ``target_faces`` (B,) (the training path,
+        ``points``/``normals`` (B, P, 3), ``logodds`` (B, 128^3) and ``target_faces`` (B,) (the training path,
         so DDP sees one forward).
         Grammar masking is applied here too, so training and decoding see the same distribution.
         """
         if prefix is None:
             prefix = self.condition(points, normals, target_faces)
-            evidence = self.point_evidence(points, normals, cells, target_faces)
+            evidence = self.point_evidence(points, normals, logodds, target_faces)
         block, offset = grammar_state(tokens)
         x = torch.cat([prefix.to(self.tok_emb.weight.dtype), self.embed(tokens, block)], dim=1)
         logits = self._run(x, 0)[:, prefix.shape[1]:].float()

@@ -24,6 +24,12 @@ import httpx
 FINAL = ("succeeded", "failed", "cancelled")
 
 
+def form_values(params: dict) -> dict[str, str]:
+    """The form fields of a submission: each value set, as the service reads it (a bool as true or false);
+    None (the service's default) left out."""
+    return {k: (str(v).lower() if isinstance(v, bool) else str(v)) for k, v in params.items() if v is not None}
+
+
 class ServiceError(RuntimeError):
     """An error answer of the service (or no answer: status 0, code 'unreachable')."""
 
@@ -81,12 +87,12 @@ class Client:
         raise AssertionError("unreachable")
 
     def submit(self, path: str | os.PathLike, idempotency_key: str | None = None, **params) -> dict:
-        """Upload a shape file; ``params``: seed, temperature, top_k, top_p, max_vertices, enhancer,
-        filtering, candidates, target_faces, closed, topology, uv, bake, origin, height, up, formats.  A retry
+        """Upload a shape file; ``params``: the form fields, by name (the fields of
+        ``fastmesh.params.GenerateParams``, ``formats``, ``callback_url``), None for the service's default.  A retry
         after a lost answer returns the same job (Idempotency-Key)."""
         path = Path(path)
         data = path.read_bytes()
-        fields = {k: (str(v).lower() if isinstance(v, bool) else str(v)) for k, v in params.items() if v is not None}
+        fields = form_values(params)
         headers = {"Idempotency-Key": idempotency_key or uuid.uuid4().hex}
         return self._call("POST", "/v1/jobs", files={"file": (path.name, data)}, data=fields, headers=headers).json()
 

@@ -49,15 +49,15 @@ class VertexTask:
         carry the stored log-odds along) and jittered points, not under free rotations and scales.
         """
         n_points = _n_points(cfg)
-        reads_cells = bool(cfg.model.get("evidence_cells"))
+        reads_logodds = bool(cfg.model.get("evidence_cells"))
         augment = cfg.augment if train else None
-        if reads_cells and train:
+        if reads_logodds and train:
             augment = dataclasses.replace(cfg.augment, rotate=False, scale_min=1.0)
         samples, syms = [], []
         for i in indices:
             rec = ds[int(i)]
             v = rec.continuous
-            sym = grid_symmetry(rng) if reads_cells and train else None
+            sym = grid_symmetry(rng) if reads_logodds and train else None
             if sym is not None:
                 v = apply_symmetry(v, sym)
             syms.append(sym)
@@ -67,7 +67,7 @@ class VertexTask:
         for r, s in enumerate(seqs):
             tokens[r, : len(s)] = s
         batch = {"tokens": torch.from_numpy(tokens), **_points_tensors(samples)}
-        if reads_cells:
+        if reads_logodds:
             batch.update(sparse_cells(ds, indices, syms))
         if cfg.model.get("count_condition"):
             # The true face count as the condition, dropped at random so "the model's choice" is trained
@@ -78,8 +78,8 @@ class VertexTask:
         return batch
 
     def loss(self, model, batch):
-        cells = dense_cells(batch["cell_flat"], batch["cell_logit"]) if "cell_flat" in batch else None
-        loss = model.loss(batch["tokens"], points=batch["points"], normals=batch["normals"], cells=cells,
+        logodds = dense_cells(batch["cell_flat"], batch["cell_logit"]) if "cell_flat" in batch else None
+        loss = model.loss(batch["tokens"], points=batch["points"], normals=batch["normals"], logodds=logodds,
                           target_faces=batch.get("target_faces"))
         return loss, int((batch["tokens"][:, 1:] != vt.PAD).sum())
 

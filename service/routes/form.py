@@ -1,29 +1,22 @@
 """The submission form of ``POST /v1/jobs`` and ``POST /v1/batches``, as dependencies.
 
-Each field is declared once here, as an ``Annotated`` alias, and both routes take the whole form as one
-dependency: :data:`JobForm` (one ``file``) or :data:`BatchForm` (``files``, repeated).  The form's parts are
-dependencies of their own, declared in the order ``Idempotency-Key``, upload, fields: FastAPI validates the
-dependencies in that order, so a request with several faults has them named in that order, the order of the
-schema.
+The generation fields are made from :data:`fastmesh.params.PARAMETERS` (:func:`generation_field`), the
+others are declared here, and both routes take the whole form as one dependency: :data:`JobForm` (one
+``file``) or :data:`BatchForm` (``files``, repeated).  The form's parts are dependencies of their own,
+declared in the order ``Idempotency-Key``, upload, fields: FastAPI validates the dependencies in that order,
+so a request with several faults has them named in that order, the order of the schema.
 """
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
 from fastapi import Depends, File, Form, Header, UploadFile
 
-from fastmesh.params import BOUNDS
+from fastmesh.params import PARAMETERS, Parameter
 from fastmesh_jobs.settings import Settings
-
-from ..forms import generation_defaults
-
-DEFAULTS = generation_defaults()
-
-
-def _default(name: str) -> str:
-    return f"default {DEFAULTS.get(name)!r}"
 
 
 def formats_description(default_formats: list[str]) -> str:
@@ -32,51 +25,19 @@ def formats_description(default_formats: list[str]) -> str:
     return f"Comma list of glb, obj, ply exported with the job (default {','.join(default_formats)})."
 
 
-Seed = Annotated[int | None, Form(**BOUNDS["seed"].form_range(), description=f"Sampling seed ({_default('seed')}).",
-                                  examples=[0])]
-Temperature = Annotated[float | None, Form(allow_inf_nan=False,
-                                           description=f"Sampling temperature ({_default('temperature')}).",
-                                           examples=[DEFAULTS.get("temperature")])]
-TopK = Annotated[int | None, Form(**BOUNDS["top_k"].form_range(),
-                                  description=f"Top-k sampling, 0 = off ({_default('top_k')}).",
-                                  examples=[DEFAULTS.get("top_k")])]
-TopP = Annotated[float | None, Form(allow_inf_nan=False, description=f"Nucleus sampling ({_default('top_p')}).",
-                                    examples=[DEFAULTS.get("top_p")])]
-MaxVertices = Annotated[int | None, Form(**BOUNDS["max_vertices"].form_range(),
-                                         description="Vertex budget; unset = the model's limit "
-                                                     f"({_default('max_vertices')}).",
-                                         examples=[DEFAULTS.get("max_vertices")])]
-Enhancer = Annotated[bool | None, Form(description=f"Run the vertex enhancer ({_default('enhancer')}).")]
-Filtering = Annotated[bool | None, Form(description="Prediction filtering, masked re-predictions of the edges "
-                                                    f"({_default('filtering')}).")]
-Candidates = Annotated[int | None, Form(**BOUNDS["candidates"].form_range(),
-                                        description="Meshes sampled (seeds seed, seed+1, ...); the one nearest the "
-                                                    f"input is returned; 1 is fastest ({_default('candidates')}).",
-                                        examples=[DEFAULTS.get("candidates")])]
-TargetFaces = Annotated[int | None, Form(**BOUNDS["target_faces"].form_range(),
-                                         description="Faces to aim for, held within 20 % (result.quality gives "
-                                                     "target_faces, faces and target_met); unset = the model "
-                                                     "chooses the count from the shape.", examples=[300])]
-Closed = Annotated[Literal["auto", "true", "false"] | None, Form(
-    description="Close the result's holes: auto = when the input is closed (a closed mesh, or oriented points "
-                "that enclose a volume); the decision is in result.quality "
-                f"({_default('closed')}).", examples=["auto"])]
-Topology = Annotated[Literal["triangle", "quad"] | None, Form(
-    description="quad: pairs of triangles that make a near-planar, well-shaped quad become one, in the OBJ and "
-                "PLY files (GLB holds triangles); result.quality.quad_share says how many "
-                f"({_default('topology')}).", examples=["quad"])]
-Uv = Annotated[bool | None, Form(description="Give the result a UV layout (xatlas), in the GLB (TEXCOORD_0) and "
-                                             f"OBJ (vt) files ({_default('uv')}).")]
-Bake = Annotated[bool | None, Form(description="With uv: bake a textured glTF input's base colour onto the "
-                                               f"layout, into the GLB's texture ({_default('bake')}).")]
-Origin = Annotated[Literal["input", "center", "bottom"] | None, Form(
-    description="Where the result's origin lies: the input's own frame, its bounding box's centre or its bottom "
-                f"centre (Y up) ({_default('origin')}).", examples=["bottom"])]
-Height = Annotated[float | None, Form(allow_inf_nan=False, **BOUNDS["height"].form_range(),
-                                      description="Scale the result to stand this many metres tall along Y "
-                                                  "(unset: the input's size).", examples=[1.8])]
-Up = Annotated[Literal["y", "z"] | None, Form(description="Up axis of the OBJ and PLY files; GLB is always Y-up, "
-                                                          f"as glTF requires ({_default('up')}).", examples=["z"])]
+def generation_field(prm: Parameter):
+    """The form field of one generation parameter: its type (a choice as a ``Literal``), None meaning the
+    default, its ``BOUNDS`` range as ``ge`` / ``le`` (so the OpenAPI schema states it), its help."""
+    kind = Literal[prm.choices] if prm.choices else prm.type
+    checks = prm.bound.form_range() if prm.bound else {}
+    if prm.type is float:
+        checks["allow_inf_nan"] = False
+    example = prm.example if prm.example is not None or prm.type is bool else prm.default
+    described = prm.described(f"default {prm.default!r}")
+    return Annotated[kind | None, Form(description=described[0].upper() + described[1:] + ".",
+                                       examples=None if example is None else [example], **checks)]
+
+
 # The description names the default formats of an app with default settings; each app's schema states its own.
 Formats = Annotated[str | None, Form(description=formats_description(
     Settings.model_fields["default_formats"].get_default(call_default_factory=True)), examples=["glb,obj"])]
@@ -95,18 +56,23 @@ class FormFields:
     callback_url: str | None
 
 
-async def form_fields(seed: Seed = None, temperature: Temperature = None, top_k: TopK = None, top_p: TopP = None,
-                 max_vertices: MaxVertices = None, enhancer: Enhancer = None, filtering: Filtering = None,
-                 candidates: Candidates = None, target_faces: TargetFaces = None, closed: Closed = None,
-                 topology: Topology = None, uv: Uv = None, bake: Bake = None, origin: Origin = None,
-                 height: Height = None, up: Up = None, formats: Formats = None,
-                 callback_url: CallbackUrl = None) -> FormFields:
+async def form_fields(**values) -> FormFields:
+    """The form's fields, as one dependency: its signature (:func:`form_signature`) declares them to FastAPI."""
     # async: nothing here waits, so FastAPI runs it on the event loop rather than in a worker thread
-    generation = {"seed": seed, "temperature": temperature, "top_k": top_k, "top_p": top_p,
-                  "max_vertices": max_vertices, "enhancer": enhancer, "filtering": filtering,
-                  "candidates": candidates, "target_faces": target_faces, "closed": closed, "topology": topology,
-                  "uv": uv, "bake": bake, "origin": origin, "height": height, "up": up}
-    return FormFields(generation, formats, callback_url)
+    formats, callback_url = values.pop("formats", None), values.pop("callback_url", None)
+    return FormFields(values, formats, callback_url)
+
+
+def form_signature() -> inspect.Signature:
+    """The fields of :func:`form_fields`: the generation parameters in the order of ``GenerateParams``
+    (:func:`generation_field`), then ``formats`` and ``callback_url``; each may be left out (None)."""
+    fields = [(prm.name, generation_field(prm)) for prm in PARAMETERS]
+    fields += [("formats", Formats), ("callback_url", CallbackUrl)]
+    return inspect.Signature([inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=None, annotation=hint)
+                              for name, hint in fields], return_annotation=FormFields)
+
+
+form_fields.__signature__ = form_signature()
 
 
 async def idempotency_key(key: Annotated[str | None, Header(alias="Idempotency-Key", max_length=200,

@@ -17,7 +17,7 @@ from fastapi import APIRouter
 from fastapi.responses import FileResponse, JSONResponse, Response
 
 from fastmesh.faces.facecount import TOLERANCE
-from fastmesh.params import BOUNDS
+from fastmesh.params import BOUNDS, PARAMETERS
 from fastmesh.shapes.shape import EXPORT_FORMATS, SUPPORTED_FORMATS
 from fastmesh_jobs.settings import Settings
 
@@ -51,11 +51,20 @@ def _file(root: Path, rel: str, cache: str) -> FileResponse:
     return FileResponse(path, media_type=media, headers={"Cache-Control": cache})
 
 
+def page_params() -> list[dict]:
+    """The generation parameters the page makes its inputs of (``static/inputs.js``), in the order of
+    ``GenerateParams``: name, type (int, float, bool or choice), choices, help (with what an empty input does)."""
+    return [{"name": prm.name, "type": "choice" if prm.choices else prm.type.__name__, "choices": list(prm.choices),
+             "help": f"{prm.help}; empty = {prm.unset}" if prm.unset else prm.help} for prm in PARAMETERS]
+
+
 def page_config(settings: Settings, defaults: dict) -> dict:
-    """What the page needs to know to build its form and word the result: parameter defaults, limits,
-    formats, auth, and the share of ``target_faces`` a result's face count may miss it by (``target_met``)."""
+    """What the page needs to know to build its form and word the result: the parameters, their defaults and
+    limits, formats, auth, and the share of ``target_faces`` a result's face count may miss it by
+    (``target_met``)."""
     return {
         "auth": bool(settings.api_keys),
+        "params": page_params(),
         "defaults": defaults,
         # The input fields' min/max, from the bounds the API validates with (0 where 0 switches a feature off).
         "bounds": {name: {"min": 0 if b.zero else b.lo, "max": b.hi} for name, b in BOUNDS.items()},

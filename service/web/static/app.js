@@ -3,15 +3,13 @@
 // install costs the 3D view only, not the form.
 
 import { faceCount } from './facts.js';
+import { flagParams, inputsHtml, valueParams } from './inputs.js';
 
 const $ = (sel) => document.querySelector(sel);
 const KEY_STORE = 'fastmesh.apiKey';
 const JOBS_STORE = 'fastmesh.jobs';
 const MAX_RECENT = 20;
 const POLL_MS = 400;
-const PARAMS = ['seed', 'temperature', 'top_k', 'top_p', 'max_vertices', 'candidates', 'target_faces', 'closed',
-  'topology', 'origin', 'height', 'up'];
-const FLAGS = ['enhancer', 'filtering', 'uv', 'bake'];
 const TIMINGS = ['queue', 'load', 'encode', 'vertices', 'enhancer', 'faces', 'filtering', 'export', 'total'];
 const FINAL = ['succeeded', 'failed', 'cancelled'];
 const COUNTS = ['c-vertices', 'c-faces', 'c-tokens', 'c-boundary', 'c-non-manifold', 'c-components', 'c-watertight'];
@@ -138,7 +136,8 @@ function fillDefaults() {
   const d = state.config.defaults || {};
   const bounds = state.config.bounds || {};
   const form = $('#job-form');
-  for (const name of PARAMS) {
+  const values = valueParams(state.config.params), flags = flagParams(state.config.params);
+  for (const name of values) {
     const input = form.elements[name];
     if (bounds[name]) {
       input.min = bounds[name].min;
@@ -147,15 +146,17 @@ function fillDefaults() {
     input.value = d[name] ?? '';
     input.placeholder = d[name] != null ? `default ${d[name]}` : 'auto (server decides)';
   }
-  for (const name of FLAGS) form.elements[name].checked = Boolean(d[name] ?? true);
+  for (const name of flags) form.elements[name].checked = Boolean(d[name] ?? true);
   for (const box of document.querySelectorAll('#format-boxes input')) {
     box.checked = state.config.default_formats.includes(box.value);
   }
-  const shown = [...PARAMS, ...FLAGS].map((k) => `${k}=${d[k] ?? 'auto'}`).join(', ');
+  const shown = [...values, ...flags].map((k) => `${k}=${d[k] ?? 'auto'}`).join(', ');
   $('#defaults-hint').textContent = `Server defaults: ${shown}, formats=${state.config.default_formats.join(',')}.`;
 }
 
 function buildForm() {
+  // One input per generation parameter, before the formats.
+  $('#job-form .formats').insertAdjacentHTML('beforebegin', inputsHtml(state.config.params));
   const boxes = $('#format-boxes');
   for (const f of state.config.formats) {
     const label = document.createElement('label');
@@ -209,11 +210,13 @@ async function submit() {
   const form = $('#job-form');
   const data = new FormData();
   data.append('file', file, file.name);
-  for (const name of PARAMS) {
+  for (const name of valueParams(state.config.params)) {
     const v = form.elements[name].value.trim();
     if (v !== '') data.append(name, v);
   }
-  for (const name of FLAGS) data.append(name, form.elements[name].checked ? 'true' : 'false');
+  for (const name of flagParams(state.config.params)) {
+    data.append(name, form.elements[name].checked ? 'true' : 'false');
+  }
   const formats = [...document.querySelectorAll('#format-boxes input:checked')].map((b) => b.value);
   if (formats.length) data.append('formats', formats.join(','));
 

@@ -25,6 +25,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import fastmesh.pipeline as pipeline_module  # noqa: E402
+import fastmesh.pipeline.candidate as candidate_module  # noqa: E402
 from fastmesh.evaluation.eval import pair_inputs  # noqa: E402
 from fastmesh.evaluation.metrics import surface_distance  # noqa: E402
 from fastmesh.faces.filtering import FilterConfig, edges_from_logits, filter_predictions  # noqa: E402
@@ -59,7 +60,7 @@ def main() -> int:
 
     # Capture what the pipeline hands to its face stage, so each variant reuses the same vertices.
     seen: dict = {}
-    run_edges, build_mesh = pipeline_module.predict_edges, pipeline_module.mesh_from_adjacency
+    run_edges, build_mesh = candidate_module.predict_edges, candidate_module.mesh_from_adjacency
 
     def spy_edges(predict, n, cfg, filtering=True):
         seen["predict"], seen["n"] = predict, n
@@ -69,7 +70,7 @@ def main() -> int:
         seen["positions"], seen["points"], seen["logits"] = positions, points, logits
         return build_mesh(positions, edges, cfg, points=points, logits=logits)
 
-    pipeline_module.predict_edges, pipeline_module.mesh_from_adjacency = spy_edges, spy_mesh
+    candidate_module.predict_edges, candidate_module.mesh_from_adjacency = spy_edges, spy_mesh
     for temp in [float(t) for t in args.temperatures.split(",")]:
         rows: dict[tuple[str, bool], list] = {(k, d): [] for k in names for d in (False, True)}
         n_vert, t_vert = [], []

@@ -12,7 +12,7 @@ target, artist meshes, posed primitives: made from seeds, nothing to download) a
 - ``second_frame``: the job's time less the same job's made in its own frame only (inputs with two frames;
   medians of ``--pairs`` alternated runs of each, the job's time their median too);
 - ``closure``: closing the loops hole filling leaves (``closure.close_loops``);
-- ``whole``: making the result whole (``pipeline._whole``: pinches, strays, far vertices, a low-poly input);
+- ``whole``: making the result whole (``pipeline.result.whole``: pinches, strays, far vertices, a low-poly input);
 - ``holes``: the face stage's hole filling (``holes.fill_holes``), reported beside them.
 
 Prints one JSON line: the sums over the jobs, the share of the jobs' time that step 8 (decide, frame,
@@ -49,7 +49,7 @@ def _wrap_parts(pipeline, surface_triangles, Pipeline, spent: dict) -> dict:
     for name in ("canonical_rotation", "frame_normals"):
         setattr(pipeline, name, _timed(getattr(pipeline, name), "frame", spent))
     Pipeline._nearest_frame = _timed(Pipeline._nearest_frame, "frame", spent)
-    pipeline._whole = _timed(pipeline._whole, "whole", spent)
+    pipeline.step8.whole = _timed(pipeline.step8.whole, "whole", spent)
     surface_triangles.close_loops = _timed(surface_triangles.close_loops, "closure", spent)
     surface_triangles.fill_holes = _timed(surface_triangles.fill_holes, "holes", spent)
     frames = {"n": 0}

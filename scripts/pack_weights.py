@@ -12,7 +12,6 @@ log-odds it gives.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -20,8 +19,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fastmesh.faces.filtering import FilterConfig  # noqa: E402
 from fastmesh.models.checkpoint import load_model, save_model  # noqa: E402
+from fastmesh.pipeline.settings import read_settings, write_settings  # noqa: E402
 
 
 def main() -> int:
@@ -42,11 +41,8 @@ def main() -> int:
         save_model(model, n, out / n, extra=extra, dtype=None if n == "cells" else torch.float16)
         size = (out / n / "model.safetensors").stat().st_size
         print(f"{n}: {sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters, {size / 1e6:.1f} MB")
-    pj = out / "pipeline.json"
-    if not pj.exists():
-        from dataclasses import asdict
-
-        pj.write_text(json.dumps({"filtering": asdict(FilterConfig())}, indent=2))
+    # Whole: the settings it holds (the code's defaults where there is none yet), every field written.
+    write_settings(out / "pipeline.json", **read_settings(out / "pipeline.json"))
     return 0
 
 

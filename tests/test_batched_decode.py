@@ -131,7 +131,7 @@ def test_onnx_batch_rows_are_computed_as_alone_before_and_after_finished_rows_le
 
 def test_pipeline_candidates_are_each_seed_alone(monkeypatch):
     """Every candidate (not only the chosen one) is the mesh its seed gives alone, scored as before."""
-    import fastmesh.pipeline as fp
+    import fastmesh.pipeline.result as fp
 
     # Candidates are scored before the whole step; the random networks' strays would be pulled in after it.
     monkeypatch.setattr(fp, "pull_in", lambda vertices, surface, limit: (vertices, np.zeros(len(vertices), bool)))

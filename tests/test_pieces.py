@@ -113,7 +113,7 @@ def test_making_whole_keeps_a_split_pinch_apart_when_it_welds_pulled_vertices():
     from types import SimpleNamespace
 
     from fastmesh.evaluation.metrics import mesh_topology
-    from fastmesh.pipeline import _whole
+    from fastmesh.pipeline.result import whole
     from fastmesh.shapes.shape import Normalization, Shape
 
     rng = np.random.default_rng(0)
@@ -123,7 +123,7 @@ def test_making_whole_keeps_a_split_pinch_apart_when_it_welds_pulled_vertices():
     req = SimpleNamespace(shape=Shape(vertices=square), surface_points=square, pieces_in=2,
                           frame=SimpleNamespace(norm=Normalization.fit(square)),
                           count=SimpleNamespace(low_poly_input=False))
-    vertices, faces, source, pulled = _whole(req, v, f)
+    vertices, faces, source, pulled = whole(req, v, f)
     assert pulled == 1 and source == "model" and len(faces) == 3
     t = topology(faces)
     assert t["non_manifold_vertices"] == 0 and t["non_manifold_edges"] == 0 and t["pieces"] == 2

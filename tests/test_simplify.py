@@ -1,5 +1,7 @@
 """collapse_flat: the vertices of flat regions, straight creases and straight borders go; the shape stays."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import trimesh
@@ -114,6 +116,7 @@ def test_mesh_from_adjacency_applies_flat_tol():
     """The clean-up's last step; off with flat_tol=None."""
     v, f = _grid(3)
     edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [0, 2]]]), axis=1), axis=0)
-    on = mesh_from_adjacency(v, edges, TriangleConfig(remove_unreferenced=True))
-    off = mesh_from_adjacency(v, edges, TriangleConfig(remove_unreferenced=True, flat_tol=None))
+    rule = TriangleConfig(selection="cliques", drop_coplanar_diagonals=False, support_tol=None, max_faces_per_edge=None)
+    on = mesh_from_adjacency(v, edges, rule)
+    off = mesh_from_adjacency(v, edges, replace(rule, flat_tol=None))
     assert len(off[0]) == 16 and len(on[0]) == 4

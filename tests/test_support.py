@@ -10,6 +10,10 @@ from fastmesh.faces.triangles import TriangleConfig
 from fastmesh.shapes.io import input_surface, sample_triangles
 from fastmesh.shapes.shape import Shape
 
+# The paper's rule alone: every 3-clique of the edges, none of the shipped clean-up.
+RULE = {"selection": "cliques", "drop_coplanar_diagonals": False, "support_tol": None, "max_faces_per_edge": None,
+        "remove_unreferenced": False}
+
 
 def _grid(n: int, x0: float, x1: float) -> np.ndarray:
     """(n*n, 3) points on the square [x0, x1] x [0, 1] at z = 0."""
@@ -82,9 +86,10 @@ def test_a_vertex_on_the_surface_keeps_its_best_face():
 def test_mesh_from_adjacency_checks_support_only_when_asked():
     v, real, bridge, points = _two_squares()
     edges = edges_from_faces(np.concatenate([real, bridge]))
-    _, f_all = mesh_from_adjacency(v, edges, TriangleConfig(orient=False))
-    _, f_sup = mesh_from_adjacency(v, edges, TriangleConfig(orient=False, support_tol=0.03), points=points)
-    _, f_nopts = mesh_from_adjacency(v, edges, TriangleConfig(orient=False, support_tol=0.03))
+    _, f_all = mesh_from_adjacency(v, edges, TriangleConfig(**RULE, orient=False))
+    checked = TriangleConfig(**{**RULE, "support_tol": 0.03}, orient=False)
+    _, f_sup = mesh_from_adjacency(v, edges, checked, points=points)
+    _, f_nopts = mesh_from_adjacency(v, edges, checked)
     assert len(f_all) == len(f_nopts) > len(f_sup)
     # No kept triangle joins the two squares (vertices 0-3 and 4-7).
     assert all(len({int(i) // 4 for i in f}) == 1 for f in f_sup)

@@ -4,6 +4,7 @@ of simple shapes, and the eval verbs that score it side by side."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +29,7 @@ PRIMITIVES = {
     "icosphere1": lambda: trimesh.creation.icosphere(subdivisions=1),
     "icosphere2": lambda: trimesh.creation.icosphere(subdivisions=2),
 }
-SURFACE = TriangleConfig(selection="surface")
+SURFACE = TriangleConfig(remove_unreferenced=False)
 
 
 def _max_faces_per_edge(faces: np.ndarray) -> int:
@@ -86,7 +87,7 @@ def test_shipped_face_model_closes_box_and_cylinder(shipped, name):
     n_fp = shipped.face.cfg.encoder.n_points
     edges, logits = shipped.face.predict_edges(q, unit_pts[:n_fp], nrm[:n_fp], filtering=shipped.filter_config,
                                                return_logits=True)
-    cfg = TriangleConfig(**{**shipped.triangle_config.__dict__, "selection": "surface", "remove_unreferenced": False})
+    cfg = replace(shipped.triangle_config, remove_unreferenced=False)
     v, f = mesh_from_adjacency(dequantize(q), edges, cfg, points=unit_pts, logits=logits)
     _assert_closed_on_surface(trimesh.Trimesh(norm.apply(m.vertices), m.faces), v, f, unit_pts)
     if name == "box":
@@ -107,7 +108,7 @@ def test_selection_never_puts_an_edge_in_three_faces():
     s /= np.linalg.norm(s, axis=1, keepdims=True)
     close = np.argwhere(np.linalg.norm(s[:, None] - s[None], axis=2) < 0.9)
     pts = trimesh.sample.sample_surface(trimesh.creation.icosphere(4), 8192, seed=0)[0]
-    f = sf.surface_mesh(s, close, pts, TriangleConfig(selection="surface", support_tol=0.1))[1]
+    f = sf.surface_mesh(s, close, pts, TriangleConfig(support_tol=0.1))[1]
     assert len(f) and _max_faces_per_edge(f) <= 2
 
 

@@ -17,6 +17,10 @@ from fastmesh.shapes.io import load_shape
 from fastmesh.shapes.shape import Normalization
 from fastmesh.tokenizer import dequantize, quantize_mesh
 
+# The paper's rule alone: every 3-clique of the edges, none of the shipped clean-up.
+RULE = {"selection": "cliques", "drop_coplanar_diagonals": False, "support_tol": None, "max_faces_per_edge": None,
+        "remove_unreferenced": False}
+
 
 def _brute_triangles(adj: np.ndarray) -> np.ndarray:
     n = len(adj)
@@ -133,11 +137,11 @@ def test_orientation_inverted_parts_and_open_surface():
 def test_mesh_from_adjacency_recovers_sphere():
     s = trimesh.creation.icosphere(subdivisions=2)
     adj = edges_from_faces(s.faces)
-    v, f = mesh_from_adjacency(s.vertices, adj)
+    v, f = mesh_from_adjacency(s.vertices, adj, fm.TriangleConfig(**RULE))
     m = trimesh.Trimesh(v, f, process=False)
     assert len(f) == len(s.faces) and m.is_winding_consistent and m.volume > 0
     v3, f3 = mesh_from_adjacency(np.concatenate([s.vertices, [[9, 9, 9]]]), adj,
-                                    fm.TriangleConfig(remove_unreferenced=True, drop_coplanar_diagonals=True))
+                                    fm.TriangleConfig(selection="cliques"))
     assert len(v3) == len(s.vertices) and len(f3) == len(s.faces)
 
 
@@ -163,7 +167,7 @@ def test_corpus_ground_truth_triangles_recovered(path):
     # Clean-up only removes triangles, and never a ground-truth face of non-zero area.  (The removal of flat
     # vertices, its last step, replaces faces by larger ones: tests/test_simplify.py.)
     x = dequantize(q)
-    v, out = mesh_from_adjacency(x, edges_from_faces(f), fm.TriangleConfig(flat_tol=None))
+    v, out = mesh_from_adjacency(x, edges_from_faces(f), fm.TriangleConfig(**RULE, flat_tol=None))
     nonzero = f[triangle_areas(x, f) > 1e-10]
     assert np.isin(key(nonzero), key(out)).all()
     assert len(out) <= len(tri)
@@ -188,8 +192,8 @@ def test_mesh_from_adjacency_limits_faces_per_edge_when_asked():
     rng = np.random.default_rng(0)
     v = rng.normal(size=(5, 3))
     edges = np.array([(i, j) for i in range(5) for j in range(i + 1, 5)])
-    _, f_all = mesh_from_adjacency(v, edges, fm.TriangleConfig(orient=False))
-    _, f_lim = mesh_from_adjacency(v, edges, fm.TriangleConfig(orient=False, max_faces_per_edge=2))
+    _, f_all = mesh_from_adjacency(v, edges, fm.TriangleConfig(**RULE, orient=False))
+    _, f_lim = mesh_from_adjacency(v, edges, fm.TriangleConfig(**{**RULE, "max_faces_per_edge": 2}, orient=False))
     assert len(f_all) == 10 and 0 < len(f_lim) < 10
     e = np.sort(np.concatenate([f_lim[:, [0, 1]], f_lim[:, [1, 2]], f_lim[:, [2, 0]]]), axis=1)
     assert np.unique(e, axis=0, return_counts=True)[1].max() <= 2

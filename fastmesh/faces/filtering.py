@@ -32,7 +32,7 @@ Predictor = Callable[[np.ndarray, "np.ndarray | None"], np.ndarray]
 
 @dataclass
 class FilterConfig:
-    """Parameters of :func:`filter_predictions`.
+    """Parameters of :func:`filter_predictions`; the defaults are what ships (``weights/pipeline.json``).
 
     Attributes
     ----------
@@ -54,7 +54,7 @@ class FilterConfig:
 
     bandwidth_passes: int = 2
     candidate_passes: int = 2
-    first_threshold: float = 0.8
+    first_threshold: float = 0.5
     final_threshold: float = 0.5
     thresholds: tuple[float, ...] | None = None
     min_radius: int = 2

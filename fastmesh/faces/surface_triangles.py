@@ -21,7 +21,7 @@ from .closure import close_loops
 from .holes import fill_holes
 from .selection import Selection
 from .support import support_distance, support_limit
-from .triangles import TriangleConfig, drop_degenerate, limit_faces_per_edge, orient_faces, triangles_from_adjacency
+from .triangles import TriangleConfig, drop_degenerate, limit_faces_per_edge, orient_faces
 
 # Neighbourhoods whose least variance is under this share of the middle one count as flat.
 _FLAT = 0.1
@@ -198,11 +198,10 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
     edges : (E, 2) int, the model's predicted edges
     points : (P, 3) float, samples of the input surface in the frame of ``vertices``
     config : TriangleConfig
-        ``surface_tol``, ``fold_angle``, ``fill_max_loop``,
-        ``support_weight``, ``model_weight``, ``model_triangles``, ``close``.
+        ``surface_tol``, ``fold_angle``, ``fill_max_loop``, ``model_weight``, ``close``.
     logits : (N, N) float, optional
         The model's edge logits: a triangle scores ``model_weight`` times the mean log-probability of
-        its edges minus ``support_weight`` times its support distance in units of the limit.  Without them the
+        its edges minus its support distance in units of the limit.  Without them the
         best-supported triangles come first.
 
     Returns
@@ -214,14 +213,12 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     pts = np.asarray(points, dtype=np.float64)
     cand = delaunay_triangles(v)
-    if cfg.model_triangles:
-        cand = np.concatenate([cand, triangles_from_adjacency(edges, len(v))])
     cand = np.unique(np.sort(cand, axis=1), axis=0) if len(cand) else cand.reshape(0, 3)
     tree = cKDTree(pts)
     f, d, limit = on_surface(v, cand, pts, cfg.surface_tol or 0.0, tree)
     keep = facing(v, f, pts, tree) >= _MIN_FACING
     f, d = f[keep], d[keep]
-    score = -cfg.support_weight * d / limit
+    score = -d / limit
     if logits is not None and len(f):
         lp = edge_log_prob(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [0, 2]]]), logits, edges)
         score = score + cfg.model_weight * lp.reshape(3, -1).mean(0)

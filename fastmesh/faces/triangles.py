@@ -27,40 +27,40 @@ _CHUNK = 2_000_000
 
 @dataclass
 class TriangleConfig:
-    """Clean-up options of :func:`mesh_from_adjacency`.
+    """Options of :func:`mesh_from_adjacency`; the defaults are what ships (``weights/pipeline.json`` "faces").
 
     Attributes
     ----------
+    selection : str
+        ``"surface"``: restricted Delaunay triangles on the input surface, scored by the model,
+        selected to stay a surface and holes filled (:func:`fastmesh.faces.surface_triangles.surface_mesh`,
+        needs the input's samples; it reads ``support_points``, the ``"surface"`` options and
+        ``remove_unreferenced``, and always orients).  ``"cliques"``: the paper's rule, the 3-cycles of the
+        predicted edges with the clean-up options below (``fastmesh eval`` measures it beside the shipped one).
     drop_zero_area : bool
-        Drop triangles whose area is at most ``area_tol * L**2`` (L = bounding-box longest
-        side): collinear triplets are 3-cycles but not faces.
+        ``"cliques"``: drop triangles whose area is at most ``area_tol * L**2`` (L = bounding-box
+        longest side): collinear triplets are 3-cycles but not faces.
     area_tol : float
     drop_coplanar_diagonals : bool
-        For each 4-clique whose points lie within ``coplanar_tol * L`` of a plane: if it is
+        ``"cliques"``: for each 4-clique whose points lie within ``coplanar_tol * L`` of a plane: if it is
         a convex quad, drop its longer diagonal (every triangle using that edge); if one
         point lies inside the triangle of the other three, drop that outer triangle.
     coplanar_tol : float
         Default: half a 7-bit cell of the unit cube (quantisation moves points that much).
     orient : bool
-        Make windings agree across edges shared by two faces, and each connected part face
+        ``"cliques"``: make windings agree across edges shared by two faces, and each connected part face
         outward (positive signed volume about the mesh centroid).
     remove_unreferenced : bool
         Drop vertices no face uses (returned vertices are then a subset).
     support_tol : float or None
-        With the input's surface samples given: drop faces that stray farther than this from
-        them (:func:`fastmesh.faces.support.supported`; relative to their longest side).
+        ``"cliques"``, with the input's surface samples given: drop faces that stray farther than this
+        from them (:func:`fastmesh.faces.support.supported`; relative to their longest side).
     support_points : int
         How many samples of the input surface to check against (a point cloud with fewer points
         gives all of them).
     max_faces_per_edge : int or None
-        Keep faces best-supported first (with the input's samples; else in order) while no edge
-        carries more than this many (:func:`limit_faces_per_edge`); 2 = edge-manifold.
-    selection : str
-        ``"cliques"``: the 3-cycles of the predicted edges with the clean-up above.  ``"surface"``
-        (needs the input's samples): restricted Delaunay triangles plus the 3-cycles that lie on
-        the input surface, scored by the model, selected to stay a surface and holes filled
-        (:func:`fastmesh.faces.surface_triangles.surface_mesh`; of the options above it uses
-        ``support_points`` and ``remove_unreferenced``, and always orients).
+        ``"cliques"``: keep faces best-supported first (with the input's samples; else in order) while
+        no edge carries more than this many (:func:`limit_faces_per_edge`); 2 = edge-manifold.
     surface_tol : float or None
         ``"surface"``: the support limit relative to the points' longest side (None: only the
         floor of ``support.SPACING_FACTOR`` point spacings, which measures best).
@@ -68,14 +68,9 @@ class TriangleConfig:
         ``"surface"``: degrees; two faces on an edge closer than this around it overlap.
     fill_max_loop : int
         ``"surface"``: longest boundary loop closed (``fastmesh.faces.holes.fill_holes``; 0 = no filling).
-    support_weight : float
-        ``"surface"``: a triangle's score loses this much per support limit it strays.
     model_weight : float
-        ``"surface"``: weight of the mean log-probability of a triangle's edges in its score.
-    model_triangles : bool
-        ``"surface"``: the 3-cycles of the predicted edges that pass the support test are
-        candidates too (else only the restricted Delaunay triangles, scored by the model; on the
-        out-of-package validation meshes the extra triangles raise CD and HD).
+        ``"surface"``: weight of the mean log-probability of a triangle's edges in its score, against
+        its support distance in units of the support limit (docs/results.md).
     close : bool
         ``"surface"``: close the loops hole filling left open (:func:`fastmesh.faces.closure.close_loops`): the
         pipeline sets it per request, for an input that is closed (``closure.decide_closed``).
@@ -86,22 +81,20 @@ class TriangleConfig:
         turns it off for a face-count target (the count asked for).
     """
 
+    selection: str = "surface"
     drop_zero_area: bool = True
     area_tol: float = 1e-10
-    drop_coplanar_diagonals: bool = False
+    drop_coplanar_diagonals: bool = True
     coplanar_tol: float = 0.5 * CELL
     orient: bool = True
-    remove_unreferenced: bool = False
-    support_tol: float | None = None
+    remove_unreferenced: bool = True
+    support_tol: float | None = 0.03
     support_points: int = 16384
-    max_faces_per_edge: int | None = None
-    selection: str = "cliques"
+    max_faces_per_edge: int | None = 2
     surface_tol: float | None = None
     fold_angle: float = 30.0
     fill_max_loop: int = 64
-    support_weight: float = 1.0
-    model_weight: float = 1.0
-    model_triangles: bool = False
+    model_weight: float = 0.1
     close: bool = False
     flat_tol: float | None = 0.5 * CELL
 

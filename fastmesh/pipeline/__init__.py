@@ -1,0 +1,293 @@
+"""The two-stage FastMesh pipeline: load the networks once, then ``generate`` many times.
+
+The stages as :meth:`Pipeline.generate` runs them (``STAGES`` names their timings and progress):
+
+    shape ──normalise──► surface samples                                      encode
+          ──► vertex decoder: tokens → 7-bit cells, K candidates in one batch vertices
+          then, per candidate (every candidate's enhancer before any face model):
+          ──► fidelity enhancer: continuous positions inside each cell,       enhancer
+              then fitted to the input's planes, those fitted onto one
+              point merged (``fitting``)
+          ──► face model: edge logits of all pairs in one pass                faces
+          ──► prediction filtering: masked re-predictions (optional)          filtering
+          ──► triangles on the input surface: candidates that lie on it,      faces
+              chosen by the edge logits, kept a surface, holes closed, the
+              vertices of flat regions removed (``faces.mesh_from_adjacency``,
+              ``surface_triangles``, ``simplify``)
+          ──► the candidate nearest the input surface (``support.surface_fit``) filtering
+          ──► back to the input's frame
+          ──► with target_faces: brought to that count (``facecount``)     faces
+
+This is the Python API the CLI, the worker and the evaluation call::
+
+    pipe = Pipeline.from_pretrained()              # shipped weights, CPU or CUDA
+    result = pipe.generate(load_shape("chair.ply"), GenerateParams(seed=1))
+    open("chair.glb", "wb").write(result.export("glb"))
+
+``generate`` runs :meth:`Pipeline.steps`, the same stages as a generator that hands its vertex decoding to the
+caller; ``generate_batch`` (and a worker with ``FASTMESH_MAX_BATCH`` > 1) runs several jobs' steps together and
+decodes their candidates as one batch (:mod:`fastmesh.batch`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Generator, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..batch import DecodeRequest
+from ..faces.closure import decide_closed
+from ..faces.filtering import FilterConfig
+from ..faces.triangles import TriangleConfig
+from ..fitting import FitConfig
+from ..models.checkpoint import load_model, save_model
+from ..models.encoder import EncoderConfig
+from ..models.generate import Cancelled, GenerationError
+from ..models.onnx_decode import choose_decoder
+from ..params import GenerateParams
+from ..progress import STAGES
+from ..request import Request
+from ..shapes.canonical import canonical_rotation, frame_normals, turned_degrees
+from ..shapes.shape import Shape
+from . import result as step8
+from .candidate import CELL_SEED
+from .frames import FrameSteps
+from .result import GenerateResult
+from .runtime import CPU_THREADS, STAGE_THREADS, auto_device, choose_threads
+from .settings import CELL_NET_DIR, NETWORKS, default_weights_dir, read_settings, write_settings
+
+# ``Pipeline.random``'s support limit, relative to the input's size: its decoder's vertices lie anywhere.
+RANDOM_SURFACE_TOL = 1.0
+
+__all__ = ["CELL_SEED", "CPU_THREADS", "STAGES", "STAGE_THREADS", "Cancelled", "GenerateParams", "GenerateResult",
+           "GenerationError", "Pipeline", "auto_device", "choose_threads", "default_weights_dir"]
+
+
+class Pipeline(FrameSteps):
+    """The three networks plus the fixed geometry around them."""
+
+    def __init__(self, vertex, enhancer, face, device: torch.device | str = "cpu",
+                 filter_config: FilterConfig | None = None, triangle_config: TriangleConfig | None = None,
+                 source: str = "", threads: int | None = None, cell_net=None,
+                 fit_config: FitConfig | None = None):
+        self.device = torch.device(device)
+        # Process-wide (torch has one thread pool), and before the decoder is built: its ONNX session
+        # takes torch's count.  See choose_threads.
+        self.threads = choose_threads(self.device, threads)
+        self.stage_threads = dict(STAGE_THREADS)
+        if self.threads is not None:
+            torch.set_num_threads(self.threads)
+        if vertex.cfg.evidence_cells and cell_net is None:
+            raise ValueError("this vertex decoder reads the cell network's log-odds: pass `cell_net`")
+        self.cell_net = cell_net.to(self.device).eval() if cell_net is not None else None
+        self.vertex = vertex.to(self.device).eval()
+        self.enhancer = enhancer.to(self.device).eval()
+        self.face = face.to(self.device).eval()
+        self.filter_config = filter_config or FilterConfig()
+        self.triangle_config = triangle_config or TriangleConfig()
+        self.fit_config = fit_config or FitConfig()
+        self.source = source
+        self.max_vertices = int(vertex.cfg.max_vertices)
+        # Decode steps run in ONNX Runtime on CPU when it is installed (~3x faster per token than
+        # eager), with static shapes and a captured graph on CUDA; FASTMESH_DECODER=torch|onnx|static forces a
+        # backend.  A snapshot of the vertex weights.
+        self.decoder = choose_decoder(self.vertex, self.device, threads=self._stage_threads("vertices"))
+
+    # ------------------------------------------------------------------ construction
+
+    def _stage_threads(self, name: str) -> int | None:
+        """torch threads of stage ``name`` (None: torch's own count, on a GPU)."""
+        return None if self.threads is None else min(self.threads, self.stage_threads.get(name, self.threads))
+
+    @contextmanager
+    def threads_for(self, name: str) -> Iterator[None]:
+        """Run the block with stage ``name``'s torch threads (``STAGE_THREADS``), then the pipeline's again."""
+        n, before = self._stage_threads(name), torch.get_num_threads()
+        if n is None or n == before:
+            yield
+            return
+        torch.set_num_threads(n)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(before)
+
+    @classmethod
+    def from_pretrained(cls, weights: str | os.PathLike | None = None, device: str | None = None,
+                        threads: int | None = None) -> Pipeline:
+        """Load ``vertex/``, ``enhancer/`` and ``face/`` from ``weights`` (default: the shipped ones).
+
+        ``threads``: torch CPU threads (default ``$FASTMESH_TORCH_THREADS``, else 1 on CPU: the fastest
+        measured for generating one mesh at a time); it applies to the whole process, except for the stages of
+        ``STAGE_THREADS`` (the vertex decoder runs on one).
+        """
+        root = Path(weights) if weights else default_weights_dir()
+        missing = [n for n in NETWORKS if not (root / n / "model.safetensors").exists()]
+        if missing:
+            raise FileNotFoundError(f"weights folder {root} lacks {', '.join(missing)} "
+                                    "(each needs model.safetensors + config.json)")
+        dev = auto_device(device)
+        nets = {n: load_model(root / n, device=dev)[0] for n in NETWORKS}
+        cell_net = (load_model(root / CELL_NET_DIR, device=dev)[0]
+                    if (root / CELL_NET_DIR / "model.safetensors").exists() else None)
+        configs = read_settings(root / "pipeline.json")
+        return cls(nets["vertex"], nets["enhancer"], nets["face"], device=dev, source=str(root), threads=threads,
+                   cell_net=cell_net, **configs)
+
+    @classmethod
+    def random(cls, size: str = "tiny", seed: int = 0, device: str | None = None,
+               threads: int | None = None) -> Pipeline:
+        """Randomly initialised networks, for tests and benchmarks of the machinery.
+
+        ``tiny`` networks are a few thousand parameters.  A random face model would
+        predict no edges; its output bias is set so every pair connects, which gives a
+        (meaningless) mesh on every input, so the service can be tested end to end.
+        The face stage is the shipped one (:class:`TriangleConfig`'s defaults) but for its support limit:
+        a random decoder's vertices lie anywhere in the unit cube, so a candidate triangle may stray from
+        the input by the input's size (``surface_tol`` 1.0).  Keep ``max_vertices`` small with it.
+        """
+        from ..models.enhancer import Enhancer, EnhancerConfig
+        from ..models.face import FaceModel, FaceModelConfig
+        from ..models.vertex import VertexConfig, VertexDecoder
+
+        if size != "tiny":
+            raise ValueError("only size='tiny' is defined")
+        torch.manual_seed(seed)
+        enc = EncoderConfig(n_points=256, n_latents=8, dim=32, depth=1, heads=2, n_freqs=4)
+        vertex = VertexDecoder(VertexConfig(dim=32, depth=2, heads=2, encoder=enc, max_vertices=64, evidence=True,
+                                            count_condition=True))
+        enhancer = Enhancer(EnhancerConfig(dim=32, depth=1, heads=2, encoder=enc))
+        face = FaceModel(FaceModelConfig(dim=32, depth=1, heads=2, edge_heads=4, edge_mlp_hidden=4, encoder=enc))
+        with torch.no_grad():
+            face.edge_out.bias.fill_(8.0)
+        return cls(vertex, enhancer, face, device=auto_device(device), source=f"random:{size}:{seed}",
+                   threads=threads, triangle_config=TriangleConfig(surface_tol=RANDOM_SURFACE_TOL))
+
+    def save(self, directory: str | os.PathLike) -> None:
+        """Write the networks and ``pipeline.json`` (every setting of the face stage and the fit, whole) so
+        ``from_pretrained`` loads this pipeline as it is."""
+        root = Path(directory)
+        for name, net in zip(NETWORKS, (self.vertex, self.enhancer, self.face), strict=True):
+            save_model(net, name, root / name)
+        if self.cell_net is not None:
+            save_model(self.cell_net, CELL_NET_DIR, root / CELL_NET_DIR)
+        write_settings(root / "pipeline.json", self.filter_config, self.triangle_config, self.fit_config)
+
+    def info(self) -> dict:
+        return {"source": self.source, "device": str(self.device), "threads": torch.get_num_threads(),
+                "max_vertices": self.max_vertices,
+                "decoder": getattr(self.decoder, "backend", "torch"),
+                "parameters": {n: sum(p.numel() for p in net.parameters())
+                               for n, net in zip(NETWORKS, (self.vertex, self.enhancer, self.face), strict=True)}}
+
+    # ------------------------------------------------------------------ generation
+
+    def _n_points(self) -> int:
+        return max(net.cfg.encoder.n_points for net in (self.vertex, self.enhancer, self.face))
+
+    def generate(self, shape: Shape, params: GenerateParams | None = None,
+                 progress: Callable[[str, float], None] | None = None,
+                 should_cancel: Callable[[], bool] | None = None) -> GenerateResult:
+        """Turn a shape into an artist-style mesh in the shape's own frame.
+
+        With ``params.candidates`` = K > 1 (and a temperature above 0) the meshes of seeds ``seed``
+        ... ``seed + K - 1`` are made (their vertex tokens decoded together, as one batch) and the
+        one closest to the input surface is returned
+        (:func:`fastmesh.faces.support.surface_fit`): a sampled mesh sometimes leaves out a part or fills
+        a flat region with vertices, and the input tells which.
+
+        Parameters
+        ----------
+        shape : Shape
+            Mesh or point cloud, as from ``io.load_shape``.
+        params : GenerateParams
+        progress : callable, optional
+            ``progress(stage, fraction)``: the stage running and the overall fraction done (0..1), called
+            often while the decoder runs.  Both go one way (:mod:`fastmesh.progress`): the fraction never
+            decreases, the stage never returns to one passed, and filtering is named only when it runs.
+        should_cancel : callable, optional
+            Polled during decoding and between stages; returning True raises :class:`Cancelled`.
+
+        Raises
+        ------
+        ValueError for bad parameters, :class:`GenerationError` when no mesh comes out,
+        :class:`Cancelled`.
+        """
+        out = self.generate_batch([shape], [params], [progress], [should_cancel])[0]
+        if isinstance(out, BaseException):
+            raise out
+        return out
+
+    def generate_batch(self, shapes: list[Shape], params: list[GenerateParams | None],
+                       progress: list[Callable[[str, float], None] | None] | None = None,
+                       should_cancel: list[Callable[[], bool] | None] | None = None
+                       ) -> list[GenerateResult | Exception]:
+        """Several jobs at once, their vertex tokens decoded together (:mod:`fastmesh.batch`).
+
+        Job i gives exactly what ``generate(shapes[i], params[i])`` gives alone (its candidates keep their
+        seeds, evidence and sampling); jobs of different sampling settings share the rounds but not the decoder
+        batch.  ``progress[i]`` and ``should_cancel[i]`` are job i's, as :meth:`generate` takes them: a cancelled
+        job stops, the others go on.
+
+        Returns
+        -------
+        list, per job: its :class:`GenerateResult`, or the exception it raised (``ValueError``,
+        :class:`GenerationError`, :class:`Cancelled`, ...), which :meth:`generate` would raise.
+        """
+        from ..batch import Batch
+
+        n = len(shapes)
+        if len(params) != n or (progress is not None and len(progress) != n) or (
+                should_cancel is not None and len(should_cancel) != n):
+            raise ValueError(f"generate_batch: {n} shapes need as many params, progress and should_cancel")
+        batch = Batch(self)
+        for i, shape in enumerate(shapes):
+            batch.add(i, self.steps(shape, params[i], progress[i] if progress else None,
+                                    should_cancel[i] if should_cancel else None))
+        while len(batch):
+            batch.round()
+        done = batch.pop_done()
+        return [done[i] for i in range(n)]
+
+    def steps(self, shape: Shape, params: GenerateParams | None = None,
+              progress: Callable[[str, float], None] | None = None, should_cancel: Callable[[], bool] | None = None
+              ) -> Generator[DecodeRequest, list[torch.Tensor], GenerateResult]:
+        """:meth:`generate` as a generator that stops where it needs the vertex decoder: it yields a
+        :class:`fastmesh.batch.DecodeRequest` (one per frame) and is sent that request's token sequences (one
+        per candidate); it returns the result.  :class:`fastmesh.batch.Batch` runs several at once."""
+        params = params or GenerateParams()
+        params.validate(limit=self.max_vertices)
+        self._target(params)  # refuses a target_faces this decoder cannot read, before any work
+        req = Request.start(shape, params, progress, should_cancel)
+        # A point cloud that bounds a polyhedron is closed: the winding numbers are read only where it does not.
+        cheap = shape.faces is not None or params.closed != "auto"
+        if cheap:
+            req.close, req.reason = decide_closed(shape, params.closed)
+        flat = step8.planar(req) if req.close else None
+        if flat is not None:
+            req.report.done("faces")
+            return step8.finished(req, *flat[:2], tokens=0, info={"turned_degrees": 0.0, "result_from": flat[2]})
+        if not cheap:
+            req.close, req.reason = decide_closed(shape, params.closed)
+        # The input's own frame, and its canonical one where that lays more of its walls along the axes
+        # (``canonical``): each is generated, and the mesh nearer the input kept.
+        frames = [np.eye(3)]
+        turn = canonical_rotation(shape.vertices, frame_normals(shape))
+        if not np.array_equal(turn, frames[0]):
+            frames.append(turn)
+        made, errors = yield from self._in_frames(req, frames)
+        if not made:
+            raise errors[0]
+        best = self._nearest_frame(req, made)
+        vertices, faces, result_from, pulled = step8.whole(req, best["vertices"], best["faces"])
+        result = step8.finished(req, vertices, faces, tokens=best["tokens"],
+                                info={**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3),
+                                      "result_from": result_from, "pulled_in": pulled},
+                                evidence=best["evidence"] if result_from == "model" else None)
+        req.report.done()
+        return result
+

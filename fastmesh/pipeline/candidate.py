@@ -1,0 +1,179 @@
+"""Steps 2-7 for one candidate: the input encoded, its vertex tokens decoded (as part of a batch), positions
+inside the cells and fitted to the input's planes, edges predicted and filtered, triangles chosen on the
+input surface.  :class:`CandidateSteps` is a part of :class:`fastmesh.pipeline.Pipeline` (its networks and
+settings)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Generator
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from ..batch import DecodeRequest
+from ..export.quads import EdgeEvidence
+from ..faces import mesh_from_adjacency
+from ..faces.facecount import CountRule, count_rule
+from ..faces.filtering import predict_edges
+from ..fitting import distinct, fit_radius, fit_samples, fit_to_planes
+from ..models.cells import snap_to_cells
+from ..models.generate import GenerationError
+from ..params import GenerateParams
+from ..request import Frame, Request
+from ..tokenizer import dequantize
+from ..tokenizer import vertex as vt
+from ..tokenizer.grid import CELL
+from .runtime import stage, timed_passes
+
+CELL_SEED = 0  # of the input sample the cell evidence reads
+
+
+class CandidateSteps:
+    """One candidate's steps, from the input encoded to its triangles (see the module)."""
+
+    def _target(self, params: GenerateParams) -> torch.Tensor | None:
+        """(1,) faces asked for, as the decoder's count token reads them (None: the model's choice)."""
+        if params.target_faces is None:
+            return None
+        if not self.vertex.cfg.count_condition:
+            raise ValueError("target_faces: this vertex decoder was not trained with a face-count condition")
+        return torch.tensor([params.target_faces], device=self.device)
+
+    def _logodds(self, frame: Frame) -> torch.Tensor | None:
+        """(1, 128^3) cell log-odds of the input in ``frame`` for a decoder that reads them (``models.cells``),
+        else None.
+
+        Evidence about the input, not a random choice: drawn from one sample of fixed seed, so every
+        candidate reads the same grid and candidate k stays exactly what seed + k gives alone.
+        """
+        if not self.vertex.cfg.evidence_cells:
+            return None
+        pts, nrm = frame.samples(self.cell_net.cfg.n_points, CELL_SEED)
+        return self.cell_net.grid(pts, nrm)[None].to(self.device)
+
+    def _encode(self, frame: Frame, seed: int, params: GenerateParams, logodds: torch.Tensor | None = None) -> tuple:
+        """The surface sample of ``seed`` in ``frame`` (points, normals: (n, 3) float32 in its unit cube) and the
+        vertex decoder's condition on it: (points, normals, prefix (1, M, dim), evidence); ``logodds`` from
+        :meth:`_logodds`."""
+        pts, nrm = frame.samples(self._n_points(), seed)
+        n_vp = self.vertex.cfg.encoder.n_points
+        pts_t = torch.from_numpy(pts).to(self.device)[None, :n_vp]
+        nrm_t = torch.from_numpy(nrm).to(self.device)[None, :n_vp]
+        with torch.inference_mode():
+            target = self._target(params)
+            prefix = self.vertex.condition(pts_t, nrm_t, target)
+            evidence = self.vertex.point_evidence(pts_t, nrm_t, logodds, target)
+        return pts, nrm, prefix, evidence
+
+    def _decode(self, req: Request, frames: list[Frame], report: Callable[[float], None]
+                ) -> Generator[DecodeRequest, list[torch.Tensor], list[tuple]]:
+        """Vertex tokens of every frame's candidates ``params.seed`` ... ``params.seed + n_cand - 1`` (their
+        ``encoded`` conditions, from :meth:`_frame`), decoded as one batch: a second frame's rows ride with the
+        first's instead of decoding after them.
+
+        Candidate k of a frame reads its own surface sample (seed + k) and samples with seed + k: it is what that
+        seed gives alone, in whatever batch (``models.generate``: each row keeps its seed, evidence and grammar
+        state).  Yields the :class:`DecodeRequest` of the candidates and is sent their sequences
+        (:class:`fastmesh.batch.Batch` decodes it, adds the decoding time to ``req.timings`` and calls the
+        request's ``progress``, here ``report(share)`` of the vertices decoded); returns per candidate, frame
+        after frame, its (points, normals, tokens).
+        """
+        req.check()
+        encoded = [e for frame in frames for e in frame.encoded]
+        seeds = [req.params.seed + k for frame in frames for k in range(len(frame.encoded))]
+        evidence = [ev for _, _, _, ev in encoded]
+        sampling = req.params.sampling(self.max_vertices)
+        max_v = sampling.max_vertices
+
+        def on_step(n_vert: int) -> None:
+            report(min(1.0, n_vert / max_v))
+
+        report(0.0)
+        seqs = yield DecodeRequest(torch.cat([prefix for _, _, prefix, _ in encoded]),
+                                   None if evidence[0] is None else evidence, sampling, seeds, on_step,
+                                   req.should_cancel, req.timings)
+        return [(pts, nrm, seq.cpu().numpy()) for (pts, nrm, _, _), seq in zip(encoded, seqs, strict=True)]
+
+    def vertex_cells(self, tokens: np.ndarray, logodds: torch.Tensor | None, params: GenerateParams,
+                     count: CountRule | None = None) -> np.ndarray:
+        """(N, 3) int64 vertex cells of the decoder's ``tokens``, moved by the cell log-odds ``logodds`` (from
+        :meth:`_logodds`) where ``SamplingConfig.snap_margin`` says so (``models.cells.snap_to_cells``) and
+        the face-count rule allows it (``count``, made from ``params`` when not given: not with a target)."""
+        q = vt.decode(tokens, strict=True)
+        margin = params.sampling(self.max_vertices).snap_margin
+        count = count or count_rule(params.target_faces)
+        if logodds is None or margin is None or not count.snap:
+            return q
+        return snap_to_cells(q, logodds[0].cpu(), margin)
+
+    def _fit(self, frame: Frame, positions: np.ndarray, seed: int) -> np.ndarray:
+        """``positions`` (N, 3) moved onto the planes of the input around them (``fitting.fit_to_planes``)."""
+        from scipy.spatial import cKDTree
+
+        pts, nrm = fit_samples(frame.shape, frame.unit, self.fit_config, seed, draw=frame.samples)
+        tree = cKDTree(pts)
+        cfg = self.fit_config
+        return fit_to_planes(positions, pts, nrm, fit_radius(cfg, pts, tree), cfg.rel, tree, cfg.reach)
+
+    def _positions(self, req: Request, frame: Frame, k: int) -> tuple | GenerationError:
+        """Candidate ``k`` of the frame as vertex cells and positions in its unit cube: ``(cells (N, 3) int64,
+        positions (N, 3), vertices decoded)``, or the GenerationError that stops it; timed as the enhancer."""
+        pts, nrm, tokens = frame.decoded[k]
+        q = self.vertex_cells(tokens, frame.logodds, req.params, req.count)
+        if len(q) < 3:
+            return GenerationError("no_vertices", f"the vertex decoder produced {len(q)} vertices; try another seed")
+        decoded = len(q)
+        req.check()
+        # Fidelity enhancer: continuous positions inside each cell.
+        with stage("enhancer", req.timings):
+            if req.params.enhancer:
+                n_ep = self.enhancer.cfg.encoder.n_points
+                positions = self.enhancer.refine(q, pts[:n_ep], nrm[:n_ep])
+            else:
+                positions = dequantize(q)
+            if self.fit_config.radius is not None:
+                positions = self._fit(frame, positions, req.params.seed + k)
+                if self.fit_config.merge is not None:  # vertices fitted onto one point become one
+                    keep = distinct(positions, self.fit_config.merge * CELL)
+                    q, positions = q[keep], positions[keep]
+                    if len(q) < 3:
+                        return GenerationError("no_vertices", f"the vertex decoder's {decoded} vertices lie on "
+                                               f"{len(q)} points of the surface; try another seed")
+        return q, positions, decoded
+
+    def _faces(self, req: Request, frame: Frame, k: int, report: Callable[[float], None] | None
+               ) -> dict | GenerationError:
+        """Candidate ``k``'s mesh in the frame's unit cube from its :meth:`_positions`, its holes closed where
+        the request closes (``req.close``), or the GenerationError that stopped it; ``report(share)`` follows the
+        filtering passes (None without filtering).  Adds its stage times to ``req.timings``."""
+        placed = frame.positions[k]
+        if isinstance(placed, GenerationError):
+            return placed
+        q, positions, decoded = placed
+        pts, nrm, tokens = frame.decoded[k]
+        timings = req.timings
+        req.check()
+        # Stage II: edges in one bidirectional pass, then (optionally) filtered re-predictions.
+        n_fp = self.face.cfg.encoder.n_points
+        with stage("faces", timings):
+            predict = self.face.predictor(q, pts[:n_fp], nrm[:n_fp])  # encodes the condition once
+        predict = timed_passes(predict, timings, report or (lambda share: None), req.should_cancel,
+                         self.filter_config.n_passes)
+        edges, logits = predict_edges(predict, len(q), self.filter_config, req.params.filtering)
+
+        # Triangles on the input surface, scored by the edge logits, kept a surface, holes closed, flat vertices
+        # removed (but not below a face-count target: ``req.count.remove_flat``).
+        with stage("faces", timings):
+            tc = replace(self.triangle_config, close=req.close)
+            if not req.count.remove_flat:  # the count asked for: flat regions keep their vertices
+                tc = replace(tc, flat_tol=None)
+            surface = None
+            if tc.support_tol is not None or tc.max_faces_per_edge is not None or tc.selection == "surface":
+                surface = frame.surface(tc.support_points, req.params.seed + k)
+            verts, faces = mesh_from_adjacency(positions, edges, tc, points=surface, logits=logits)
+        if len(faces) == 0:
+            return GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")
+        return {"vertices": verts, "faces": faces, "tokens": int(len(tokens)), "generated_vertices": decoded,
+                "edges": int(len(edges)), "evidence": EdgeEvidence.of_mesh(verts, faces, positions, logits, edges)}
+

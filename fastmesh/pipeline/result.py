@@ -1,0 +1,149 @@
+"""Step 8, the result: made whole, brought to the face count asked for, its quality measured, written out.
+
+:func:`whole` makes the chosen candidate whole (pieces, pinches, far vertices) or gives back a low-poly input;
+:func:`planar` rebuilds a polyhedron from its planes instead of generating; :func:`finished` makes the
+:class:`GenerateResult` (face count, quality report, quads, UVs, placement).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..evaluation.quality import mesh_quality
+from ..export.output import MeshOut, finish
+from ..export.quads import EdgeEvidence
+from ..faces.facecount import TOLERANCE as COUNT_TOLERANCE
+from ..faces.facecount import hold_count
+from ..faces.meshops import edge_face_counts, remove_unreferenced, triangle_areas, weld
+from ..faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
+from ..models.generate import GenerationError
+from ..request import PLANAR_SAMPLES, Request
+from ..shapes.planar import polyhedron
+from ..shapes.shape import Shape
+from .runtime import stage
+
+# A low-poly mesh input of a polyhedron is given back as it is when it has at most this many times the faces
+# of the polyhedron rebuilt from its planes (which has no vertex inside a face, such as a cylinder cap's centre).
+LOW_POLY_SLACK = 1.25
+
+
+@dataclass
+class GenerateResult:
+    """A generated mesh in the input's original frame, or placed as ``origin`` and ``height`` ask.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float64, input units (Y-up; ``up=z`` turns only the OBJ and PLY files)
+    faces : (F, 3) int64
+    tokens : int, vertex tokens generated (BOS/EOS included)
+    timings : dict, seconds per stage: encode, vertices, enhancer, faces, filtering
+    quality : dict, distance to the input and topology (:func:`fastmesh.evaluation.quality.mesh_quality`): cd, hd (% of
+        the input's size), boundary_edges, non_manifold_edges, components, watertight; and faces, target_faces,
+        target_met (faces within ``facecount.TOLERANCE`` of the target; None without one) and count_step
+        (``facecount.hold_count``'s: kept, simplified or split; None without a target); quads and quad_share
+        (of the polygons the OBJ and PLY files hold)
+    mesh : fastmesh.export.output.MeshOut, the result as written (quads, UV layout, baked texture, placement); the
+        vertices above are placed as it says
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    tokens: int
+    timings: dict[str, float] = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+    quality: dict = field(default_factory=dict)
+    mesh: MeshOut | None = None
+
+    def export(self, fmt: str) -> bytes:
+        """The result as ``glb``, ``obj`` or ``ply`` bytes."""
+        return (self.mesh or MeshOut(self.vertices, self.faces)).export(fmt)
+
+
+
+def whole(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, str, int]:
+    """The result made whole (``pieces``: no surface pinched at a vertex, no stray pieces beyond the input's
+    ``req.pieces_in``, no vertex more than ``pieces.FAR_CELLS`` cells from the input), or the input itself where
+    it is a low-poly surface with no more faces (``req.count.low_poly_input``).  Returns vertices, faces, where
+    they come from ("model" or "input") and how many vertices were pulled in to the input."""
+    shape = req.shape
+    vertices, pulled = pull_in(vertices, req.surface_points, far_limit(shape.vertices))
+    if pulled.any():
+        # Vertices pulled onto one sample made one, the faces between them (no area) dropped, before pinches are
+        # split into coincident copies that must stay apart; an edge the welding crowds keeps two faces.
+        vertices, faces = remove_unreferenced(*weld(vertices, faces, tol=1e-12))[:2]
+        faces = thin_crowded_edges(vertices, faces)
+    vertices, faces = split_pinches(vertices, faces)
+    vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, req.pieces_in))[:2]
+    # In the unit cube: the areas of a shape 1e-200 across underflow to 0 in its own units.
+    if not len(faces) or not triangle_areas(req.frame.norm.apply(vertices), faces).any():
+        raise GenerationError("no_faces", "every face of the result collapsed onto the input surface")
+    low = low_poly(shape, len(faces)) if req.count.low_poly_input else None
+    return (vertices, faces, "model", int(pulled.sum())) if low is None else (*low, "input", 0)
+
+
+def unsplit(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The copies of split pinches (vertices at one position) made one again, where there are any: collapses and
+    splits see a vertex's every face, and none moves a vertex onto another's copy."""
+    if len(np.unique(vertices, axis=0)) == len(vertices):
+        return vertices, faces
+    return remove_unreferenced(*weld(vertices, faces, tol=1e-12))[:2]
+
+
+def low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """A mesh input, welded, when it has at most ``faces`` faces and is a surface (no edge in three faces):
+    a result never has more faces than a low-poly input unless a count is asked for."""
+    if shape.faces is None or len(shape.faces) > 4 * faces:  # too many to become few by welding: not weighed
+        return None
+    v, f = weld(shape.vertices, shape.faces)
+    if len(f) == 0 or len(f) > faces or edge_face_counts(f).max() > 2:
+        return None
+    return remove_unreferenced(v, f)[:2]
+
+
+def planar(req: Request) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """The closed polyhedron of a piecewise-planar input (``planar.polyhedron``: exact corners, whatever
+    the pose), in the input's frame, with where it comes from ("planes"); or a low-poly mesh input of the
+    same shape, welded, where it has at most ``LOW_POLY_SLACK`` times the polyhedron's faces ("input": a
+    cylinder's caps keep their centres).  None where the input is not a polyhedron or a face count is asked
+    for (``req.count.rebuild_planes``: the polyhedron has the count it has)."""
+    if not req.count.rebuild_planes:
+        return None
+    shape, frame = req.shape, req.frame
+    with stage("faces", req.timings):
+        if shape.faces is None and shape.normals is not None:
+            points, normals = frame.unit, shape.normals
+        else:
+            points, normals = frame.samples(PLANAR_SAMPLES, 0)
+        found = polyhedron(points, normals)
+    if found is None:
+        return None
+    low = low_poly(shape, int(LOW_POLY_SLACK * len(found[1])))
+    return (frame.norm.invert(found[0]), found[1], "planes") if low is None else (*low, "input")
+
+
+def finished(req: Request, vertices: np.ndarray, faces: np.ndarray, tokens: int, info: dict,
+             evidence: EdgeEvidence | None = None) -> GenerateResult:
+    """The result with its quality report, brought to the face count asked for (``req.count.hold``);
+    ``evidence``: the face model's edges, which choose the quads first (``quads.pair_triangles``)."""
+    params, timings = req.params, req.timings
+    step, met = None, None
+    if req.count.hold:  # the count asked for holds (``facecount``)
+        info = {**info, "model_faces": int(len(faces))}
+        with stage("faces", timings):
+            vertices, faces = unsplit(vertices, faces)
+            vertices, faces, step = hold_count(vertices, faces, params.target_faces, *req.count_samples)
+            vertices, faces = split_pinches(vertices, faces)
+        met = bool(abs(len(faces) - params.target_faces) <= COUNT_TOLERANCE * params.target_faces)
+    why = req.reason
+    quality = {**mesh_quality(vertices, faces, req.shape, pieces_in=req.pieces_in), "faces": int(len(faces)),
+               "closed_decision": why if why == "asked" else ("closed" if req.close else "open"),
+               "target_faces": params.target_faces, "target_met": met, "count_step": step}
+    # Quads, UVs, baking and placement: timed with the faces they are made of.
+    with stage("faces", timings):
+        mesh, where, notes = finish(vertices, faces, params, source=req.shape, evidence=evidence)
+    return GenerateResult(vertices=mesh.vertices, faces=mesh.faces, tokens=tokens, timings=timings,
+                          info={**info, "closed_decision": req.decision, "placement": where.to_dict(),
+                                "notes": notes},
+                          quality={**quality, **mesh.counts()}, mesh=mesh)

@@ -10,10 +10,10 @@ from scipy.spatial import cKDTree
 from fastmesh.evaluation.primitives import point_cloud
 from fastmesh.evaluation.quality import topology
 from fastmesh.faces.closure import _winding, close_loops, decide_closed, mesh_open_share, winding_closed_share
+from fastmesh.faces.orient import orient_faces
 from fastmesh.faces.selection import Selection
 from fastmesh.faces.support import support_limit
 from fastmesh.faces.surface_triangles import vertex_frames
-from fastmesh.faces.triangles import orient_faces
 from fastmesh.shapes.io import sample_surface
 from fastmesh.shapes.shape import Shape
 

@@ -24,8 +24,8 @@ from hostile import (
 )
 from stack import assert_error, make_settings, sphere_points, xyz_bytes
 
+import fastmesh.shapes.gltf_check
 import fastmesh.shapes.io
-import fastmesh.shapes.precheck
 from fastmesh.shapes.io import load_shape
 from fastmesh.shapes.shape import ShapeError
 from fastmesh_jobs.runtime import wait_for
@@ -174,7 +174,7 @@ def test_a_gltf_of_many_empty_objects_is_refused_before_it_is_parsed(monkeypatch
     def refuse(*_):
         raise AssertionError("the JSON was parsed")
 
-    monkeypatch.setattr(fastmesh.shapes.precheck.json, "loads", refuse)
+    monkeypatch.setattr(fastmesh.shapes.gltf_check.json, "loads", refuse)
     with pytest.raises(ShapeError) as e:
         load_shape(gltf_empty_nodes(600_000), filename="j.gltf")
     assert e.value.code == "too_large" and "JSON" in e.value.message

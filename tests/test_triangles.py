@@ -10,9 +10,11 @@ import scipy.sparse as sp
 import trimesh
 from testdata import committed_meshes, shared_corpus_sample
 
+from fastmesh.faces import cliques as cl
 from fastmesh.faces import mesh_from_adjacency
 from fastmesh.faces import triangles as fm
 from fastmesh.faces.meshops import edges_from_faces, remove_unreferenced, triangle_areas
+from fastmesh.faces.orient import orient_faces
 from fastmesh.shapes.io import load_shape
 from fastmesh.shapes.shape import Normalization
 from fastmesh.tokenizer import dequantize, quantize_mesh
@@ -45,34 +47,34 @@ def test_triangles_match_brute_force(seed):
     adj = np.triu(adj, 1)
     adj = adj | adj.T
     expect = _brute_triangles(adj)
-    assert np.array_equal(fm.triangles_from_adjacency(adj), expect)
-    assert np.array_equal(fm.triangles_from_adjacency(adj.astype(np.float32)), expect)
-    assert np.array_equal(fm.triangles_from_adjacency(sp.csr_matrix(adj)), expect)
-    assert np.array_equal(fm.triangles_from_adjacency(np.argwhere(np.triu(adj)), n), expect)
+    assert np.array_equal(cl.triangles_from_adjacency(adj), expect)
+    assert np.array_equal(cl.triangles_from_adjacency(adj.astype(np.float32)), expect)
+    assert np.array_equal(cl.triangles_from_adjacency(sp.csr_matrix(adj)), expect)
+    assert np.array_equal(cl.triangles_from_adjacency(np.argwhere(np.triu(adj)), n), expect)
     # A directed (upper-triangular) matrix is symmetrised.
-    assert np.array_equal(fm.triangles_from_adjacency(np.triu(adj)), expect)
+    assert np.array_equal(cl.triangles_from_adjacency(np.triu(adj)), expect)
 
 
 def test_chunked_enumeration(monkeypatch):
     rng = np.random.default_rng(7)
     adj = rng.random((40, 40)) < 0.4
     adj = np.triu(adj, 1) | np.triu(adj, 1).T
-    monkeypatch.setattr(fm, "_CHUNK", 5)
-    assert np.array_equal(fm.triangles_from_adjacency(adj), _brute_triangles(adj))
-    quads = fm.cliques4(adj)
+    monkeypatch.setattr(cl, "_CHUNK", 5)
+    assert np.array_equal(cl.triangles_from_adjacency(adj), _brute_triangles(adj))
+    quads = cl.cliques4(adj)
     brute = [q for q in itertools.combinations(range(40), 4) if all(adj[a, b] for a, b in itertools.combinations(q, 2))]
     assert np.array_equal(quads, np.array(brute).reshape(-1, 4))
 
 
 def test_small_and_bad_inputs():
-    assert fm.triangles_from_adjacency(np.zeros((0, 2), dtype=int)).shape == (0, 3)
-    assert fm.triangles_from_adjacency(np.ones((2, 2), dtype=bool)).shape == (0, 3)
+    assert cl.triangles_from_adjacency(np.zeros((0, 2), dtype=int)).shape == (0, 3)
+    assert cl.triangles_from_adjacency(np.ones((2, 2), dtype=bool)).shape == (0, 3)
     k4 = np.ones((4, 4), dtype=bool)
-    assert len(fm.triangles_from_adjacency(k4)) == 4  # the diagonal is ignored
+    assert len(cl.triangles_from_adjacency(k4)) == 4  # the diagonal is ignored
     with pytest.raises(ValueError):
-        fm.as_edges(np.zeros((3, 4)))
+        cl.as_edges(np.zeros((3, 4)))
     with pytest.raises(ValueError):
-        fm.as_edges(np.array([[0, 5]]), n_vertices=3)
+        cl.as_edges(np.array([[0, 5]]), n_vertices=3)
 
 
 def test_large_dense_grid_adjacency():
@@ -80,7 +82,7 @@ def test_large_dense_grid_adjacency():
     e = edges_from_faces(f)
     adj = np.zeros((len(v), len(v)), dtype=bool)
     adj[e[:, 0], e[:, 1]] = True
-    tri = fm.triangles_from_adjacency(adj)
+    tri = cl.triangles_from_adjacency(adj)
     assert np.array_equal(tri, np.unique(np.sort(f, 1), axis=0))  # a triangulated grid has no other 3-cycles
 
 
@@ -92,7 +94,7 @@ def test_drop_degenerate():
 
 def test_coplanar_convex_quad_keeps_shorter_diagonal():
     v = np.array([[0, 0, 0], [4, 0, 0], [4, 1, 0], [0, 1, 0]], dtype=float)
-    tri = fm.triangles_from_adjacency(np.ones((4, 4), dtype=bool))
+    tri = cl.triangles_from_adjacency(np.ones((4, 4), dtype=bool))
     out = fm.drop_coplanar_diagonals(v, tri)
     assert len(out) == 2
     assert len(edges_from_faces(out)) == 5  # four sides and one diagonal
@@ -102,7 +104,7 @@ def test_coplanar_convex_quad_keeps_shorter_diagonal():
 
 def test_coplanar_inner_point_drops_outer_triangle():
     v = np.array([[0, 0, 0], [4, 0, 0], [0, 4, 0], [1, 1, 0]], dtype=float)
-    tri = fm.triangles_from_adjacency(np.ones((4, 4), dtype=bool))
+    tri = cl.triangles_from_adjacency(np.ones((4, 4), dtype=bool))
     out = fm.drop_coplanar_diagonals(v, tri)
     assert sorted(map(tuple, np.sort(out, 1))) == [(0, 1, 3), (0, 2, 3), (1, 2, 3)]
     assert len(fm.drop_coplanar_diagonals(v, tri, cases=("convex",))) == 4
@@ -114,7 +116,7 @@ def test_orientation_sphere_with_random_flips():
     rng = np.random.default_rng(0)
     flip = rng.random(len(f)) < 0.5
     f[flip] = f[flip][:, ::-1]
-    out = fm.orient_faces(s.vertices, f)
+    out = orient_faces(s.vertices, f)
     m = trimesh.Trimesh(s.vertices, out, process=False)
     assert m.is_winding_consistent and m.volume > 0
     assert np.array_equal(np.sort(out, 1), np.sort(f, 1))  # same faces, same order
@@ -124,14 +126,14 @@ def test_orientation_inverted_parts_and_open_surface():
     s = trimesh.creation.icosphere(subdivisions=1)
     v2 = np.concatenate([s.vertices, s.vertices + 5])
     f2 = np.concatenate([s.faces[:, ::-1], s.faces + len(s.vertices)])  # first sphere inside out
-    out = fm.orient_faces(v2, f2)
+    out = orient_faces(v2, f2)
     m = trimesh.Trimesh(v2, out, process=False)
     assert m.is_winding_consistent
     assert all(p.volume > 0 for p in m.split(only_watertight=False))
     v, f = _grid(10)
     f = f.copy()
     f[::3] = f[::3, ::-1]
-    assert trimesh.Trimesh(v, fm.orient_faces(v, f), process=False).is_winding_consistent
+    assert trimesh.Trimesh(v, orient_faces(v, f), process=False).is_winding_consistent
 
 
 def test_mesh_from_adjacency_recovers_sphere():
@@ -156,7 +158,7 @@ def test_corpus_ground_truth_triangles_recovered(path):
     shape = load_shape(path)
     q, f, _ = quantize_mesh(Normalization.fit(shape.vertices).apply(shape.vertices), shape.faces)
     n = len(q)
-    tri = fm.triangles_from_adjacency(edges_from_faces(f), n)
+    tri = cl.triangles_from_adjacency(edges_from_faces(f), n)
 
     def key(a):
         s = np.sort(a, 1)

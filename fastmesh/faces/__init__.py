@@ -13,19 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from .cliques import as_edges, triangles_from_adjacency
 from .meshops import remove_unreferenced
+from .orient import orient_faces
 from .simplify import collapse_flat
 from .support import support_distance, supported
 from .surface_triangles import surface_mesh
-from .triangles import (
-    TriangleConfig,
-    as_edges,
-    drop_coplanar_diagonals,
-    drop_degenerate,
-    limit_faces_per_edge,
-    orient_faces,
-    triangles_from_adjacency,
-)
+from .triangles import TriangleConfig, drop_coplanar_diagonals, drop_degenerate, limit_faces_per_edge
 
 
 def mesh_from_adjacency(vertices: np.ndarray, adj, config: TriangleConfig | None = None,

@@ -26,8 +26,8 @@ from ..params import CLOSED_CHOICES
 from ..shapes.shape import Normalization, Shape
 from .holes import WHOLE_LOOP_MAX, _best_triangulation, _close_loop, _simple_loops, _walk_loops
 from .meshops import edge_face_counts, face_sides, weld
+from .orient import orient_faces
 from .support import SupportCache, face_samples
-from .triangles import orient_faces
 
 # A mesh with at most this share of its (welded) edges on a boundary counts as closed: scans and game
 # meshes often have a few cracks that the artist never meant as openings.

@@ -19,9 +19,10 @@ from scipy.spatial import cKDTree
 
 from .closure import close_loops
 from .holes import fill_holes
+from .orient import orient_faces
 from .selection import Selection
 from .support import support_distance, support_limit
-from .triangles import TriangleConfig, drop_degenerate, limit_faces_per_edge, orient_faces
+from .triangles import TriangleConfig, drop_degenerate, limit_faces_per_edge
 
 # Neighbourhoods whose least variance is under this share of the middle one count as flat.
 _FLAT = 0.1

@@ -1,15 +1,11 @@
-"""Faces from a predicted adjacency: triangles of mutually connected vertex triplets, then clean-up.
-
-The face stage predicts edges; faces are the 3-cycles of the edge graph.  Enumeration is
-vectorised: vertices are ranked by degree, every edge points from lower to higher rank,
-and a triangle is found once as a wedge ``x -> y -> z`` closed by the edge ``x -> z``
-(with degree ranking each vertex has at most sqrt(2E) out-neighbours, so the wedges stay
-few even for dense predictions).
+"""The paper's face rule and its clean-up: triangles of mutually connected vertex triplets (:mod:`.cliques`),
+then clean-up, and :class:`TriangleConfig`, the options of the whole face stage.
 
 Not every 3-cycle is a face (three faces around a valence-3 vertex close a 3-cycle over its
 ring, a flat quad with both diagonals gives four triangles), so :func:`fastmesh.faces.mesh_from_adjacency`
 optionally drops zero-area triangles and one diagonal of coplanar 4-cliques (the variant in
-the authors' release), then orients the faces consistently and outward.
+the authors' release), keeps at most two faces per edge, then orients the faces consistently and outward
+(:mod:`.orient`).
 """
 
 from __future__ import annotations
@@ -19,10 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..tokenizer.grid import CELL
-from .meshops import normalize_edges, triangle_areas
-
-# Wedges expanded per vectorised chunk: bounds memory at ~100 MB for any adjacency.
-_CHUNK = 2_000_000
+from .cliques import cliques4
+from .meshops import triangle_areas
 
 
 @dataclass
@@ -103,115 +97,6 @@ class TriangleConfig:
             raise ValueError(f"selection must be 'cliques' or 'surface', got {self.selection!r}")
 
 
-# --------------------------------------------------------------------------- graphs
-
-
-def as_edges(adj, n_vertices: int | None = None) -> tuple[np.ndarray, int]:
-    """Normalise an adjacency to ``(edges (E, 2) int64 with i < j, unique, sorted; N)``.
-
-    Parameters
-    ----------
-    adj : (N, N) array (bool or numeric; non-zero = edge), scipy sparse matrix, or (E, 2) int edge list
-        Directed entries are symmetrised (an edge in either direction counts); the diagonal
-        is ignored.  A square (2, 2) array is read as a matrix.
-    n_vertices : int, optional
-        N for an edge list (default: largest index + 1).
-    """
-    import scipy.sparse as sp
-
-    if sp.issparse(adj):
-        coo = sp.coo_matrix(adj)
-        nz = coo.data != 0
-        e, n = np.stack([coo.row[nz], coo.col[nz]], axis=1), coo.shape[0]
-    else:
-        a = np.asarray(adj)
-        if a.ndim == 2 and a.shape[0] == a.shape[1] and a.shape[0] > 0:
-            e, n = np.argwhere(a != 0), a.shape[0]
-        elif (a.ndim == 2 and a.shape[1] == 2) or a.size == 0:
-            e = a.reshape(-1, 2).astype(np.int64)
-            n = int(e.max()) + 1 if len(e) else 0
-        else:
-            raise ValueError(f"adjacency must be N x N or E x 2, got shape {a.shape}")
-    n = int(n_vertices) if n_vertices is not None else n
-    e = normalize_edges(e)
-    if len(e) and (e.min() < 0 or e.max() >= n):
-        raise ValueError("edge index out of range")
-    return e, n
-
-
-class _RankedGraph:
-    """Edges oriented from lower to higher (degree, index) rank, as CSR in rank space."""
-
-    def __init__(self, edges: np.ndarray, n: int):
-        deg = np.bincount(edges.ravel(), minlength=n)
-        self.order = np.lexsort((np.arange(n), deg))  # rank -> vertex
-        rank = np.empty(n, dtype=np.int64)
-        rank[self.order] = np.arange(n)
-        r = np.sort(rank[edges], axis=1)
-        r = r[np.lexsort((r[:, 1], r[:, 0]))]
-        self.n = n
-        self.tails, self.heads = r[:, 0], r[:, 1]
-        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.tails, minlength=n))])
-        self.keys = self.tails * n + self.heads  # ascending
-
-    def has_edge(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Vectorised membership of rank-space edges x -> y (x < y)."""
-        k = x * self.n + y
-        pos = np.minimum(np.searchsorted(self.keys, k), max(len(self.keys) - 1, 0))
-        return self.keys[pos] == k if len(self.keys) else np.zeros(len(k), dtype=bool)
-
-    def extend(self, rows: np.ndarray):
-        """Yield chunks of ``rows`` (R, m) extended by every out-neighbour of their last column."""
-        last = rows[:, -1]
-        cnt = self.indptr[last + 1] - self.indptr[last]
-        ends = np.cumsum(cnt)
-        lo = 0
-        while lo < len(rows):
-            # rows [lo, hi) expand to at most _CHUNK wedges (at least one row per chunk)
-            hi = max(lo + 1, int(np.searchsorted(ends, (ends[lo - 1] if lo else 0) + _CHUNK, side="right")))
-            c = cnt[lo:hi]
-            rep = np.repeat(np.arange(lo, hi), c)
-            within = np.arange(len(rep)) - np.repeat(np.cumsum(c) - c, c)
-            nxt = self.heads[self.indptr[last[rep]] + within]
-            yield np.concatenate([rows[rep], nxt[:, None]], axis=1)
-            lo = hi
-
-
-def triangles_from_adjacency(adj, n_vertices: int | None = None) -> np.ndarray:
-    """All 3-cycles of an adjacency.
-
-    Returns
-    -------
-    (T, 3) int64 vertex triplets (i < j < k), rows sorted; unoriented.
-    """
-    edges, n = as_edges(adj, n_vertices)
-    if len(edges) < 3:
-        return np.zeros((0, 3), dtype=np.int64)
-    g = _RankedGraph(edges, n)
-    pairs = np.stack([g.tails, g.heads], axis=1)
-    tri = [w[g.has_edge(w[:, 0], w[:, 2])] for w in g.extend(pairs)]
-    tri = np.concatenate(tri) if tri else np.zeros((0, 3), dtype=np.int64)
-    return _sorted_rows(g.order[tri])
-
-
-def cliques4(adj, n_vertices: int | None = None) -> np.ndarray:
-    """All 4-cliques: (K, 4) int64 sorted vertex quadruples."""
-    edges, n = as_edges(adj, n_vertices)
-    if len(edges) < 6:
-        return np.zeros((0, 4), dtype=np.int64)
-    g = _RankedGraph(edges, n)
-    pairs = np.stack([g.tails, g.heads], axis=1)
-    tri = np.concatenate([w[g.has_edge(w[:, 0], w[:, 2])] for w in g.extend(pairs)])
-    quads = [w[g.has_edge(w[:, 0], w[:, 3]) & g.has_edge(w[:, 1], w[:, 3])] for w in g.extend(tri)] if len(tri) else []
-    quads = np.concatenate(quads) if quads else np.zeros((0, 4), dtype=np.int64)
-    return _sorted_rows(g.order[quads])
-
-
-def _sorted_rows(a: np.ndarray) -> np.ndarray:
-    a = np.sort(a, axis=1)
-    return a[np.lexsort(a.T[::-1])] if len(a) else a.reshape(0, a.shape[1])
-
-
 # --------------------------------------------------------------------------- clean-up
 
 
@@ -254,32 +139,14 @@ def drop_coplanar_diagonals(vertices: np.ndarray, faces: np.ndarray, coplanar_to
     quads = cliques4(edges_from_faces(f), len(v))
     if len(quads) == 0:
         return f
-    p = v[quads]  # (K, 4, 3)
-    # The four triangles of each clique, triangle t leaves out point t.
-    omit = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
-    t = p[:, omit]  # (K, 4, 3, 3)
-    cr = np.cross(t[:, :, 1] - t[:, :, 0], t[:, :, 2] - t[:, :, 0])  # (K, 4, 3)
-    area2 = np.linalg.norm(cr, axis=2)
-    big = area2.argmax(1)  # most stable plane: the largest triangle
-    k = np.arange(len(quads))
-    normal = cr[k, big] / np.maximum(area2[k, big, None], 1e-300)
-    dist = np.abs(((p[k, big] - t[k, big, 0]) * normal).sum(1))
-    flat = (dist <= coplanar_tol * _scale(v)) & (area2[k, big] > 0)
-    # Pairings of the four points into two segments; the crossing pair is the quad's diagonals.
-    pairings = np.array([[0, 1, 2, 3], [0, 2, 1, 3], [0, 3, 1, 2]])
-    a, b, c, d = (p[:, pairings[:, i]] for i in range(4))  # (K, 3, 3) each
-
-    def side(o, e, x):  # sign of x relative to the line o-e, within the plane
-        return (np.cross(e - o, x - o) * normal[:, None]).sum(-1)
-
-    cross = (side(a, b, c) * side(a, b, d) < 0) & (side(c, d, a) * side(c, d, b) < 0)  # (K, 3)
+    flat, cross, big = _clique_shapes(v, quads, coplanar_tol)
     convex = flat & (cross.sum(1) == 1) & ("convex" in cases)
     inner = flat & (cross.sum(1) == 0) & ("inner" in cases)
     drop_edges = np.zeros((0, 2), dtype=np.int64)
     if convex.any():
         kk = np.flatnonzero(convex)
         pi = cross[kk].argmax(1)
-        pa, pb = quads[kk[:, None], pairings[pi][:, :2]], quads[kk[:, None], pairings[pi][:, 2:]]
+        pa, pb = quads[kk[:, None], _PAIRINGS[pi][:, :2]], quads[kk[:, None], _PAIRINGS[pi][:, 2:]]
         la = np.linalg.norm(v[pa[:, 0]] - v[pa[:, 1]], axis=1)
         lb = np.linalg.norm(v[pb[:, 0]] - v[pb[:, 1]], axis=1)
         drop_edges = np.sort(np.where((la >= lb)[:, None], pa, pb), axis=1)
@@ -291,10 +158,39 @@ def drop_coplanar_diagonals(vertices: np.ndarray, faces: np.ndarray, coplanar_to
         keep &= ~bad.any(1)
     if inner.any():
         kk = np.flatnonzero(inner)
-        outer = np.sort(quads[kk[:, None], omit[big[kk]]], axis=1)
+        outer = np.sort(quads[kk[:, None], _OMIT[big[kk]]], axis=1)
         fs = np.sort(f, axis=1)
         keep &= ~np.isin((fs[:, 0] * n + fs[:, 1]) * n + fs[:, 2], (outer[:, 0] * n + outer[:, 1]) * n + outer[:, 2])
     return f[keep]
+
+
+# The four triangles of a 4-clique: triangle t leaves out point t.
+_OMIT = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+# The pairings of four points into two segments; a flat convex quad's diagonals are the pairing that crosses.
+_PAIRINGS = np.array([[0, 1, 2, 3], [0, 2, 1, 3], [0, 3, 1, 2]])
+
+
+def _clique_shapes(v: np.ndarray, quads: np.ndarray, coplanar_tol: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Of each 4-clique ``quads`` (K, 4) of ``v``: (K,) whether it is flat (within ``coplanar_tol`` of the
+    bounding box's longest side), (K, 3) which of the ``_PAIRINGS`` cross within its plane, and (K,) its
+    largest triangle (of ``_OMIT``), whose plane it is measured in."""
+    p = v[quads]  # (K, 4, 3)
+    t = p[:, _OMIT]  # (K, 4, 3, 3)
+    cr = np.cross(t[:, :, 1] - t[:, :, 0], t[:, :, 2] - t[:, :, 0])  # (K, 4, 3)
+    area2 = np.linalg.norm(cr, axis=2)
+    big = area2.argmax(1)  # most stable plane: the largest triangle
+    k = np.arange(len(quads))
+    normal = cr[k, big] / np.maximum(area2[k, big, None], 1e-300)
+    dist = np.abs(((p[k, big] - t[k, big, 0]) * normal).sum(1))
+    flat = (dist <= coplanar_tol * _scale(v)) & (area2[k, big] > 0)
+    a, b, c, d = (p[:, _PAIRINGS[:, i]] for i in range(4))  # (K, 3, 3) each
+
+    def side(o, e, x):  # sign of x relative to the line o-e, within the plane
+        return (np.cross(e - o, x - o) * normal[:, None]).sum(-1)
+
+    cross = (side(a, b, c) * side(a, b, d) < 0) & (side(c, d, a) * side(c, d, b) < 0)  # (K, 3)
+    return flat, cross, big
 
 
 def limit_faces_per_edge(faces: np.ndarray, score: np.ndarray, max_per_edge: int = 2) -> np.ndarray:
@@ -326,72 +222,3 @@ def limit_faces_per_edge(faces: np.ndarray, score: np.ndarray, max_per_edge: int
             used[e] += 1
             keep[fi] = True
     return faces[keep]
-
-
-def orient_faces(vertices: np.ndarray, faces: np.ndarray, outward: bool = True) -> np.ndarray:
-    """Consistent winding across edges shared by exactly two faces, then each part outward.
-
-    A breadth-first spanning forest of the face graph (one traversal from a virtual root
-    linked to every part) fixes each face's flip relative to its part's root; the flips
-    accumulate along the tree by pointer jumping (vectorised, O(F log depth)).  Edges with
-    more than two faces do not constrain winding.  With ``outward``, a part whose signed
-    volume about the vertex centroid is negative is flipped (exact for closed parts, a
-    heuristic for open ones).
-
-    Returns
-    -------
-    (F, 3) int64 faces, same order, some reversed.
-    """
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import breadth_first_order, connected_components
-
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3).copy()
-    nf = len(f)
-    if nf == 0:
-        return f
-    he = np.stack([f, np.roll(f, -1, axis=1)], axis=2).reshape(-1, 2)  # half-edges (3F, 2), face = index // 3
-    key = np.sort(he, axis=1) @ np.array([len(vertices), 1])
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    start = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
-    count = np.diff(np.r_[start, len(ks)])
-    two = start[count == 2]
-    h1, h2 = order[two], order[two + 1]
-    fa, fb = h1 // 3, h2 // 3
-    same_dir = he[h1, 0] == he[h2, 0]  # equal directions: one of the two must flip
-    ok = fa != fb
-    fa, fb, same_dir = fa[ok], fb[ok], same_dir[ok]
-    g = sp.coo_matrix((np.ones(len(fa)), (fa, fb)), shape=(nf + 1, nf + 1)).tocsr()
-    _, label = connected_components(g[:nf, :nf], directed=False)
-    roots = np.unique(label, return_index=True)[1]
-    g = g + sp.coo_matrix((np.ones(len(roots)), (np.full(len(roots), nf), roots)), shape=(nf + 1, nf + 1)).tocsr()
-    _, pred = breadth_first_order(g, nf, directed=False, return_predecessors=True)
-    pred = pred[:nf]
-    # Parity of each tree edge (pred[i], i), looked up among the shared-edge pairs.
-    pair_key = np.r_[fa * nf + fb, fb * nf + fa]
-    pair_val = np.r_[same_dir, same_dir]
-    srt = np.argsort(pair_key)
-    pair_key, pair_val = pair_key[srt], pair_val[srt]
-    is_root = pred == nf
-    q = np.where(is_root, 0, pred) * nf + np.arange(nf)
-    pos = np.minimum(np.searchsorted(pair_key, q), max(len(pair_key) - 1, 0))
-    flip = np.where(is_root, False, pair_val[pos] if len(pair_key) else False)
-    # Pointer jumping: invariant flip[i] = parity from i to ptr[i]; stop once every ptr is a root.
-    ptr = np.where(is_root, np.arange(nf), pred)
-    while True:
-        nxt = ptr[ptr]
-        if (nxt == ptr).all():
-            break
-        flip = flip ^ flip[ptr]
-        ptr = nxt
-    f[flip] = f[flip][:, ::-1]
-    if outward:
-        v = np.asarray(vertices, dtype=np.float64)
-        t = v[f] - v[np.unique(f)].mean(0)
-        vol = np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2]))
-        part_vol = np.bincount(label, weights=vol)
-        inv = part_vol[label] < 0
-        f[inv] = f[inv][:, ::-1]
-    return f
-
-

@@ -92,7 +92,9 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
 
 def _precheck_mesh(data: bytes, ext: str, max_points: int, max_faces: int) -> None:
     """Refuse what the parser would choke on, before parsing (see :mod:`fastmesh.shapes.precheck`)."""
-    from .precheck import check_gltf, check_obj, check_off, check_ply, check_stl
+    from .gltf_check import check_gltf
+    from .ply_check import check_ply
+    from .precheck import check_obj, check_off, check_stl
 
     if ext == "obj":
         check_obj(data, max_points, max_faces)

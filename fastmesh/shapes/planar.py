@@ -5,9 +5,9 @@ A box, an L block or an extruded outline given as points is a handful of planes;
 polyhedron they bound, with a vertex exactly where three of them meet.  The decoder places vertices on a grid
 of 128 cells and only sees such shapes in the poses of its training data; this stage needs neither.  It follows
 PolyFit (Nan and Wonka, 2017): candidate faces from the arrangement of the planes' intersection lines, here each
-chosen by whether the plane's own points cover it, and the result kept only where it is closed and explains the
-points both ways (``polyhedron``).  Anything else (a curved part, noise beyond the tolerance, a face the points
-do not decide) gives None, and the networks make the mesh.
+chosen by whether the plane's own points cover it (:mod:`.arrangement`), and the result kept only where it is
+closed and explains the points both ways (``polyhedron``).  Anything else (a curved part, noise beyond the
+tolerance, a face the points do not decide) gives None, and the networks make the mesh.
 """
 
 from __future__ import annotations
@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+from .arrangement import Cell, chosen, merge_points, outline
 
 
 @dataclass(frozen=True)
@@ -60,14 +62,14 @@ def polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = Plan
         faces = plane_faces(k, planes, near, pts[labels == k], spacing, reach)
         if faces is None:
             return None
-        for outline in faces:
-            loops.append((k, [len(corners) + i for i in range(len(outline))]))
-            corners.extend(outline)
+        for ring in faces:
+            loops.append((k, [len(corners) + i for i in range(len(ring))]))
+            corners.extend(ring)
     if not corners or len(corners) > 8 * cfg.max_vertices:
         return None
     # Planes fitted to samples cross a little apart where many meet (a cone's apex): corners within the plane
     # tolerance are one vertex.
-    vertices, index = _merge(np.array(corners), cfg.tolerance)
+    vertices, index = merge_points(np.array(corners), cfg.tolerance)
     if len(vertices) > cfg.max_vertices:
         return None
     faces = _triangulate(vertices, planes, [(k, _distinct(index[ring])) for k, ring in loops], cfg.tolerance)
@@ -193,153 +195,6 @@ def _turns(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> bool:
     """Whether a 2D boundary a -> b -> c turns at b (b is no point along one straight edge)."""
     ab, bc = b - a, c - b
     return abs(ab[0] * bc[1] - ab[1] * bc[0]) > 1e-10 * np.linalg.norm(ab) * np.linalg.norm(bc)
-
-
-class Cell:
-    """A convex cell of a plane's line arrangement: (m, 2) corners counter-clockwise, and for each the line its
-    edge to the next corner lies on (a plane's index; -1 for the box around the points)."""
-
-    def __init__(self, corners: np.ndarray, lines: list[int]):
-        self.corners, self.lines = corners, lines
-
-    @classmethod
-    def box(cls, lo: np.ndarray, hi: np.ndarray) -> Cell:
-        return cls(np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]]), [-1] * 4)
-
-    def split(self, line: int, normal: np.ndarray, offset: float) -> list[Cell]:
-        """The parts of the cell on either side of ``normal . x = offset`` (those with area)."""
-        side = self.corners @ normal - offset
-        side = np.where(np.abs(side) < 1e-12, 0.0, side)
-        if (side >= 0).all() or (side <= 0).all():  # the line misses the cell (or runs along an edge)
-            return [self]
-        parts = [self._keep(sign * side, line) for sign in (1.0, -1.0)]
-        return [p for p in parts if p is not None and p.area() > 1e-14]
-
-    def _keep(self, side: np.ndarray, line: int) -> Cell | None:
-        """The part where ``side`` (signed distances of the corners) is not negative (Sutherland-Hodgman)."""
-        corners, lines = [], []
-        for i in range(len(side)):
-            j = (i + 1) % len(side)
-            a, b = side[i], side[j]
-            cut = self.corners[i] + a / (a - b) * (self.corners[j] - self.corners[i]) if a * b < 0 else None
-            if a > 0:
-                corners.append(self.corners[i])
-                lines.append(self.lines[i])
-                if b < 0:
-                    corners.append(cut)
-                    lines.append(line)
-            elif a == 0:
-                corners.append(self.corners[i])
-                lines.append(self.lines[i] if b > 0 else line)
-            elif b > 0:
-                corners.append(cut)
-                lines.append(self.lines[i])
-        return Cell(np.array(corners), lines) if len(corners) >= 3 else None
-
-    def count(self, points: np.ndarray) -> int:
-        """How many of the (N, 2) points lie inside the cell."""
-        edge = np.roll(self.corners, -1, axis=0) - self.corners
-        rel = points[:, None, :] - self.corners[None]
-        return int(((edge[None, :, 0] * rel[..., 1] - edge[None, :, 1] * rel[..., 0]) >= 0).all(1).sum())
-
-    def area(self) -> float:
-        x, y = self.corners.T
-        return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
-
-
-def chosen(cells: list[Cell], flat: np.ndarray, spacing: float) -> np.ndarray:
-    """(C,) which cells the plane's face covers.  A cell large enough to hold six points at the points' density
-    is in where it holds half of them; a smaller one (a sliver where lines cross near a corner) sides with the
-    decided cells it shares most edge length with, so such slivers never add corners of their own."""
-    density = 7.67 / (np.pi * spacing**2)  # a disc holding 7.67 points (Poisson) has the 8th neighbour's radius
-    state = np.full(len(cells), -1)
-    for i, c in enumerate(cells):
-        expected = density * c.area()
-        if expected >= 6:
-            state[i] = int(c.count(flat) >= 0.5 * expected)
-    shared = _shared_lengths(cells)
-    while (state < 0).any():
-        vote = {i: sum(length * (1 if state[j] else -1) for j, length in shared[i].items() if state[j] >= 0)
-                for i in np.nonzero(state < 0)[0]}
-        decided = {i: v for i, v in vote.items() if v != 0}
-        if not decided:
-            break
-        for i, v in decided.items():
-            state[i] = int(v > 0)
-    return state == 1
-
-
-def _shared_lengths(cells: list[Cell]) -> list[dict[int, float]]:
-    """For each cell, the length of edge it shares with each other cell."""
-    ids, allc = _corner_ids(cells)
-    owner, start = {}, 0
-    for i, c in enumerate(cells):
-        k = len(c.corners)
-        for e in range(k):
-            owner[(int(ids[start + e]), int(ids[start + (e + 1) % k]))] = (i, float(
-                np.linalg.norm(allc[start + (e + 1) % k] - allc[start + e])))
-        start += k
-    shared: list[dict[int, float]] = [{} for _ in cells]
-    for (a, b), (i, length) in owner.items():
-        if (b, a) in owner:
-            j = owner[(b, a)][0]
-            shared[i][j] = shared[i].get(j, 0.0) + length
-    return shared
-
-
-def _corner_ids(cells: list[Cell]) -> tuple[np.ndarray, np.ndarray]:
-    """The corners of all cells stacked, (N, 2), and (N,) one id per distinct point."""
-    allc = np.vstack([c.corners for c in cells])
-    return _merge(allc, 1e-9)[1], allc
-
-
-def outline(cells: list[Cell], keep: np.ndarray) -> list[list[tuple[np.ndarray, int]]] | None:
-    """The boundary of the union of the ``keep`` cells of a line arrangement: rings of (2D corner, line of the
-    edge that leaves it), outer rings counter-clockwise and holes clockwise.  Adjacent cells of a line arrangement
-    share whole edges, so the boundary is the set of edges only one kept cell has.  None where two rings touch
-    at a corner."""
-    ids, allc = _corner_ids(cells)
-    edges, start = {}, 0
-    for c, kept in zip(cells, keep, strict=True):
-        k = len(c.corners)
-        mine = ids[start:start + k]
-        for i in range(k):
-            a, b = int(mine[i]), int(mine[(i + 1) % k])
-            if kept and a != b:
-                edges[(a, b)] = (allc[start + i], c.lines[i])
-        start += k
-    leaving: dict[int, tuple[int, np.ndarray, int]] = {}
-    for (a, b), (point, line) in edges.items():
-        if (b, a) in edges:
-            continue
-        if a in leaving:  # two boundary edges leave one corner: rings touching there
-            return None
-        leaving[a] = (b, point, line)
-    rings = []
-    while leaving:
-        a = next(iter(leaving))
-        ring = []
-        while a in leaving:
-            b, point, line = leaving.pop(a)
-            ring.append((point, line))
-            a = b
-        rings.append(ring)
-    return rings
-
-
-def _merge(points: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
-    """(N, d) points -> (M, d) distinct ones (those within ``eps`` of each other, chained, as their mean) and (N,)
-    the index of each (groups numbered by their first point)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    pairs = cKDTree(points).query_pairs(eps, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points),) * 2)
-    group = connected_components(graph, directed=False)[1]
-    index = np.unique(group, return_index=True)[1].argsort().argsort()[group]  # in order of first appearance
-    sums = np.zeros((index.max() + 1, points.shape[1]))
-    np.add.at(sums, index, points)
-    return sums / np.bincount(index)[:, None], index
 
 
 def _triangulate(vertices: np.ndarray, planes: np.ndarray, loops: list[tuple[int, np.ndarray]], tol: float

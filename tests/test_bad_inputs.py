@@ -199,7 +199,8 @@ def test_truncated_and_corrupted_files_of_every_format(served):
     ("flat-faces.obj", b"v 0 0 0\nv 1 0 0\nv 2 0 0\nv 3 0 0\nf 1 2 3\nf 2 3 4\n", "422 degenerate"),
     ("face-index.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 1000000000\n", "422 unreadable"),
     ("no-faces.off", b"OFF\n100 0 0\n" + xyz_bytes(sphere_points(100)), "succeeded"),  # a point cloud
-    ("planar.xyz", xyz_bytes(np.c_[np.random.default_rng(1).random((100, 2)), np.zeros(100)]), "succeeded"),
+    # flat: dense enough that the random networks' vertices, pulled onto it, land on distinct points
+    ("planar.xyz", xyz_bytes(np.c_[np.random.default_rng(1).random((1000, 2)), np.zeros(1000)]), "succeeded"),
     ("far.xyz", xyz_bytes(sphere_points(100) * 1e-3 + 1e12), "succeeded"),
     ("tiny.xyz", xyz_bytes(sphere_points(100) * 1e-200, "%.9e"), "succeeded"),
     ("huge-span.xyz", b"-1e308 0 0\n1e308 0 0\n0 1e308 0\n0 0 1e308\n", "422 "),

@@ -183,7 +183,7 @@ def test_the_kind_of_the_next_token_is_the_decoders_and_the_cell_weight_only_pic
 def test_pacing_closes_the_block_once_the_sequence_runs_ahead_of_the_cells():
     """With ``pace``, no sequence stays in a block (another offset after an offset) once its vertices reach
     pace x the cells' expected vertices up to that block + PACE_SLACK; without it the same decoder stays on."""
-    from fastmesh.models.generate import PACE_SLACK
+    from fastmesh.models.choice import PACE_SLACK
 
     m, prefix, evidence = _crowded()
     seen = {True: 0, False: 0}

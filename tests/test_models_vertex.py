@@ -6,19 +6,10 @@ import numpy as np
 import pytest
 import torch
 
+from fastmesh.models.choice import KIND_BLOCK, KIND_EOS, KIND_OFFSET, filter_logits, token_kinds, token_probs
 from fastmesh.models.encoder import EncoderConfig, farthest_point_sample
 from fastmesh.models.evidence import GAIN, SPREAD_EDGES
-from fastmesh.models.generate import (
-    KIND_BLOCK,
-    KIND_EOS,
-    KIND_OFFSET,
-    SamplingConfig,
-    filter_logits,
-    generate,
-    generate_uncached,
-    token_kinds,
-    token_probs,
-)
+from fastmesh.models.generate import SamplingConfig, generate, generate_uncached
 from fastmesh.models.vertex import VertexConfig, VertexDecoder, grammar_mask, grammar_mask_rows
 from fastmesh.tokenizer import vertex as vt
 from fastmesh.tokenizer.grid import quantize, split_cells

@@ -208,7 +208,7 @@ def test_eval_gt_vertices_baseline_side_by_side_and_save(tmp_path, capsys, weigh
     assert code == 0
     doc = json.loads(capsys.readouterr().out)
     summary = doc["summary"]
-    assert {"fastmesh", "selection_surface", "restricted_delaunay"} <= set(summary)
+    assert {"fastmesh", "selection_cliques", "restricted_delaunay"} <= set(summary)
     anchor = summary["restricted_delaunay"]
     assert anchor["share_edge_manifold"] == 1.0 and anchor["watertight_references"] == 2
     for row in doc["meshes"]:

@@ -313,17 +313,9 @@ def evaluate_gt_vertices(pipe, pairs: list[tuple[Path, Path]], filtering: bool =
                 f = mesh_from_adjacency(v, edges, replace(cfg, remove_unreferenced=False), points=surface,
                                         logits=logits)[1]
             seconds = time.perf_counter() - t + (0.0 if cfg is None else net_seconds)
-            out = {"faces": int(len(f)), "seconds": round(seconds, 4)}
-            if len(f):
-                me = edge_metrics(edges_from_faces(f), true_edges)
-                v, f, _ = remove_unreferenced(v, f)  # the result's own bounding box normalises it
-                d = surface_distance((norm.invert(v), f), (ref.vertices, ref.faces))
-                out.update(cd=d.cd, hd=d.hd, edge_precision=me["precision"], edge_recall=me["recall"],
-                           edge_f1=me["f1"], **_topology_row(v, f))
-                _save(save, system, inp.stem, norm.invert(v), f)
-            else:
-                out.update(failed=True)
-            row[system] = out
+            row[system], placed = _gt_result(v, f, seconds, true_edges, norm, ref)
+            if placed is not None:
+                _save(save, system, inp.stem, *placed)
         rows.append(row)
         if log:
             log(f"[{i}/{len(pairs)}] {inp.name}: V {len(q)} P {m['precision']:.3f} R {m['recall']:.3f} "
@@ -336,6 +328,22 @@ def evaluate_gt_vertices(pipe, pairs: list[tuple[Path, Path]], filtering: bool =
     for system in systems:
         summary[system] = summarise_gt(rows, system)
     return {"meshes": rows, "summary": summary}
+
+
+def _gt_result(v: np.ndarray, f: np.ndarray, seconds: float, true_edges: np.ndarray, norm: Normalization,
+               ref: Shape) -> tuple[dict, tuple[np.ndarray, np.ndarray] | None]:
+    """One system's row of :func:`evaluate_gt_vertices` and its mesh in the reference's frame (None where it
+    made no faces).  The row: faces and seconds; where it made faces, CD and HD against the reference, the edge
+    precision/recall/F1 of its faces and its topology, else ``failed``."""
+    out = {"faces": int(len(f)), "seconds": round(seconds, 4)}
+    if not len(f):
+        return {**out, "failed": True}, None
+    me = edge_metrics(edges_from_faces(f), true_edges)
+    v, f, _ = remove_unreferenced(v, f)  # the result's own bounding box normalises it
+    d = surface_distance((norm.invert(v), f), (ref.vertices, ref.faces))
+    out.update(cd=d.cd, hd=d.hd, edge_precision=me["precision"], edge_recall=me["recall"],
+               edge_f1=me["f1"], **_topology_row(v, f))
+    return out, (norm.invert(v), f)
 
 
 def summarise_gt(rows: list[dict], system: str) -> dict:

@@ -192,21 +192,10 @@ def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarra
     out = [tuple(t) for t in _orientable(vertices, faces, book).tolist()]
     for relax in RELAX:
         for loop in hole_loops(vertices, np.asarray(out, dtype=np.int64)):
-            if len(loop) > max_loop:
-                continue
-            pinched = len(set(loop)) < len(loop)  # ears would clip across the vertex it passes twice
-            ears = None if pinched else near(_close_loop(loop, book, support, limit * relax))
-            if ears is None and (pinched or len(loop) > WHOLE_LOOP_MAX) and len(loop) <= WHOLE_MAX:
-                ears = near(_best_triangulation(loop, book, support, limit * relax))
-            out += ears or []
+            if len(loop) <= max_loop:
+                out += _relaxed_cap(loop, book, support, limit * relax, near) or []
     for loop in hole_loops(vertices, np.asarray(out, dtype=np.int64)):
-        faces = None
-        if len(loop) <= WHOLE_MAX:
-            faces = near(_best_triangulation(loop, book, support, reach, folds=True))
-        if faces is None and len(set(loop)) < len(loop):  # a pinched loop that cannot close whole: in parts
-            faces = [t for part in _simple_loops(loop) if 3 <= len(part) <= WHOLE_MAX
-                     for t in near(_best_triangulation(part, book, support, reach, folds=True)) or []]
-        out += faces or []
+        out += _folded_cap(loop, book, support, reach, near) or []
     # Last, a loop no triangulation of its own vertices closes gets a vertex of the input's: the input point
     # nearest its middle, joined to each of its edges (new edges only: it stays edge-manifold).
     added: list[np.ndarray] = []
@@ -217,6 +206,29 @@ def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarra
                             2 * reach if len(part) <= SMALL_LOOP else reach)
     v = np.concatenate([np.asarray(vertices, dtype=np.float64).reshape(-1, 3), *[a[None] for a in added]])
     return v, np.asarray(out, dtype=np.int64).reshape(-1, 3)
+
+
+def _relaxed_cap(loop: list[int], book, support: SupportCache, limit: float, near) -> list | None:
+    """The faces closing ``loop`` under the selection's rules within the support ``limit``: by ear clipping,
+    else (a pinched loop, or one over ``WHOLE_LOOP_MAX`` edges, up to ``WHOLE_MAX``) by its whole
+    triangulation; ``near`` takes back a cap that strays too far.  None where neither closes it."""
+    pinched = len(set(loop)) < len(loop)  # ears would clip across the vertex it passes twice
+    ears = None if pinched else near(_close_loop(loop, book, support, limit))
+    if ears is None and (pinched or len(loop) > WHOLE_LOOP_MAX) and len(loop) <= WHOLE_MAX:
+        ears = near(_best_triangulation(loop, book, support, limit))
+    return ears
+
+
+def _folded_cap(loop: list[int], book, support: SupportCache, reach: float, near) -> list | None:
+    """The whole triangulation of ``loop`` within ``reach`` that adds no edge the surface has, folds allowed;
+    a pinched loop that does not close so closed in its simple parts.  None where nothing closes it."""
+    faces = None
+    if len(loop) <= WHOLE_MAX:
+        faces = near(_best_triangulation(loop, book, support, reach, folds=True))
+    if faces is None and len(set(loop)) < len(loop):  # a pinched loop that cannot close whole: in parts
+        faces = [t for part in _simple_loops(loop) if 3 <= len(part) <= WHOLE_MAX
+                 for t in near(_best_triangulation(part, book, support, reach, folds=True)) or []]
+    return faces
 
 
 def _fan(loop: list[int], vertices: np.ndarray, added: list, book, points: np.ndarray, tree: cKDTree,

@@ -182,52 +182,68 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, target: int, area_tol: flo
     pos = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     length = float(np.ptp(pos, axis=0).max()) if len(pos) else 0.0
     mesh = _Mesh(pos, np.asarray(faces, dtype=np.int64).reshape(-1, 3), 2 * area_tol * length**2)
-    quadric = _quadrics(mesh)
-    own = [_quadric_error(q, p) for q, p in zip(quadric, mesh.p, strict=True)]  # each vertex's at itself
-    version = [0] * len(mesh.p)
-    heap: list[tuple[float, float, int, int, int]] = []
+    queue = _Collapses(mesh)
     alive = sum(mesh.alive)
-
-    def push(v: int, check: bool = False) -> bool:
-        """Queue ``v``'s collapse of least error, the shorter edge first among equals (flat regions); with
-        ``check``, its least valid one.  Validity is checked when a collapse comes up (most are valid): it
-        costs ten times the error."""
-        version[v] += 1
-        fan = mesh.link(v) if mesh.around[v] else None
-        if fan is None:
-            return False
-        qv, pv = quadric[v], mesh.p[v]
-        options = sorted((_quadric_error(qv, mesh.p[u]) + own[u],
-                          _dot(d := _sub(mesh.p[u], pv), d), u) for u in fan[1])
-        for err, length2, u in options:
-            if not check or mesh.valid(v, u, *fan, math.inf):
-                heapq.heappush(heap, (err, length2, v, u, version[v]))
-                return True
-        return False
-
     # A collapse changes the link condition up to two rings away: passes over every vertex repeat until the
     # target is reached or a pass collapses nothing (the next would be the same pass).
-    while alive > target and any([push(v) for v in range(len(mesh.p))]):
+    while alive > target and any([queue.push(v) for v in range(len(mesh.p))]):
         before = alive
-        while heap and alive > target:
-            _, _, v, u, ver = heapq.heappop(heap)
-            if ver != version[v]:
+        while queue.heap and alive > target:
+            _, _, v, u, ver = heapq.heappop(queue.heap)
+            if ver != queue.version[v]:
                 continue  # re-scored since
             fan = mesh.link(v)
             if fan is None or not mesh.valid(v, u, *fan, math.inf):
-                push(v, check=True)
+                queue.push(v, check=True)
                 continue
-            alive -= sum(u in mesh.faces[i] for i in mesh.around[v])
-            mesh.collapse(v, u)
-            quadric[u] = [s + t for s, t in zip(quadric[u], quadric[v], strict=True)]
-            own[u] = _quadric_error(quadric[u], mesh.p[u])
-            version[v] += 1
-            for x in mesh.neighbours(u) | {u}:
-                push(x)
-        heap.clear()
+            alive -= queue.collapse(v, u)
+        queue.heap.clear()
         if alive == before:
             break
     return np.array([f for f, a in zip(mesh.faces, mesh.alive, strict=True) if a], dtype=np.int64).reshape(-1, 3)
+
+
+class _Collapses:
+    """The half-edge collapses of :func:`decimate` waiting in a heap, least quadric error first; a vertex's
+    entry counts only while its ``version`` is the one it was queued with."""
+
+    def __init__(self, mesh: _Mesh):
+        self.mesh = mesh
+        self.quadric = _quadrics(mesh)
+        self.own = [_quadric_error(q, p) for q, p in zip(self.quadric, mesh.p, strict=True)]  # each at itself
+        self.version = [0] * len(mesh.p)
+        self.heap: list[tuple[float, float, int, int, int]] = []
+
+    def push(self, v: int, check: bool = False) -> bool:
+        """Queue ``v``'s collapse of least error, the shorter edge first among equals (flat regions); with
+        ``check``, its least valid one.  Validity is checked when a collapse comes up (most are valid): it
+        costs ten times the error."""
+        mesh = self.mesh
+        self.version[v] += 1
+        fan = mesh.link(v) if mesh.around[v] else None
+        if fan is None:
+            return False
+        qv, pv = self.quadric[v], mesh.p[v]
+        options = sorted((_quadric_error(qv, mesh.p[u]) + self.own[u],
+                          _dot(d := _sub(mesh.p[u], pv), d), u) for u in fan[1])
+        for err, length2, u in options:
+            if not check or mesh.valid(v, u, *fan, math.inf):
+                heapq.heappush(self.heap, (err, length2, v, u, self.version[v]))
+                return True
+        return False
+
+    def collapse(self, v: int, u: int) -> int:
+        """Collapse ``v`` onto ``u``, ``u`` taking ``v``'s quadric, and queue ``u`` and its neighbours again;
+        returns the faces the collapse removed."""
+        mesh, quadric = self.mesh, self.quadric
+        removed = sum(u in mesh.faces[i] for i in mesh.around[v])
+        mesh.collapse(v, u)
+        quadric[u] = [s + t for s, t in zip(quadric[u], quadric[v], strict=True)]
+        self.own[u] = _quadric_error(quadric[u], mesh.p[u])
+        self.version[v] += 1
+        for x in mesh.neighbours(u) | {u}:
+            self.push(x)
+        return removed
 
 
 # --------------------------------------------------------------------------- more faces

@@ -167,33 +167,10 @@ def _best_triangulation(loop: list[int], book: Selection, support: SupportCache,
     faces do not fit together.  With ``folds`` the faces are not checked against the selection's folds
     and overlaps, only against edges it already has (the closure's last step, ``closure.close_loops``)."""
     k = len(loop)
-    if k < 3:
+    allowed = _allowed_triangles(loop, book, support, limit) if k >= 3 else None
+    if allowed is None:
         return None
-    ijm = np.array(list(itertools.combinations(range(k), 3)), dtype=np.int64)  # i < m < j
-    tris = np.asarray(loop, dtype=np.int64)[ijm]
-    d = support(tris)
-    # Every edge of the loop lies in exactly one face of a triangulation: one that no supported
-    # triangle covers rules the loop out before any triangle is checked against the selection.
-    lo, mid, hi = ijm.T
-    # A loop that passes a vertex twice (``closure.hole_loops``) has triangles on both of its visits: not faces.
-    on = (d <= limit) & (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])
-    covered = np.zeros(k, dtype=bool)  # edge (p, p + 1), and (k - 1, 0) as edge k - 1
-    covered[lo[on & (mid == lo + 1)]] = True
-    covered[mid[on & (hi == mid + 1)]] = True
-    covered[k - 1] = bool((on & (lo == 0) & (hi == k - 1)).any())
-    if not covered.all():
-        return None
-
-    # The chords of the loop that the selection already has (as a table over loop positions): no triangle
-    # may add one.  A loop edge is no chord.
-    taken = np.zeros((k, k), dtype=bool)
-    for p, q in itertools.combinations(range(k), 2):
-        if q - p != 1 and (p, q) != (0, k - 1):
-            a, b = sorted((loop[p], loop[q]))
-            taken[p, q] = bool(book.third.get((a, b)))
-    on &= ~(taken[lo, mid] | taken[mid, hi] | taken[lo, hi])
-    cost = dict(zip(map(tuple, ijm[on].tolist()), d[on].tolist(), strict=True))  # index triple -> support
-    face = dict(zip(cost, map(tuple, tris[on].tolist()), strict=True))  # index triple -> the triangle's vertices
+    cost, face = allowed
     # The check against the selection is the costly part, and most loops that reach here have no
     # triangulation in the end: find the cheapest one among the triangles not yet known to fail it,
     # check only its faces, and look again without those that fail (the cheapest found with every
@@ -215,9 +192,49 @@ def _best_triangulation(loop: list[int], book: Selection, support: SupportCache,
         checked.update(used)
         for x in failed:
             del cost[x]
-    faces = [face[x] for x in used]
+    return _placed(book, [face[x] for x in used], folds)
+
+
+def _allowed_triangles(loop: list[int], book: Selection, support: SupportCache, limit: float
+                       ) -> tuple[dict, dict] | None:
+    """The triangles of ``loop``'s vertices (k >= 3) a triangulation of it may use: on the surface (support
+    distance within ``limit``), of three distinct vertices, adding no chord the selection already has.  Returns
+    (index triple i < m < j -> support distance, index triple -> the triangle's vertices), or None where some
+    loop edge lies in none of them (then the loop has no triangulation)."""
+    k = len(loop)
+    ijm = np.array(list(itertools.combinations(range(k), 3)), dtype=np.int64)  # i < m < j
+    tris = np.asarray(loop, dtype=np.int64)[ijm]
+    d = support(tris)
+    # Every edge of the loop lies in exactly one face of a triangulation: one that no supported
+    # triangle covers rules the loop out before any triangle is checked against the selection.
+    lo, mid, hi = ijm.T
+    # A loop that passes a vertex twice (``closure.hole_loops``) has triangles on both of its visits: not faces.
+    on = (d <= limit) & (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])
+    covered = np.zeros(k, dtype=bool)  # edge (p, p + 1), and (k - 1, 0) as edge k - 1
+    covered[lo[on & (mid == lo + 1)]] = True
+    covered[mid[on & (hi == mid + 1)]] = True
+    covered[k - 1] = bool((on & (lo == 0) & (hi == k - 1)).any())
+    if not covered.all():
+        return None
+    # The chords of the loop that the selection already has (as a table over loop positions): no triangle
+    # may add one.  A loop edge is no chord.
+    taken = np.zeros((k, k), dtype=bool)
+    for p, q in itertools.combinations(range(k), 2):
+        if q - p != 1 and (p, q) != (0, k - 1):
+            a, b = sorted((loop[p], loop[q]))
+            taken[p, q] = bool(book.third.get((a, b)))
+    on &= ~(taken[lo, mid] | taken[mid, hi] | taken[lo, hi])
+    cost = dict(zip(map(tuple, ijm[on].tolist()), d[on].tolist(), strict=True))  # index triple -> support
+    face = dict(zip(cost, map(tuple, tris[on].tolist()), strict=True))  # index triple -> the triangle's vertices
+    return cost, face
+
+
+def _placed(book: Selection, faces: list[tuple[int, int, int]], folds: bool) -> list[tuple[int, int, int]] | None:
+    """``faces`` added to ``book`` one by one, each checked against it (only its edges with ``folds``): each fits
+    the selection alone, together they may still overlap.  The faces, or None (``book`` unchanged) where one
+    does not fit."""
     added = []
-    for t in faces:  # each fits the selection alone; together they may still overlap
+    for t in faces:
         if not (_edges_free(book, t) if folds else book.fits(*t)):
             for u in added:
                 book.remove(*u)

@@ -22,7 +22,7 @@ import torch
 
 from ..params import SamplingConfig
 from ..tokenizer import vertex as vt
-from .generate import _kind_mass, _nan_masked, token_kinds, token_probs
+from .choice import _kind_mass, _nan_masked, token_kinds, token_probs
 
 MASK32 = 0xFFFFFFFF
 STREAM_KIND, STREAM_TOKEN = 0, 1  # the two draws of a step

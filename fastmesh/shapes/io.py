@@ -57,15 +57,7 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
     from .precheck import plain_parse_error
     from .sniff import file_format
 
-    if isinstance(source, (bytes, bytearray, memoryview)):
-        data = bytes(source)
-        name = filename or ""
-    else:
-        name = filename or str(source)
-        try:
-            data = Path(source).read_bytes()
-        except OSError as e:
-            raise ShapeError("unreadable", f"cannot read {source}: {e.strerror}") from None
+    data, name = _read(source, filename)
     if not name and len(data) == 0:
         raise ShapeError("empty", "file is empty")
     ext = file_format(data, name)
@@ -88,6 +80,17 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
     out = validate_shape(shape, max_points=max_points, max_faces=max_faces, normals=normals)
     out.texture = shape.texture if out.faces is not None else None
     return out
+
+
+def _read(source: str | os.PathLike | bytes, filename: str | None) -> tuple[bytes, str]:
+    """The bytes of ``source`` (a path, or the content itself) and the name that gives its format ("" for
+    content without a ``filename``)."""
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        return bytes(source), filename or ""
+    try:
+        return Path(source).read_bytes(), filename or str(source)
+    except OSError as e:
+        raise ShapeError("unreadable", f"cannot read {source}: {e.strerror}") from None
 
 
 def _precheck_mesh(data: bytes, ext: str, max_points: int, max_faces: int) -> None:

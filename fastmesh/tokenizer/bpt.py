@@ -91,16 +91,7 @@ def patchify(faces: np.ndarray, n_vertices: int, oriented: bool = True) -> tuple
             centre = b
         if deg[c] > deg[centre]:
             centre = c
-        edges = []  # (u, v, face): the face is (centre, u, v) in its winding
-        for fi in inc[bounds[centre]:bounds[centre + 1]]:
-            if alive[fi]:
-                x, y, z = fl[fi]
-                if x == centre:
-                    edges.append((y, z, fi))
-                elif y == centre:
-                    edges.append((z, x, fi))
-                else:
-                    edges.append((x, y, fi))
+        edges = _fan_edges(centre, inc[bounds[centre]:bounds[centre + 1]], alive, fl)
         chain, used = _walk_directed(edges) if oriented else _walk_undirected(edges, centre, fl)
         starts.append(len(seq))
         seq.append(centre)
@@ -112,6 +103,23 @@ def patchify(faces: np.ndarray, n_vertices: int, oriented: bool = True) -> tuple
             deg[y] -= 1
             deg[z] -= 1
     return seq, starts
+
+
+def _fan_edges(centre: int, incident: list[int], alive: list[bool], fl: list[list[int]]
+               ) -> list[tuple[int, int, int]]:
+    """The fan of ``centre``'s faces not yet emitted: (u, v, face) per face, which is (centre, u, v) in its
+    winding."""
+    edges = []
+    for fi in incident:
+        if alive[fi]:
+            x, y, z = fl[fi]
+            if x == centre:
+                edges.append((y, z, fi))
+            elif y == centre:
+                edges.append((z, x, fi))
+            else:
+                edges.append((x, y, fi))
+    return edges
 
 
 def _walk_directed(edges: list[tuple[int, int, int]]) -> tuple[list[int], list[int]]:

@@ -295,6 +295,25 @@ def build_dataset(sources: list[str], out: str | os.PathLike, max_vertices: int 
                     progress(i, len(jobs))
     else:
         results = [_process(j) for j in jobs]
+    keep, dropped = _kept(results)
+    if not keep:
+        raise ValueError("no usable meshes found in " + ", ".join(map(str, sources)))
+    names = [os.path.relpath(k[0], start=os.path.commonpath([str(s) for s in sources]) if len(sources) > 1
+                             else (sources[0] if Path(sources[0]).is_dir() else Path(sources[0]).parent))
+             for k in keep]
+    split = [k[3] in packages if packages else in_validation(k[1], val_fraction) for k in keep]
+    meta = {"version": CACHE_VERSION, "max_vertices": max_vertices,
+            "val_packages": list(packages), "val_fraction": None if packages else val_fraction,
+            "sources": [str(s) for s in sources], "dropped": dict(dropped)}
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "wb") as fh:  # np.savez appends .npz to bare names; a handle keeps ``out`` exact
+        np.savez(fh, **_cache_arrays(keep, names, split, meta))
+    return dataset_stats(load_dataset(out))
+
+
+def _kept(results: list[tuple]) -> tuple[list[tuple], Counter]:
+    """The meshes of ``_process`` results that loaded, each (path, group, category, package, q, faces,
+    residual), the first of exact duplicates (same cells and faces) only; and the dropped ones counted by why."""
     dropped: Counter = Counter()
     seen = set()
     keep = []
@@ -309,18 +328,15 @@ def build_dataset(sources: list[str], out: str | os.PathLike, max_vertices: int 
             continue
         seen.add(h)
         keep.append((path, group, category, package, q, faces, residual))
-    if not keep:
-        raise ValueError("no usable meshes found in " + ", ".join(map(str, sources)))
+    return keep, dropped
+
+
+def _cache_arrays(keep: list[tuple], names: list[str], split: list[bool], meta: dict) -> dict[str, np.ndarray]:
+    """The cache's arrays: every kept mesh's cells, faces and residuals concatenated with their offsets, and
+    per mesh its name, group, category, package and split; ``meta`` as JSON."""
     nv = np.array([len(k[4]) for k in keep])
     nf = np.array([len(k[5]) for k in keep])
-    names = [os.path.relpath(k[0], start=os.path.commonpath([str(s) for s in sources]) if len(sources) > 1
-                             else (sources[0] if Path(sources[0]).is_dir() else Path(sources[0]).parent))
-             for k in keep]
-    split = [k[3] in packages if packages else in_validation(k[1], val_fraction) for k in keep]
-    meta = {"version": CACHE_VERSION, "max_vertices": max_vertices,
-            "val_packages": list(packages), "val_fraction": None if packages else val_fraction,
-            "sources": [str(s) for s in sources], "dropped": dict(dropped)}
-    arrays = {
+    return {
         "q": np.concatenate([k[4] for k in keep]),
         "faces": np.concatenate([k[5] for k in keep]),
         "residual": np.concatenate([k[6] for k in keep]),
@@ -333,10 +349,6 @@ def build_dataset(sources: list[str], out: str | os.PathLike, max_vertices: int 
         "split": np.array(split, dtype=np.uint8),
         "meta": np.array(json.dumps(meta)),
     }
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "wb") as fh:  # np.savez appends .npz to bare names; a handle keeps ``out`` exact
-        np.savez(fh, **arrays)
-    return dataset_stats(load_dataset(out))
 
 
 def dataset_stats(ds: MeshDataset) -> dict:

@@ -110,87 +110,36 @@ def train(task, data: str | MeshDataset, out: str, cfg: TrainConfig, resume: boo
     """
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
-    if world > 1 and not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
-    if torch.cuda.is_available():
-        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
-        torch.cuda.set_device(device)
-    else:
-        device = torch.device("cpu")
-        torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // world))
+    device = _device(cfg, world)
     ds = load_dataset(data) if isinstance(data, (str, os.PathLike)) else data
     outdir = Path(out)
-    state_path = outdir / "train_state.pt"
-
-    if resume and state_path.exists():
-        model, _ = load_model(outdir, device="cpu")
-        state = torch.load(state_path, map_location="cpu", weights_only=False)
-    else:
-        torch.manual_seed(cfg.seed)  # same initial weights on every run (and every rank) with the same seed
-        model, state = task.build_model(cfg.model), None
-        if init:
-            model = _init_from(task, model, init, bool(cfg.model), log)
+    model, state = _start(task, outdir, cfg, resume, init, log)
     model.to(device).train()
-    decay = [p for n, p in model.named_parameters() if p.ndim >= 2 and "emb" not in n]
-    no_decay = [p for n, p in model.named_parameters() if not (p.ndim >= 2 and "emb" not in n)]
-    opt = torch.optim.AdamW([{"params": decay, "weight_decay": cfg.weight_decay},
-                             {"params": no_decay, "weight_decay": 0.0}], lr=cfg.lr, betas=(0.9, 0.95))
-    step, epoch, pos, best = 0, 0, 0, float("inf")
-    if state is not None:
-        opt.load_state_dict(state["optimizer"])
-        step, epoch, pos, best = state["step"], state["epoch"], state["pos"], state["best"]
-    ddp_model = model
-    if world > 1:
-        ddp_model = torch.nn.parallel.DistributedDataParallel(model)
-
-    train_idx = ds.indices("train")
-    if cfg.max_vertices:
-        train_idx = train_idx[ds.num_vertices()[train_idx] <= cfg.max_vertices]
-    val_idx = ds.indices("val")
+    opt = _optimizer(model, cfg, state)
+    step, epoch, pos, best = (0, 0, 0, float("inf")) if state is None else (
+        state["step"], state["epoch"], state["pos"], state["best"])
+    ddp_model = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+    train_idx, val_idx = _train_indices(ds, cfg), ds.indices("val")
     costs = task.costs(ds)
-
-    def lr_at(s: int) -> float:
-        if s < cfg.warmup:
-            return cfg.lr * (s + 1) / cfg.warmup
-        t = min(1.0, (s - cfg.warmup) / max(1, cfg.steps - cfg.warmup))
-        return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
-
-    def save(tag_dir: Path, extra: dict) -> None:
-        save_model(model, task.kind, tag_dir, extra={"train": extra})
-
     t0 = time.time()
     last_log, items, record = time.time(), 0, {}
-    if _is_main():
-        outdir.mkdir(parents=True, exist_ok=True)
-        (outdir / "train_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
-    logf = open(outdir / "log.jsonl", "a") if _is_main() else None
+    logs = _Log(outdir, cfg, log)
     stop = False
     with BatchMaker(task, ds, cfg, cfg.workers) as maker:
         while not stop:
             batches = make_batches(costs, train_idx, cfg.batch_cost, cfg.max_batch,
                                    np.random.default_rng([cfg.seed, epoch]))
-            batches = batches[rank::world]
-            for batch in maker.epoch(batches, epoch, pos, rank):
-                for g in opt.param_groups:
-                    g["lr"] = lr_at(step)
-                batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
-                with _autocast(device, cfg.amp):
-                    loss, n = task.loss(ddp_model, batch)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-                opt.step()
+            for batch in maker.epoch(batches[rank::world], epoch, pos, rank):
+                loss, n, gnorm = _step(task, ddp_model, model, opt, batch, _lr_at(cfg, step), cfg, device)
                 step, pos, items = step + 1, pos + 1, items + n
                 if step % cfg.log_every == 0 and _is_main():
                     now = time.time()
-                    record = {"step": step, "epoch": epoch, "loss": round(loss.item(), 5), "lr": lr_at(step),
+                    record = {"step": step, "epoch": epoch, "loss": round(loss.item(), 5), "lr": _lr_at(cfg, step),
                               "grad_norm": round(float(gnorm), 4),
                               "items_per_s": round(items * world / (now - last_log), 1),
                               "elapsed_s": round(now - t0, 1)}
                     last_log, items = now, 0
-                    logf.write(json.dumps(record) + "\n")
-                    logf.flush()
-                    log(json.dumps(record))
+                    logs.write(record)
                 out_of_time = cfg.max_minutes and (time.time() - t0) > cfg.max_minutes * 60
                 finished = step >= cfg.steps or out_of_time
                 if step % cfg.eval_every == 0 or finished:
@@ -198,27 +147,125 @@ def train(task, data: str | MeshDataset, out: str, cfg: TrainConfig, resume: boo
                     model.train()
                     if _is_main():
                         record = {"step": step, "epoch": epoch, "val": val, "elapsed_s": round(time.time() - t0, 1)}
-                        logf.write(json.dumps(record) + "\n")
-                        logf.flush()
-                        log(json.dumps(record))
-                        if val["loss"] < best:
-                            best = val["loss"]
-                            save(outdir / "best", {"step": step, "val": val})
+                        best = _validated(model, task, outdir, logs, record, best)
                 if (step % cfg.ckpt_every == 0 or finished) and _is_main():
-                    save(outdir, {"step": step})
-                    torch.save({"optimizer": opt.state_dict(), "step": step, "epoch": epoch, "pos": pos, "best": best},
-                               str(state_path) + ".tmp")
-                    os.replace(str(state_path) + ".tmp", state_path)
+                    _checkpoint(model, task, opt, outdir, {"step": step, "epoch": epoch, "pos": pos, "best": best})
                 if finished:
                     stop = True
                     break
             if not stop:
                 epoch, pos = epoch + 1, 0
-    if logf:
-        logf.close()
+    logs.close()
     if world > 1:
         dist.barrier()
     return record
+
+
+def _device(cfg: TrainConfig, world: int) -> torch.device:
+    """This process's device (its rank's GPU, else the CPU with ``cfg.threads`` torch threads, by default the
+    cores shared out among ``world`` processes), the process group joined when there are several."""
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    if torch.cuda.is_available():
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        torch.cuda.set_device(device)
+        return device
+    torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // world))
+    return torch.device("cpu")
+
+
+def _start(task, outdir: Path, cfg: TrainConfig, resume: bool, init: str | None, log) -> tuple:
+    """(the model on the CPU, the saved optimizer and position or None): resumed from ``outdir``, started from
+    ``init``, or built fresh from ``cfg.model`` with seed ``cfg.seed``."""
+    state_path = outdir / "train_state.pt"
+    if resume and state_path.exists():
+        model, _ = load_model(outdir, device="cpu")
+        return model, torch.load(state_path, map_location="cpu", weights_only=False)
+    torch.manual_seed(cfg.seed)  # same initial weights on every run (and every rank) with the same seed
+    model = task.build_model(cfg.model)
+    if init:
+        model = _init_from(task, model, init, bool(cfg.model), log)
+    return model, None
+
+
+def _optimizer(model, cfg: TrainConfig, state: dict | None) -> torch.optim.AdamW:
+    """AdamW with weight decay on the matrices that are not embeddings, none on the rest; its state resumed
+    from ``state`` where there is one."""
+    decay = [p for n, p in model.named_parameters() if p.ndim >= 2 and "emb" not in n]
+    no_decay = [p for n, p in model.named_parameters() if not (p.ndim >= 2 and "emb" not in n)]
+    opt = torch.optim.AdamW([{"params": decay, "weight_decay": cfg.weight_decay},
+                             {"params": no_decay, "weight_decay": 0.0}], lr=cfg.lr, betas=(0.9, 0.95))
+    if state is not None:
+        opt.load_state_dict(state["optimizer"])
+    return opt
+
+
+def _train_indices(ds: MeshDataset, cfg: TrainConfig) -> np.ndarray:
+    """The training split's items, without those over ``cfg.max_vertices`` vertices where it is set."""
+    train_idx = ds.indices("train")
+    if cfg.max_vertices:
+        train_idx = train_idx[ds.num_vertices()[train_idx] <= cfg.max_vertices]
+    return train_idx
+
+
+def _lr_at(cfg: TrainConfig, s: int) -> float:
+    """The learning rate of step ``s``: linear warm-up, then cosine down to ``cfg.min_lr_ratio``."""
+    if s < cfg.warmup:
+        return cfg.lr * (s + 1) / cfg.warmup
+    t = min(1.0, (s - cfg.warmup) / max(1, cfg.steps - cfg.warmup))
+    return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def _step(task, ddp_model, model, opt, batch: dict, lr: float, cfg: TrainConfig, device: torch.device) -> tuple:
+    """One optimiser step on ``batch`` at learning rate ``lr``; returns (loss, items, gradient norm)."""
+    for g in opt.param_groups:
+        g["lr"] = lr
+    batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+    with _autocast(device, cfg.amp):
+        loss, n = task.loss(ddp_model, batch)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+    opt.step()
+    return loss, n, gnorm
+
+
+def _validated(model, task, outdir: Path, logs: _Log, record: dict, best: float) -> float:
+    """Log a validation ``record``; the model saved as ``best/`` where its loss beats ``best``.  The best loss."""
+    logs.write(record)
+    if record["val"]["loss"] < best:
+        save_model(model, task.kind, outdir / "best", extra={"train": {"step": record["step"], "val": record["val"]}})
+        return record["val"]["loss"]
+    return best
+
+
+def _checkpoint(model, task, opt, outdir: Path, position: dict) -> None:
+    """The model and ``train_state.pt`` (optimizer, step, epoch, pos, best) written so a run resumes exactly."""
+    save_model(model, task.kind, outdir, extra={"train": {"step": position["step"]}})
+    state_path = outdir / "train_state.pt"
+    torch.save({"optimizer": opt.state_dict(), **position}, str(state_path) + ".tmp")
+    os.replace(str(state_path) + ".tmp", state_path)
+
+
+class _Log:
+    """``log.jsonl`` in the run's folder (the main process only, which also writes ``train_config.json``)
+    and the ``log`` callback, each record as one JSON line."""
+
+    def __init__(self, outdir: Path, cfg: TrainConfig, log):
+        self.log, self.file = log, None
+        if _is_main():
+            outdir.mkdir(parents=True, exist_ok=True)
+            (outdir / "train_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
+            self.file = open(outdir / "log.jsonl", "a")
+
+    def write(self, record: dict) -> None:
+        self.file.write(json.dumps(record) + "\n")
+        self.file.flush()
+        self.log(json.dumps(record))
+
+    def close(self) -> None:
+        if self.file:
+            self.file.close()
 
 
 def _init_from(task, model, init: str, have_config: bool, log):

@@ -133,6 +133,15 @@ def test_what_ships_is_what_the_defaults_build(tmp_path):
     assert read_settings(written) == defaults
 
 
+def test_the_shipped_decoder_is_the_named_one():
+    """``VertexConfig.from_name("shipped")`` builds the decoder of the shipped weights, flags and sizes."""
+    from fastmesh.models.vertex import VertexConfig
+
+    assert Pipeline.from_pretrained().vertex.cfg == VertexConfig.from_name("shipped")
+    with pytest.raises(ValueError, match="shipped"):
+        VertexConfig.from_name("large")
+
+
 def test_settings_refuse_an_unknown_section_or_key(tmp_path):
     path = tmp_path / "pipeline.json"
     path.write_text(json.dumps({"note": "prose"}))

@@ -46,6 +46,26 @@ class VertexConfig:
     def head_dim(self) -> int:
         return self.dim // self.heads
 
+    @classmethod
+    def from_name(cls, name: str) -> VertexConfig:
+        """The named decoder of :data:`VERTEX_CONFIGS` (``"shipped"``: the one in ``fastmesh/weights/vertex``)."""
+        if name not in VERTEX_CONFIGS:
+            raise ValueError(f"unknown vertex decoder {name!r}; named ones: {', '.join(VERTEX_CONFIGS)}")
+        d = VERTEX_CONFIGS[name]
+        return cls(**{**d, "encoder": EncoderConfig(**d["encoder"])})
+
+
+# Named decoders, as gpt-fast's ``transformer_configs``.  The dataclass's own defaults are the plain decoder (no
+# evidence biases, no face-count condition), which the unit tests build small; "shipped" is the decoder of
+# fastmesh/weights/vertex, flags and sizes (tests/test_pipeline.py checks it against that config.json).
+VERTEX_CONFIGS: dict[str, dict] = {
+    "shipped": {"dim": 192, "depth": 6, "heads": 6, "max_vertices": 1000,
+                "encoder": {"n_points": 2048, "n_latents": 64, "dim": 192, "depth": 2, "heads": 4, "n_freqs": 8,
+                            "anchors": 128},
+                "evidence": True, "evidence_normals": True, "evidence_cells": True, "evidence_blocks_ahead": False,
+                "count_condition": True, "evidence_counts": True},
+}
+
 
 def grammar_state(tokens: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Current block id and last offset id after each position of (B, T) token ids (-1 where none)."""

@@ -1,6 +1,6 @@
 """Evaluation exactly as ../shared/EVAL.md: generate from point clouds, compare to references.
 
-Three systems can be scored on the same inputs in one run:
+Several systems can be scored on the same inputs in one run (the baselines are :mod:`.baselines`):
 
 - ``fastmesh``: the pipeline, end to end;
 - ``convex_hull``: the floor any method must beat;
@@ -35,6 +35,7 @@ from ..faces.triangles import TriangleConfig
 from ..shapes.io import input_surface, load_shape, sample_surface, write_mesh
 from ..shapes.shape import SUPPORTED_FORMATS, Normalization, Shape, ShapeError
 from ..tokenizer import dequantize, quantize_mesh
+from .baselines import convex_hull, decimation, dense_remesh, poisson
 from .metrics import edge_metrics, mesh_topology, surface_distance, vertex_metrics
 from .quality import topology
 
@@ -56,59 +57,6 @@ def pair_inputs(inputs: str | Path, reference: str | Path) -> list[tuple[Path, P
     if not pairs:
         raise ValueError(f"no input in {inputs} has a reference of the same name in {reference}")
     return pairs
-
-
-def convex_hull(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
-
-    hull = trimesh.PointCloud(shape.vertices).convex_hull
-    return np.asarray(hull.vertices), np.asarray(hull.faces)
-
-
-def poisson(shape: Shape, target_faces: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Screened Poisson (depth 8) on 8192 oriented samples, then quadric decimation to ``target_faces``."""
-    import pymeshlab
-
-    pts, nrm = sample_surface(shape, 8192, seed=seed)
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts.astype(np.float64), v_normals_matrix=nrm.astype(np.float64)))
-    ms.generate_surface_reconstruction_screened_poisson(depth=8, preclean=True)
-    ms.meshing_decimation_quadric_edge_collapse(targetfacenum=max(4, int(target_faces)), preservenormal=True)
-    m = ms.current_mesh()
-    return np.asarray(m.vertex_matrix()), np.asarray(m.face_matrix())
-
-
-def decimation(shape: Shape, target_faces: int) -> tuple[np.ndarray, np.ndarray]:
-    """Quadric edge-collapse decimation of a mesh input to about ``target_faces`` (``fast-simplification``,
-    the input's vertices welded first): what a user does with a dense mesh instead of retopology."""
-    import fast_simplification
-
-    if shape.faces is None:
-        raise ShapeError("not_a_mesh", "decimation needs a mesh input")
-    v, f = weld(shape.vertices, shape.faces)
-    if len(f) <= target_faces:
-        return v, f
-    return fast_simplification.simplify(v.astype(np.float32), f.astype(np.int32),
-                                        target_reduction=1.0 - target_faces / len(f))
-
-
-def dense_remesh(vertices: np.ndarray, faces: np.ndarray, target_faces: int = 20_000, seed: int = 0
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """A dense mesh of the same surface without the artist's structure: isotropic remeshing (pymeshlab) to
-    edges of the length that gives about ``target_faces`` equilateral faces, as a scan or a sculpt would
-    be.  Creases of over 30 degrees keep a line of vertices; corners and the artist's vertices do not."""
-    import pymeshlab
-
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum()
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f.astype(np.int32)))
-    ms.meshing_merge_close_vertices()
-    ms.meshing_isotropic_explicit_remeshing(iterations=4, targetlen=pymeshlab.PureValue(
-        float(np.sqrt(4.0 * area / (np.sqrt(3.0) * target_faces)))))
-    m = ms.current_mesh()
-    return np.asarray(m.vertex_matrix()), np.asarray(m.face_matrix())
 
 
 def artist_vertices(ref: Shape, shape: Shape) -> dict:

@@ -13,11 +13,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .arrangement import merge_points
 from .planar import (
     PlanarConfig,
     _distinct,
     _explains,
-    _merge,
     _subsample,
     _triangulate,
     detect_planes,
@@ -68,7 +68,7 @@ def open_polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig =
             corners.extend(ring)
     if not corners or len(corners) > 8 * cfg.max_vertices:
         return None
-    vertices, index = _merge(np.array(corners), cfg.tolerance)
+    vertices, index = merge_points(np.array(corners), cfg.tolerance)
     if len(vertices) > cfg.max_vertices:
         return None
     faces = _triangulate(vertices, planes, [(k, _distinct(index[ring])) for k, ring in loops], cfg.tolerance)

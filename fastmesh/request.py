@@ -95,7 +95,8 @@ class Request:
     should_cancel : callable or None
     timings : dict, seconds per stage (``progress.STAGES``)
     frame : Frame, the input's own (identity rotation)
-    close : bool, whether the result is closed (``closure.decide_closed``); ``reason`` says why
+    close : bool, whether the result is closed (``closure.decide_closed``); ``reason`` says why: one of
+        ``decide_closed``'s, or "open_planes" (an open surface rebuilt from its planes, ``open_planar``)
     """
 
     shape: Shape

@@ -9,6 +9,8 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from fastmesh.evaluation.primitives import point_cloud, random_shape
+from fastmesh.params import GenerateParams
+from fastmesh.pipeline import Pipeline
 from fastmesh.shapes.open_planar import open_polyhedron
 from fastmesh.shapes.shape import Normalization, Shape
 
@@ -83,3 +85,22 @@ def test_closed_curved_or_open_off_the_box_inputs_are_not_open_polyhedra():
         cloud = point_cloud(mesh, seed=0)
         norm = Normalization.fit(cloud.vertices)
         assert open_polyhedron(norm.apply(cloud.vertices), cloud.normals) is None
+
+
+def test_the_pipeline_rebuilds_a_turned_open_tray_unless_asked_to_close_it():
+    """A tray's point cloud turned at random: its 8 corners from the planes in its canonical frame, turned back,
+    open where the tray is (its rim, 4 edges), no tokens decoded, the decision reported; closed=true leaves it to
+    the networks."""
+    rng = np.random.default_rng(5)
+    mesh = tray(rng)
+    turn = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
+    cloud = point_cloud(Shape(vertices=mesh.vertices @ turn.T, faces=mesh.faces), seed=3)
+    pipe = Pipeline.random("tiny", seed=0)
+    res = pipe.generate(cloud, GenerateParams(seed=0, max_vertices=24))
+    assert res.info["result_from"] == "planes" and res.tokens == 0
+    assert res.info["closed_decision"] == {"close": False, "reason": "open_planes"}
+    assert len(res.vertices) == 8 and res.quality["boundary_edges"] == 4
+    corners = mesh.vertices @ turn.T
+    assert np.linalg.norm(res.vertices[:, None] - corners[None], axis=-1).min(1).max() < 1e-3 * np.ptp(corners)
+    asked = pipe.generate(cloud, GenerateParams(seed=0, max_vertices=24, closed="true"))
+    assert asked.info["result_from"] != "planes"

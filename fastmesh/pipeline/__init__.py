@@ -273,10 +273,17 @@ class Pipeline(FrameSteps):
             return step8.finished(req, *flat[:2], tokens=0, info={"turned_degrees": 0.0, "result_from": flat[2]})
         if not cheap:
             req.close, req.reason = decide_closed(shape, params.closed)
+        turn = canonical_rotation(shape.vertices, frame_normals(shape))
+        # An open piecewise-planar surface (a ramp, a roof without its floor) from its planes: where the points
+        # stop on the sides of its box, there is no surface, whatever the winding numbers decided.
+        flat = step8.planar(req, open_=True, turn=turn) if params.closed != "true" else None
+        if flat is not None:
+            req.close, req.reason = False, "asked" if params.closed == "false" else "open_planes"
+            req.report.done("faces")
+            return step8.finished(req, *flat[:2], tokens=0, info={"turned_degrees": 0.0, "result_from": flat[2]})
         # The input's own frame, and its canonical one where that lays more of its walls along the axes
         # (``canonical``): each is generated, and the mesh nearer the input kept.
         frames = [np.eye(3)]
-        turn = canonical_rotation(shape.vertices, frame_normals(shape))
         if not np.array_equal(turn, frames[0]):
             frames.append(turn)
         made, errors = yield from self._in_frames(req, frames)

@@ -20,6 +20,7 @@ from ..faces.meshops import edge_face_counts, remove_unreferenced, triangle_area
 from ..faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
 from ..models.generate import GenerationError
 from ..request import PLANAR_SAMPLES, Request
+from ..shapes.open_planar import open_polyhedron
 from ..shapes.planar import polyhedron
 from ..shapes.shape import Shape
 from .runtime import stage
@@ -102,12 +103,15 @@ def low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:
     return remove_unreferenced(v, f)[:2]
 
 
-def planar(req: Request) -> tuple[np.ndarray, np.ndarray, str] | None:
+def planar(req: Request, open_: bool = False, turn: np.ndarray | None = None
+           ) -> tuple[np.ndarray, np.ndarray, str] | None:
     """The closed polyhedron of a piecewise-planar input (``planar.polyhedron``: exact corners, whatever
-    the pose), in the input's frame, with where it comes from ("planes"); or a low-poly mesh input of the
-    same shape, welded, where it has at most ``LOW_POLY_SLACK`` times the polyhedron's faces ("input": a
-    cylinder's caps keep their centres).  None where the input is not a polyhedron or a face count is asked
-    for (``req.count.rebuild_planes``: the polyhedron has the count it has)."""
+    the pose), or with ``open_`` its open surface whose open edges lie on its bounding box in its own frame or,
+    turned by ``turn`` (3, 3), in its canonical one (``open_planar.open_polyhedron``); in the input's frame, with
+    where it comes from ("planes"); or a low-poly mesh input of the same shape, welded, where it has at most
+    ``LOW_POLY_SLACK`` times the rebuild's faces ("input": a cylinder's caps keep their centres).  None where the
+    input is not one or a face count is asked for (``req.count.rebuild_planes``: the rebuild has the count it
+    has)."""
     if not req.count.rebuild_planes:
         return None
     shape, frame = req.shape, req.frame
@@ -116,7 +120,10 @@ def planar(req: Request) -> tuple[np.ndarray, np.ndarray, str] | None:
             points, normals = frame.unit, shape.normals
         else:
             points, normals = frame.samples(PLANAR_SAMPLES, 0)
-        found = polyhedron(points, normals)
+        found = open_polyhedron(points, normals) if open_ else polyhedron(points, normals)
+        if found is None and open_ and turn is not None and not np.array_equal(turn, np.eye(3)):
+            found = open_polyhedron(points @ turn.T, normals @ turn.T)
+            found = None if found is None else (found[0] @ turn, found[1])
     if found is None:
         return None
     low = low_poly(shape, int(LOW_POLY_SLACK * len(found[1])))

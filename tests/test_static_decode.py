@@ -9,7 +9,7 @@ import torch
 from test_batched_decode import B, _crowded, _inputs, _model
 from test_cells import _cell_grids
 
-from fastmesh.models import decode
+from fastmesh.models import static_step
 from fastmesh.models.decode import StaticDecoder, stack_evidence
 from fastmesh.models.generate import (
     Cancelled,
@@ -187,7 +187,7 @@ def test_a_step_that_fails_to_compile_runs_uncompiled(monkeypatch, caplog):
     def broken(*a, **k):
         raise RuntimeError("no compiler here")
 
-    monkeypatch.setattr(decode, "_FUSED", [broken])
+    monkeypatch.setattr(static_step, "_FUSED", [broken])
     dec = StaticDecoder(m, window=False, compiled=True)
     got = generate(dec, torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))
     want = generate(StaticDecoder(m, window=False), torch.cat(prefix), cfg, evidence=StackedEvidence(evidence))

@@ -11,19 +11,8 @@ closed one; anything else gives None.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from .arrangement import merge_points
-from .planar import (
-    PlanarConfig,
-    _distinct,
-    _explains,
-    _subsample,
-    _triangulate,
-    detect_planes,
-    neighbour_planes,
-    plane_faces,
-)
+from .planar import PlanarConfig, _explains, planar_mesh
 
 PARALLEL_COS = np.cos(np.radians(10))  # as ``planar.neighbour_planes``: planes closer than this never meet
 EDGE_SHARE = 0.3  # a plane's open edge on a box side spans at least this share of the plane's width along it
@@ -45,36 +34,24 @@ def open_polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig =
     (V, 3) float64 vertices and (F, 3) int64 faces, edge-manifold and consistently oriented, with at least one
     open edge and every open edge on a side of the points' bounding box; or None.
     """
-    pts, nrm = _subsample(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.max_points)
-    found = detect_planes(pts, nrm, cfg)
-    if found is None:
+    made = planar_mesh(points, normals, cfg, cut=_cut_at_box)
+    if made is None:
         return None
-    real, labels = found
-    spacing = float(np.median(cKDTree(pts).query(pts, k=9)[0][:, -1]))
-    reach = cfg.reach * spacing
-    sides = box_sides(pts, real, reach)
+    vertices, faces, pts, reach, sides = made
+    if not _open_on_sides(vertices, faces, sides, cfg.tolerance) or not _explains(vertices, faces, pts, reach):
+        return None
+    return vertices, faces
+
+
+def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near: list[set[int]], reach: float
+                ) -> tuple[np.ndarray | None, list[list[int]] | None]:
+    """``planar.planar_mesh``'s ``cut``: the box sides no plane lies on, and for each plane those where it stops
+    (``_open_sides``)."""
+    sides = box_sides(points, planes, reach)
     if not len(sides):
-        return None
-    planes = np.vstack([real, sides])
-    corners, loops = [], []
-    for k, near in enumerate(neighbour_planes(pts, labels, real, reach)):
-        mine = pts[labels == k]
-        near = near | {len(real) + j for j in _open_sides(real[k], sides, real[sorted(near)], mine, reach)}
-        faces = plane_faces(k, planes, near, mine, spacing, reach)
-        if faces is None:
-            return None
-        for ring in faces:
-            loops.append((k, [len(corners) + i for i in range(len(ring))]))
-            corners.extend(ring)
-    if not corners or len(corners) > 8 * cfg.max_vertices:
-        return None
-    vertices, index = merge_points(np.array(corners), cfg.tolerance)
-    if len(vertices) > cfg.max_vertices:
-        return None
-    faces = _triangulate(vertices, planes, [(k, _distinct(index[ring])) for k, ring in loops], cfg.tolerance)
-    if faces is None or not _open_on_sides(vertices, faces, sides, cfg.tolerance):
-        return None
-    return (vertices, faces) if _explains(vertices, faces, pts, reach) else None
+        return None, None
+    return sides, [_open_sides(planes[k], sides, planes[sorted(near[k])], points[labels == k], reach)
+                   for k in range(len(planes))]
 
 
 def box_sides(points: np.ndarray, planes: np.ndarray, reach: float) -> np.ndarray:

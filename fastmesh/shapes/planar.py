@@ -12,6 +12,7 @@ tolerance, a face the points do not decide) gives None, and the networks make th
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,6 +51,24 @@ def polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = Plan
     (V, 3) float64 vertices and (F, 3) int64 faces, closed, edge-manifold and consistently oriented, whose
     surface and the points are within ``cfg.reach`` spacings of each other both ways; or None.
     """
+    made = planar_mesh(points, normals, cfg)
+    if made is None:
+        return None
+    vertices, faces, pts, reach, _ = made
+    return (vertices, faces) if _closed(faces) and _explains(vertices, faces, pts, reach) else None
+
+
+def planar_mesh(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, cut: Callable | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray] | None:
+    """The faces the planes of an oriented point cloud make, each plane's cut by its neighbours' lines (and by
+    the planes ``cut`` adds), before any check of the whole: what :func:`polyhedron` and
+    ``open_planar.open_polyhedron`` share.
+
+    ``cut(points, planes, labels, near, reach)`` returns (S, 4) more planes, without points, and for each plane
+    of ``planes`` the indices of those that end its faces; or (None, None) where there are none.  Returns the
+    vertices, faces, the points read (subsampled), the cover radius and the added planes; or None where a plane
+    has no faces it can close, or the corners are too many.
+    """
     pts, nrm = _subsample(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.max_points)
     found = detect_planes(pts, nrm, cfg)
     if found is None:
@@ -57,9 +76,16 @@ def polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = Plan
     planes, labels = found
     spacing = float(np.median(cKDTree(pts).query(pts, k=9)[0][:, -1]))
     reach = cfg.reach * spacing
+    near, real, extra = neighbour_planes(pts, labels, planes, reach), len(planes), np.zeros((0, 4))
+    if cut is not None:
+        extra, ends = cut(pts, planes, labels, near, reach)
+        if extra is None:
+            return None
+        near = [mine | {real + j for j in end} for mine, end in zip(near, ends, strict=True)]
+        planes = np.vstack([planes, extra])
     corners, loops = [], []
-    for k, near in enumerate(neighbour_planes(pts, labels, planes, reach)):
-        faces = plane_faces(k, planes, near, pts[labels == k], spacing, reach)
+    for k in range(real):
+        faces = plane_faces(k, planes, near[k], pts[labels == k], spacing, reach)
         if faces is None:
             return None
         for ring in faces:
@@ -73,9 +99,7 @@ def polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = Plan
     if len(vertices) > cfg.max_vertices:
         return None
     faces = _triangulate(vertices, planes, [(k, _distinct(index[ring])) for k, ring in loops], cfg.tolerance)
-    if faces is None or not _closed(faces) or not _explains(vertices, faces, pts, reach):
-        return None
-    return vertices, faces
+    return None if faces is None else (vertices, faces, pts, reach, extra)
 
 
 def _distinct(ring: np.ndarray) -> np.ndarray:

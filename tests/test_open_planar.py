@@ -16,20 +16,11 @@ from fastmesh.shapes.shape import Normalization, Shape
 
 
 def tray(rng: np.random.Generator) -> Shape:
-    """A box of random proportions without its top (+Y) side: 8 corners, 10 triangles."""
-    box = trimesh.creation.box(extents=rng.uniform(0.2, 1.0, 3))
-    keep = box.face_normals[:, 1] < 0.5
-    return Shape(vertices=np.asarray(box.vertices), faces=np.asarray(box.faces)[keep])
+    return random_shape("tray", rng)
 
 
 def roof(rng: np.random.Generator) -> Shape:
-    """A gable roof of random proportions, its ridge off centre, without its floor: 6 corners, 2 gables and 2
-    slopes (6 triangles)."""
-    w, h, d = rng.uniform(0.2, 1.0, 3)
-    ridge = rng.uniform(-0.3, 0.3) * w
-    v = np.array([[-w / 2, 0, 0], [w / 2, 0, 0], [ridge, h, 0], [-w / 2, 0, d], [w / 2, 0, d], [ridge, h, d]])
-    f = np.array([[0, 2, 1], [3, 4, 5], [0, 3, 5], [0, 5, 2], [1, 2, 5], [1, 5, 4]])
-    return Shape(vertices=v, faces=f)
+    return random_shape("roof", rng)
 
 
 def rectangle(rng: np.random.Generator) -> Shape:

@@ -128,15 +128,20 @@ def random_shape(kind: str, rng: np.random.Generator) -> Shape:
     ----------
     kind : one of ``RANDOM_KINDS``: ``box`` (sides 0.2-1 each), ``l_block`` (a box less a corner box, both of
         random sides), ``prism`` (a convex polygon of 3-8 corners at random angles, extruded), ``cylinder``
-        and ``cone`` (16 sides, radius and height at random; trimesh's, with cap centres)
+        and ``cone`` (16 sides, radius and height at random; trimesh's, with cap centres); or of ``OPEN_KINDS``:
+        ``tray`` (a box of random sides without its top), ``roof`` (a gable roof of random proportions, its
+        ridge off centre, without its floor)
     rng : numpy Generator
 
     Returns
     -------
-    Shape : a closed mesh whose vertices are all its artist vertices, longest side about 1, at the origin.
+    Shape : a mesh whose vertices are all its artist vertices, longest side about 1, at the origin; closed
+    for ``RANDOM_KINDS``, open along one side of its box for ``OPEN_KINDS``.
     """
     import trimesh
 
+    if kind in OPEN_KINDS:
+        return _open_shape(kind, rng)
     if kind == "box":
         return _from_trimesh(trimesh.creation.box(extents=rng.uniform(0.2, 1.0, 3)))
     if kind == "l_block":
@@ -159,10 +164,25 @@ def random_shape(kind: str, rng: np.random.Generator) -> Shape:
     if kind == "cone":
         return _from_trimesh(trimesh.creation.cone(radius=rng.uniform(0.1, 0.5), height=rng.uniform(0.2, 1.0),
                                                    sections=SIDES))
-    raise ValueError(f"unknown kind {kind!r}; one of {', '.join(RANDOM_KINDS)}")
+    raise ValueError(f"unknown kind {kind!r}; one of {', '.join(RANDOM_KINDS + OPEN_KINDS)}")
 
 
 RANDOM_KINDS = ("box", "l_block", "prism", "cylinder", "cone")
+OPEN_KINDS = ("tray", "roof")
+
+
+def _open_shape(kind: str, rng: np.random.Generator) -> Shape:
+    """A tray (8 corners, 10 triangles: a box without its +Y side) or a roof (6 corners, 2 gables and 2 slopes)."""
+    import trimesh
+
+    if kind == "tray":
+        box = trimesh.creation.box(extents=rng.uniform(0.2, 1.0, 3))
+        return Shape(vertices=np.asarray(box.vertices), faces=np.asarray(box.faces)[box.face_normals[:, 1] < 0.5])
+    w, h, d = rng.uniform(0.2, 1.0, 3)
+    ridge = rng.uniform(-0.3, 0.3) * w
+    v = np.array([[-w / 2, 0, 0], [w / 2, 0, 0], [ridge, h, 0], [-w / 2, 0, d], [w / 2, 0, d], [ridge, h, d]])
+    return Shape(vertices=v - v.mean(0), faces=np.array([[0, 2, 1], [3, 4, 5], [0, 3, 5], [0, 5, 2], [1, 2, 5],
+                                                          [1, 5, 4]]))
 
 
 def posed(shape: Shape, rng: np.random.Generator, turn: bool = True, millimetres: bool = False) -> Shape:

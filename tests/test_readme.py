@@ -46,7 +46,7 @@ def test_readme_commands_call_the_cli_from_the_venv():
 def test_readme_point_cloud_table_is_the_one_measured():
     readme = _table(README, "| system | CD % | HD % |")
     measured = _table(RESULTS, "| system | CD % | HD % | P@1 / R@1 |")
-    assert len(readme) == len(measured) == 5
+    assert len(readme) == len(measured) >= 5
     for ours, theirs in zip(readme, measured, strict=True):
         assert ours[1:3] == theirs[1:3], (ours, theirs)  # CD, HD
         precision, recall = theirs[3].split(" / ")
@@ -57,7 +57,7 @@ def test_readme_point_cloud_table_is_the_one_measured():
 def test_readme_mesh_input_table_is_the_one_measured():
     readme = _table(README, "| system (mesh inputs) |")
     measured = _table(RESULTS, "| system (mesh inputs) |")
-    assert len(readme) == len(measured) == 3
+    assert len(readme) == len(measured) >= 3
     for ours, theirs in zip(readme, measured, strict=True):
         assert ours[1:3] == theirs[1:3], (ours, theirs)
         precision, recall = theirs[3].split(" / ")

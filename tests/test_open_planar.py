@@ -95,3 +95,22 @@ def test_the_pipeline_rebuilds_a_turned_open_tray_unless_asked_to_close_it():
     assert np.linalg.norm(res.vertices[:, None] - corners[None], axis=-1).min(1).max() < 1e-3 * np.ptp(corners)
     asked = pipe.generate(cloud, GenerateParams(seed=0, max_vertices=24, closed="true"))
     assert asked.info["result_from"] != "planes"
+
+
+def test_a_mesh_input_of_a_few_faces_comes_back_as_it_is_without_the_networks():
+    """A turned roof's own mesh (6 faces) and one triangle: the input, welded, no token decoded; the roof with
+    each face on three vertices of its own (18, as a file split along seams) welds back to its 6 corners;
+    closed=true leaves the roof to the networks (the input is open)."""
+    rng = np.random.default_rng(8)
+    mesh = random_shape("roof", rng)
+    turn = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
+    roof_mesh = Shape(vertices=mesh.vertices @ turn.T, faces=mesh.faces)
+    triangle = Shape(vertices=np.eye(3), faces=np.array([[0, 1, 2]]))
+    seams = Shape(vertices=roof_mesh.vertices[mesh.faces].reshape(-1, 3), faces=np.arange(18).reshape(6, 3))
+    pipe = Pipeline.random("tiny", seed=0)
+    for shape, corners in ((roof_mesh, 6), (triangle, 3), (seams, 6)):
+        res = pipe.generate(shape, GenerateParams(seed=0, max_vertices=24))
+        assert res.info["result_from"] == "input" and res.tokens == 0
+        assert len(res.vertices) == corners and len(res.faces) == len(shape.faces)
+    asked = pipe.generate(roof_mesh, GenerateParams(seed=0, max_vertices=24, closed="true"))
+    assert asked.tokens > 0

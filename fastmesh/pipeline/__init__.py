@@ -273,6 +273,10 @@ class Pipeline(FrameSteps):
             return step8.finished(req, *flat[:2], tokens=0, info={"turned_degrees": 0.0, "result_from": flat[2]})
         if not cheap:
             req.close, req.reason = decide_closed(shape, params.closed)
+        few = step8.low_poly(shape, step8.FEW_FACES) if req.count.low_poly_input and params.closed != "true" else None
+        if few is not None:
+            req.report.done("faces")
+            return step8.finished(req, *few, tokens=0, info={"turned_degrees": 0.0, "result_from": "input"})
         turn = canonical_rotation(shape.vertices, frame_normals(shape))
         # An open piecewise-planar surface (a ramp, a roof without its floor) from its planes: where the points
         # stop on the sides of its box, there is no surface, whatever the winding numbers decided.

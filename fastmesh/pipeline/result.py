@@ -28,6 +28,9 @@ from .runtime import stage
 # A low-poly mesh input of a polyhedron is given back as it is when it has at most this many times the faces
 # of the polyhedron rebuilt from its planes (which has no vertex inside a face, such as a cylinder cap's centre).
 LOW_POLY_SLACK = 1.25
+# A mesh input of at most this many faces (welded, a surface) comes back as it is without running the networks: a
+# shape that few faces describe has no cheaper mesh for them to find, and ``whole`` would keep it over one as big.
+FEW_FACES = 32
 
 
 @dataclass

@@ -253,6 +253,12 @@ class Pipeline(FrameSteps):
         done = batch.pop_done()
         return [done[i] for i in range(n)]
 
+    @staticmethod
+    def _unrun(req: Request, vertices: np.ndarray, faces: np.ndarray, source: str) -> GenerateResult:
+        """The result of a request the networks did not run for: rebuilt from planes, or the input itself."""
+        req.report.done("faces")
+        return step8.finished(req, vertices, faces, tokens=0, info={"turned_degrees": 0.0, "result_from": source})
+
     def steps(self, shape: Shape, params: GenerateParams | None = None,
               progress: Callable[[str, float], None] | None = None, should_cancel: Callable[[], bool] | None = None
               ) -> Generator[DecodeRequest, list[torch.Tensor], GenerateResult]:
@@ -269,22 +275,19 @@ class Pipeline(FrameSteps):
             req.close, req.reason = decide_closed(shape, params.closed)
         flat = step8.planar(req) if req.close else None
         if flat is not None:
-            req.report.done("faces")
-            return step8.finished(req, *flat[:2], tokens=0, info={"turned_degrees": 0.0, "result_from": flat[2]})
+            return self._unrun(req, *flat)
         if not cheap:
             req.close, req.reason = decide_closed(shape, params.closed)
         few = step8.low_poly(shape, step8.FEW_FACES) if req.count.low_poly_input and params.closed != "true" else None
         if few is not None:
-            req.report.done("faces")
-            return step8.finished(req, *few, tokens=0, info={"turned_degrees": 0.0, "result_from": "input"})
+            return self._unrun(req, *few, "input")
         turn = canonical_rotation(shape.vertices, frame_normals(shape))
         # An open piecewise-planar surface (a ramp, a roof without its floor) from its planes: where the points
         # stop on the sides of its box, there is no surface, whatever the winding numbers decided.
         flat = step8.planar(req, open_=True, turn=turn) if params.closed != "true" else None
         if flat is not None:
             req.close, req.reason = False, "asked" if params.closed == "false" else "open_planes"
-            req.report.done("faces")
-            return step8.finished(req, *flat[:2], tokens=0, info={"turned_degrees": 0.0, "result_from": flat[2]})
+            return self._unrun(req, *flat)
         # The input's own frame, and its canonical one where that lays more of its walls along the axes
         # (``canonical``): each is generated, and the mesh nearer the input kept.
         frames = [np.eye(3)]

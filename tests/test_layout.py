@@ -59,22 +59,29 @@ def modules() -> dict[str, Path]:
     return found
 
 
-def imports(name: str, path: Path, known: set[str]) -> set[str]:
-    """The modules of ``known`` that the module ``name`` (file ``path``) imports, anywhere in its body."""
+def _import_nodes(name: str, path: Path):
+    """Each import statement of the module ``name`` (file ``path``), anywhere in its body, with the absolute module
+    a ``from`` import names (relative ones resolved against the module's package; None for a plain ``import``)."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
-    out = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
-            targets = [a.name for a in node.names]
+            yield node, None
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
                 up = package.split(".")[: len(package.split(".")) - node.level + 1]
                 base = ".".join(up + ([base] if base else []))
-            # ``from a import b`` names the module a.b where there is one, else a name inside a
+            yield node, base
+
+
+def imports(name: str, path: Path, known: set[str]) -> set[str]:
+    """The modules of ``known`` that the module ``name`` (file ``path``) imports, anywhere in its body."""
+    out = set()
+    for node, base in _import_nodes(name, path):
+        if base is None:
+            targets = [a.name for a in node.names]
+        else:  # ``from a import b`` names the module a.b where there is one, else a name inside a
             targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in known else base for a in node.names]
-        else:
-            continue
         for target in targets:
             while target and target not in known:  # ``import a.b.c`` of a name inside a.b
                 target = target.rpartition(".")[0]
@@ -88,19 +95,12 @@ def unresolved(name: str, path: Path, known: set[str]) -> list[str]:
 
     ``fastmesh`` is a namespace package: an installed copy elsewhere on the path would still answer such an
     import at run time, so the tree is checked on its own."""
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     out = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
+    for node, base in _import_nodes(name, path):
+        if base is None:
             bases = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                up = package.split(".")[: len(package.split(".")) - node.level + 1]
-                base = ".".join(up + ([base] if base else []))
-            bases = [f"{base}.{a.name}" if base in PACKAGES else base for a in node.names]
         else:
-            continue
+            bases = [f"{base}.{a.name}" if base in PACKAGES else base for a in node.names]
         out += [f"{name}:{node.lineno} {b}" for b in bases
                 if b.split(".")[0] in PACKAGES and b not in PACKAGES and b not in known]
     return out

@@ -61,6 +61,42 @@ def test_strays_go_smallest_first_down_to_the_inputs_pieces():
     assert len(drop_strays(v, both, keep=1)) == len(f) - 24  # the sliver and the two small boxes
 
 
+def _inside_triangle(rng: np.random.Generator) -> tuple[trimesh.Trimesh, np.ndarray]:
+    """A box of random proportions, turned, and a triangle across its inside with its corners on three walls."""
+    box = trimesh.creation.box(extents=rng.uniform(0.3, 2.0, 3))
+    turn = trimesh.transformations.random_rotation_matrix(rng.random(3))
+    half = box.extents / 2
+    corners = []
+    for axis in rng.permutation(3):  # one corner on a wall across each axis, the others inside the box
+        c = rng.uniform(-0.5, 0.5, 3) * half
+        c[axis] = half[axis] * rng.choice([-1.0, 1.0])
+        corners.append(c)
+    box.apply_transform(turn)
+    return box, trimesh.transform_points(np.array(corners), turn)
+
+
+def test_a_wide_stray_the_rest_covers_goes_given_the_input_surface():
+    """A triangle across a solid's inside (wider than STRAY_SPAN, so its span alone keeps it) goes when the input's
+    samples show the box's walls cover every sample near it; a part the rest does not cover stays."""
+    from fastmesh.faces.pieces import STRAY_SPAN
+
+    rng = np.random.default_rng(3)
+    for _ in range(6):
+        box, tri = _inside_triangle(rng)
+        v = np.concatenate([box.vertices, tri])
+        f = np.concatenate([box.faces, [[8, 9, 10]]])
+        span = np.linalg.norm(np.ptp(tri, axis=0)) / np.linalg.norm(np.ptp(box.vertices, axis=0))
+        assert span > STRAY_SPAN
+        surface = trimesh.sample.sample_surface(box, 8192, seed=0)[0]
+        assert len(drop_strays(v, f, keep=1)) == 13  # by its span alone, a part
+        assert np.array_equal(drop_strays(v, f, keep=1, surface=surface), box.faces)
+        # The same triangle as a fin the input has: its own samples are far from the box, so it stays.
+        fin = tri + 3.0 * box.extents.max() * rng.normal(size=3)
+        fin_samples = trimesh.sample.sample_surface(trimesh.Trimesh(fin, [[0, 1, 2]]), 200, seed=0)[0]
+        v = np.concatenate([box.vertices, fin])
+        assert len(drop_strays(v, f, keep=1, surface=np.concatenate([surface, fin_samples]))) == 13
+
+
 def test_vertices_far_from_the_input_are_pulled_onto_it_and_only_those():
     """A vertex beyond the limit moves onto its nearest surface sample; the others and the faces stay."""
     from fastmesh.faces.pieces import FAR_CELLS, far_limit, pull_in

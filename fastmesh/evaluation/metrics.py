@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..faces.meshops import face_sides, normalize_edges
+from ..faces.meshops import distance_to_triangles, face_sides, normalize_edges
 from ..shapes.io import sample_triangles
 from ..shapes.shape import Normalization
 from ..tokenizer.grid import CELL  # one cell of the 7-bit grid, in units of the longest bounding-box side
@@ -169,67 +169,6 @@ def vertex_metrics(vertices: np.ndarray, reference: np.ndarray, surface_vertices
         out["on_surface"] = float((d_surf <= SURFACE_CELLS * CELL).mean()) if len(v) else 0.0
     out.update(count_ratio=len(v) / len(ref), generated=len(v), reference=len(ref))
     return out
-
-
-def distance_to_triangles(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                          chunk: int = 1 << 20) -> np.ndarray:
-    """Exact Euclidean distance from each point to the nearest triangle of a mesh.
-
-    The distance to the nearest mesh vertex bounds each point's answer from above, so only the
-    triangles whose bounding box lies nearer than that bound are measured exactly.
-
-    Parameters
-    ----------
-    points : (N, 3) float
-    vertices : (V, 3) float
-    faces : (F, 3) int, F >= 1
-    chunk : int
-        Point-triangle pairs tested per vectorised step (bounds the memory).
-
-    Returns
-    -------
-    (N,) float64 distances.
-    """
-    from scipy.spatial import cKDTree
-
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    vv = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if len(f) == 0:
-        raise ValueError("distance_to_triangles needs at least one face")
-    tri = vv[f]  # (F, 3, 3)
-    best, _ = cKDTree(vv[np.unique(f)]).query(p)
-    lo, hi = tri.min(1), tri.max(1)  # (F, 3) bounding boxes
-    rows = max(1, chunk // len(f))
-    for s in range(0, len(p), rows):
-        q = p[s:s + rows]
-        gap = np.maximum(np.maximum(lo[None] - q[:, None], q[:, None] - hi[None]), 0.0)
-        pi, fi = np.nonzero((gap ** 2).sum(-1) < best[s:s + rows, None] ** 2)
-        if len(pi):
-            d = _point_triangle(q[pi], tri[fi])
-            np.minimum.at(best, s + pi, d)
-    return best
-
-
-def _point_triangle(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """(K, 3) points and (K, 3, 3) triangles -> (K,) distances, pair by pair.
-
-    Inside the triangle's prism the distance is the one to its plane; outside it (and for a
-    degenerate triangle) the nearest point lies on one of the three edges.
-    """
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    n = np.cross(b - a, c - a)
-    nn = (n * n).sum(-1)
-    inside = nn > 0
-    for x, y in ((a, b), (b, c), (c, a)):
-        inside &= (np.cross(y - x, p - x) * n).sum(-1) >= 0
-    plane = np.abs(((p - a) * n).sum(-1)) / np.sqrt(np.where(nn > 0, nn, 1.0))
-    edge = np.full(len(p), np.inf)
-    for x, y in ((a, b), (b, c), (c, a)):
-        e = y - x
-        t = np.clip(((p - x) * e).sum(-1) / np.maximum((e * e).sum(-1), 1e-300), 0.0, 1.0)
-        edge = np.minimum(edge, np.linalg.norm(p - (x + t[:, None] * e), axis=-1))
-    return np.where(inside, plane, edge)
 
 
 # --------------------------------------------------------------------------- edges

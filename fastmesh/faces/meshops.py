@@ -1,12 +1,14 @@
 """Small operations on triangle meshes that the face stage, the measures and the tokenizers' tests share: a
-mesh's sides and edges, the faces on each edge, areas, welding, unused vertices, the fans around each vertex
-and the pieces joined edge to edge.  Faces are (F, 3) int arrays, vertices (N, 3) float arrays."""
+mesh's sides and edges, the faces on each edge, areas, welding, unused vertices, the fans around each vertex,
+the pieces joined edge to edge and the distance from points to a mesh.  Faces are (F, 3) int arrays, vertices
+(N, 3) float arrays."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 
 def face_sides(faces: np.ndarray) -> np.ndarray:
@@ -126,3 +128,62 @@ def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6) -> tuple[np
     f = inverse.reshape(-1)[f]
     f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
     return v[first], f
+
+
+def distance_to_triangles(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                          chunk: int = 1 << 20) -> np.ndarray:
+    """Exact Euclidean distance from each point to the nearest triangle of a mesh.
+
+    The distance to the nearest mesh vertex bounds each point's answer from above, so only the
+    triangles whose bounding box lies nearer than that bound are measured exactly.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+    vertices : (V, 3) float
+    faces : (F, 3) int, F >= 1
+    chunk : int
+        Point-triangle pairs tested per vectorised step (bounds the memory).
+
+    Returns
+    -------
+    (N,) float64 distances.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    vv = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(f) == 0:
+        raise ValueError("distance_to_triangles needs at least one face")
+    tri = vv[f]  # (F, 3, 3)
+    best, _ = cKDTree(vv[np.unique(f)]).query(p)
+    lo, hi = tri.min(1), tri.max(1)  # (F, 3) bounding boxes
+    rows = max(1, chunk // len(f))
+    for s in range(0, len(p), rows):
+        q = p[s:s + rows]
+        gap = np.maximum(np.maximum(lo[None] - q[:, None], q[:, None] - hi[None]), 0.0)
+        pi, fi = np.nonzero((gap ** 2).sum(-1) < best[s:s + rows, None] ** 2)
+        if len(pi):
+            d = _point_triangle(q[pi], tri[fi])
+            np.minimum.at(best, s + pi, d)
+    return best
+
+
+def _point_triangle(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """(K, 3) points and (K, 3, 3) triangles -> (K,) distances, pair by pair.
+
+    Inside the triangle's prism the distance is the one to its plane; outside it (and for a
+    degenerate triangle) the nearest point lies on one of the three edges.
+    """
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    n = np.cross(b - a, c - a)
+    nn = (n * n).sum(-1)
+    inside = nn > 0
+    for x, y in ((a, b), (b, c), (c, a)):
+        inside &= (np.cross(y - x, p - x) * n).sum(-1) >= 0
+    plane = np.abs(((p - a) * n).sum(-1)) / np.sqrt(np.where(nn > 0, nn, 1.0))
+    edge = np.full(len(p), np.inf)
+    for x, y in ((a, b), (b, c), (c, a)):
+        e = y - x
+        t = np.clip(((p - x) * e).sum(-1) / np.maximum((e * e).sum(-1), 1e-300), 0.0, 1.0)
+        edge = np.minimum(edge, np.linalg.norm(p - (x + t[:, None] * e), axis=-1))
+    return np.where(inside, plane, edge)

@@ -15,11 +15,12 @@ from scipy.spatial import cKDTree
 
 from ..shapes.shape import Normalization
 from ..tokenizer.grid import CELL
-from .meshops import corner_fans, face_sides, piece_labels, triangle_areas
+from .meshops import corner_fans, distance_to_triangles, face_sides, piece_labels, triangle_areas
 
-# A piece is a stray when it has at most this many faces or this share of the result's area, and spans at most
-# STRAY_SPAN of the result's bounding-box diagonal: dropping it moves the result at most that far from the
-# input (a long thin part of a few faces, an aircraft's wing tip, stays).
+# A piece is a stray when it has at most this many faces or this share of the result's area, and dropping it moves
+# the result at most STRAY_SPAN of its bounding-box diagonal farther from the input: it spans no more than that,
+# or the input samples it is nearest to lie within that of the rest of the result (a triangle across a solid's
+# inside, its corners on the walls around it).  A long thin part of a few faces, an aircraft's wing tip, stays.
 STRAY_FACES = 4
 STRAY_AREA = 0.005
 STRAY_SPAN = 0.01
@@ -27,6 +28,8 @@ STRAY_SPAN = 0.01
 # surface sample; one farther is moved onto that sample.  The enhancer places vertices within a cell of the
 # surface, and samples are about a cell apart (8,192 on a unit box), so three cells leave every sound vertex be.
 FAR_CELLS = 3
+# Input samples a wide stray is weighed against (``drop_strays``): every k-th, at most this many.
+COVER_SAMPLES = 16384
 
 
 def split_pinches(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -91,16 +94,21 @@ def thin_crowded_edges(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return f[keep]
 
 
-def drop_strays(vertices: np.ndarray, faces: np.ndarray, keep: int) -> np.ndarray:
-    """``faces`` without their stray pieces (at most ``STRAY_FACES`` faces or ``STRAY_AREA`` of the area, and
-    ``STRAY_SPAN`` of the size), smallest first, while more than ``keep`` pieces remain; the largest piece
-    always stays.
+def drop_strays(vertices: np.ndarray, faces: np.ndarray, keep: int, surface: np.ndarray | None = None
+                ) -> np.ndarray:
+    """``faces`` without their stray pieces (at most ``STRAY_FACES`` faces or ``STRAY_AREA`` of the area, and at
+    most ``STRAY_SPAN`` of the size from the input once dropped), smallest first, while more than ``keep`` pieces
+    remain; the largest piece always stays.
 
     Parameters
     ----------
     vertices : (N, 3) float
     faces : (F, 3) int
     keep : int, the pieces the input has
+    surface : (M, 3) float, optional
+        Samples of the input surface in the frame of ``vertices``.  Without them only a piece that spans at most
+        ``STRAY_SPAN`` is a stray; with them also a wider one whose nearest samples the rest of the result
+        covers within ``STRAY_SPAN`` (:func:`_covered`).
 
     Returns
     -------
@@ -111,8 +119,8 @@ def drop_strays(vertices: np.ndarray, faces: np.ndarray, keep: int) -> np.ndarra
     n = int(labels.max()) + 1 if len(labels) else 0
     if n <= max(keep, 1):
         return f
-    v = np.asarray(vertices, dtype=np.float64)
-    v = Normalization.fit(v[f.ravel()]).apply(v)  # areas of far-apart coordinates overflow
+    norm = Normalization.fit(np.asarray(vertices, dtype=np.float64)[f.ravel()])
+    v = norm.apply(vertices)  # areas of far-apart coordinates overflow
     area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
     piece_area = np.bincount(labels, weights=area, minlength=n)
     piece_faces = np.bincount(labels, minlength=n)
@@ -121,12 +129,26 @@ def drop_strays(vertices: np.ndarray, faces: np.ndarray, keep: int) -> np.ndarra
     for k in range(3):
         np.minimum.at(lo, labels, v[f[:, k]])
         np.maximum.at(hi, labels, v[f[:, k]])
-    span = np.linalg.norm(hi - lo, axis=1) / max(float(np.linalg.norm(np.ptp(v[f.ravel()], axis=0))), 1e-300)
+    size = max(float(np.linalg.norm(np.ptp(v[f.ravel()], axis=0))), 1e-300)
+    span = np.linalg.norm(hi - lo, axis=1) / size
     small = (piece_faces <= STRAY_FACES) | (piece_area <= STRAY_AREA * max(area.sum(), 1e-300))
+    small[np.argmax(piece_area)] = False
     stray = small & (span <= STRAY_SPAN)
-    stray[np.argmax(piece_area)] = False
+    if surface is not None and len(surface):
+        for p in np.flatnonzero(small & ~stray):
+            samples = norm.apply(surface[:: max(1, len(surface) // COVER_SAMPLES)])
+            stray[p] = _covered(v, f, labels == p, samples, STRAY_SPAN * size)
     order = [p for p in np.argsort(piece_area, kind="stable") if stray[p]][: n - max(keep, 1)]
     return f[~np.isin(labels, order)]
+
+
+def _covered(vertices: np.ndarray, faces: np.ndarray, mine: np.ndarray, surface: np.ndarray, tol: float) -> bool:
+    """Whether the input samples ``surface`` (M, 3) nearer to the faces ``faces[mine]`` than to the others lie
+    within ``tol`` of the others: the result without those faces is at most ``tol`` farther from the input."""
+    d_mine = distance_to_triangles(surface, vertices, faces[mine])
+    d_rest = distance_to_triangles(surface, vertices, faces[~mine])
+    served = d_mine < d_rest
+    return bool(not served.any() or d_rest[served].max() <= tol)
 
 
 def pull_in(vertices: np.ndarray, surface: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:

@@ -79,7 +79,7 @@ def whole(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nda
         vertices, faces = remove_unreferenced(*weld(vertices, faces, tol=1e-12))[:2]
         faces = thin_crowded_edges(vertices, faces)
     vertices, faces = split_pinches(vertices, faces)
-    vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, req.pieces_in))[:2]
+    vertices, faces = remove_unreferenced(vertices, drop_strays(vertices, faces, req.pieces_in, req.surface_points))[:2]
     # In the unit cube: the areas of a shape 1e-200 across underflow to 0 in its own units.
     if not len(faces) or not triangle_areas(req.frame.norm.apply(vertices), faces).any():
         raise GenerationError("no_faces", "every face of the result collapsed onto the input surface")

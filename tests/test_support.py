@@ -1,7 +1,9 @@
 """Faces checked against the input surface (fastmesh.faces.support)."""
 
 import numpy as np
+import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
 from fastmesh.faces import mesh_from_adjacency
 from fastmesh.faces.meshops import edges_from_faces
@@ -151,3 +153,24 @@ def test_a_bounded_search_is_exact_within_its_bound_and_above_it_beyond():
         assert (d[~within] > bound).all()
         cache = SupportCache(v, points, bound=bound)
         assert np.array_equal(cache(faces) <= bound, within)
+
+
+def test_the_limit_is_as_wide_on_denser_samples_and_wider_on_sparser_ones():
+    """``support_limit``'s floor reads the spacing ``SPACING_POINTS`` samples of the surface would have: 4x or 16x
+    as many samples of a random ellipsoid leave it within a few percent, a quarter as many widen it about 2x."""
+    from fastmesh.faces.support import SPACING_FACTOR, SPACING_POINTS, support_limit
+
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        m = trimesh.creation.icosphere(4)
+        m.apply_scale(rng.uniform(0.3, 1.0, 3))
+        v, f = np.asarray(m.vertices), np.asarray(m.faces)
+        limit = {k: support_limit(sample_triangles(v, f, int(k * SPACING_POINTS), rng)[0], 0.0)
+                 for k in (0.25, 1, 4, 16)}
+        for k in (4, 16):
+            assert abs(limit[k] / limit[1] - 1) < 0.05, limit
+        assert 1.8 < limit[0.25] / limit[1] < 2.2, limit
+        # The floor is SPACING_FACTOR spacings of the SPACING_POINTS samples themselves.
+        pts = sample_triangles(v, f, SPACING_POINTS, rng)[0]
+        nn = cKDTree(pts).query(pts, k=2)[0][:, 1]
+        assert limit[1] / (SPACING_FACTOR * np.median(nn)) == pytest.approx(1.0, rel=0.05)

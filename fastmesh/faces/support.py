@@ -10,12 +10,19 @@ pipeline keeps the best of several sampled candidates by it).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..shapes.io import sample_triangles
 
 SPACING_FACTOR = 3.0  # the limit is never below this many median point spacings
+# The spacing the limit reads is that of this many samples of the surface, the density of the point clouds it was
+# tuned on, wherever there are more.  Denser samples (a mesh input's, a dense scan's) measure a face's distance
+# more finely but leave the limit as wide: their median spacing shrinks as 1/sqrt(N), and a limit narrowed with it
+# fails the coarse faces of a curved result (across a capsule's caps), leaving holes a point cloud would not.
+SPACING_POINTS = 8192
 GRID = 6  # face samples per edge of the barycentric grid: 21 points inside each triangle
 BOUND_PAD = 1e-6  # relative margin of a bounded search (``support_distance``'s ``bound``) over its bound
 
@@ -106,7 +113,8 @@ class SupportCache:
 
 def support_limit(points: np.ndarray, tol: float, tree: cKDTree | None = None) -> float:
     """The largest :func:`support_distance` of a face on the surface: ``tol`` times the points'
-    longest side, and at least ``SPACING_FACTOR`` median point spacings.
+    longest side, and at least ``SPACING_FACTOR`` median point spacings, as ``SPACING_POINTS`` samples of
+    the surface would be spaced where there are more.
 
     Parameters
     ----------
@@ -118,7 +126,8 @@ def support_limit(points: np.ndarray, tol: float, tree: cKDTree | None = None) -
     tree = tree if tree is not None else cKDTree(pts)
     # Between sparse samples a face on the surface is itself up to about half their spacing away.
     nn, _ = tree.query(pts, k=2)
-    return max(tol * float((pts.max(0) - pts.min(0)).max()), SPACING_FACTOR * float(np.median(nn[:, 1])))
+    spacing = float(np.median(nn[:, 1])) * max(1.0, math.sqrt(len(pts) / SPACING_POINTS))
+    return max(tol * float((pts.max(0) - pts.min(0)).max()), SPACING_FACTOR * spacing)
 
 
 def drop_unsupported(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, tol: float) -> np.ndarray:

@@ -80,21 +80,31 @@ def test_shipped_weights_give_the_flat_rungs_back_small_and_closed(name):
     assert trimesh.Trimesh(res.vertices, res.faces, process=False).is_watertight
 
 
+def test_round_kinds_are_closed_curved_meshes_a_unit_across():
+    from fastmesh.evaluation.primitives import ROUND_KINDS, random_shape
+
+    rng = np.random.default_rng(2)
+    for kind in ROUND_KINDS:
+        for _ in range(3):
+            s = random_shape(kind, rng)
+            m = trimesh.Trimesh(s.vertices, s.faces, process=False)
+            assert m.is_watertight and m.is_winding_consistent and m.volume > 0, kind
+            assert np.ptp(s.vertices, axis=0).max() == pytest.approx(1.0) and len(s.faces) >= 48, kind
+
+
 def test_shipped_weights_close_curved_meshes_of_random_proportions():
-    """Capsules of random length and radius, turned at random, given as their dense meshes (4,096 thin faces
-    each) and as points: every result is closed and in one piece.  A mesh input's support check reads denser
-    samples than a point cloud gives, but its limit stays as wide (``support.SPACING_POINTS``): narrowed with
-    their spacing, the coarse faces across the caps fail it."""
+    """Capsules of random length and radius (``random_shape``), turned at random, given as their dense meshes
+    (4,096 thin faces each) and as points: every result is closed and in one piece.  A mesh input's support
+    check reads denser samples than a point cloud gives, but its limit stays as wide (``support.SPACING_POINTS``):
+    narrowed with their spacing, the coarse faces across the caps fail it."""
+    from fastmesh.evaluation.primitives import posed, random_shape
     from fastmesh.params import GenerateParams
     from fastmesh.pipeline import Pipeline
-    from fastmesh.shapes.shape import Shape
 
     pipe = Pipeline.from_pretrained()
     rng = np.random.default_rng(11)
     for _ in range(4):
-        m = trimesh.creation.capsule(rng.uniform(0.2, 3.0), rng.uniform(0.1, 0.8))
-        m.apply_transform(trimesh.transformations.random_rotation_matrix(rng.random(3)))
-        mesh = Shape(np.asarray(m.vertices), np.asarray(m.faces))
+        mesh = posed(random_shape("capsule", rng), rng)
         for shape in (mesh, point_cloud(mesh)):
             q = pipe.generate(shape, GenerateParams()).quality
-            assert q["watertight"] and q["components"] == 1, (m.extents, shape.faces is None, q)
+            assert q["watertight"] and q["components"] == 1, (np.ptp(mesh.vertices, axis=0), shape.faces is None, q)

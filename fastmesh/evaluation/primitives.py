@@ -130,18 +130,21 @@ def random_shape(kind: str, rng: np.random.Generator) -> Shape:
         random sides), ``prism`` (a convex polygon of 3-8 corners at random angles, extruded), ``cylinder``
         and ``cone`` (16 sides, radius and height at random; trimesh's, with cap centres); or of ``OPEN_KINDS``:
         ``tray`` (a box of random sides without its top), ``roof`` (a gable roof of random proportions, its
-        ridge off centre, without its floor)
+        ridge off centre, without its floor); or of ``ROUND_KINDS`` (:func:`_round_shape`)
     rng : numpy Generator
 
     Returns
     -------
     Shape : a mesh whose vertices are all its artist vertices, longest side about 1, at the origin; closed
-    for ``RANDOM_KINDS``, open along one side of its box for ``OPEN_KINDS``.
+    for ``RANDOM_KINDS``, open along one side of its box for ``OPEN_KINDS``; for ``ROUND_KINDS`` a closed
+    curved surface of many faces, longest side 1, whose vertices are no artist's.
     """
     import trimesh
 
     if kind in OPEN_KINDS:
         return _open_shape(kind, rng)
+    if kind in ROUND_KINDS:
+        return _round_shape(kind, rng)
     if kind == "box":
         return _from_trimesh(trimesh.creation.box(extents=rng.uniform(0.2, 1.0, 3)))
     if kind == "l_block":
@@ -164,11 +167,36 @@ def random_shape(kind: str, rng: np.random.Generator) -> Shape:
     if kind == "cone":
         return _from_trimesh(trimesh.creation.cone(radius=rng.uniform(0.1, 0.5), height=rng.uniform(0.2, 1.0),
                                                    sections=SIDES))
-    raise ValueError(f"unknown kind {kind!r}; one of {', '.join(RANDOM_KINDS + OPEN_KINDS)}")
+    raise ValueError(f"unknown kind {kind!r}; one of {', '.join(RANDOM_KINDS + OPEN_KINDS + ROUND_KINDS)}")
 
 
 RANDOM_KINDS = ("box", "l_block", "prism", "cylinder", "cone")
 OPEN_KINDS = ("tray", "roof")
+ROUND_KINDS = ("capsule", "tube", "torus", "ellipsoid")
+
+
+def _round_shape(kind: str, rng: np.random.Generator) -> Shape:
+    """A closed curved mesh, scaled to a longest side of 1: a ``capsule`` (length 0.2-3, radius 0.1-0.8 before
+    scaling; 4,096 faces), a ``tube`` (a pipe of 6-39 sides, its wall 0.05-0.5 thick around a hole of radius
+    0.2-0.8, 0.1-3 long), a ``torus`` (tube radius 0.1-0.6 of its ring's, 12-63 x 8-31 sections) or an
+    ``ellipsoid`` (radii 0.2-1 each, 1,280 faces)."""
+    import trimesh
+
+    if kind == "capsule":
+        m = trimesh.creation.capsule(height=rng.uniform(0.2, 3.0), radius=rng.uniform(0.1, 0.8))
+    elif kind == "tube":
+        hole = rng.uniform(0.2, 0.8)
+        m = trimesh.creation.annulus(hole, hole + rng.uniform(0.05, 0.5), rng.uniform(0.1, 3.0),
+                                     sections=int(rng.integers(6, 40)))
+    elif kind == "torus":
+        ring = rng.uniform(0.5, 1.5)
+        m = trimesh.creation.torus(ring, ring * rng.uniform(0.1, 0.6), int(rng.integers(12, 64)),
+                                   int(rng.integers(8, 32)))
+    else:
+        m = trimesh.creation.icosphere(subdivisions=3)
+        m.apply_scale(rng.uniform(0.2, 1.0, 3))
+    m.apply_scale(1.0 / m.extents.max())
+    return _from_trimesh(m)
 
 
 def _open_shape(kind: str, rng: np.random.Generator) -> Shape:

@@ -2,8 +2,9 @@
 their pose?
 
     python benchmarks/random_shapes.py [--n 10] [--kinds box,l_block,prism,cylinder,cone,tray,roof]
-                                       [--kinds capsule,tube,torus,ellipsoid] [--inputs mesh,points] [--pose turned|axes|mm] [--seed 0] [--weights DIR]
+                                       [--inputs mesh,points] [--pose turned|axes|mm] [--seed 0] [--weights DIR]
                                        [--json]
+    python benchmarks/random_shapes.py --kinds capsule,tube,torus,ellipsoid ...
 
 Each shape of ``fastmesh.evaluation.primitives.random_shape`` (proportions and outlines at random) is posed
 (``turned``: a random rotation; ``axes``: as built; ``mm``: turned, in millimetres up to 10 m from the origin)

@@ -95,6 +95,11 @@ def test_a_wide_stray_the_rest_covers_goes_given_the_input_surface():
         fin_samples = trimesh.sample.sample_surface(trimesh.Trimesh(fin, [[0, 1, 2]]), 200, seed=0)[0]
         v = np.concatenate([box.vertices, fin])
         assert len(drop_strays(v, f, keep=1, surface=np.concatenate([surface, fin_samples]))) == 13
+        # The fin twice, as two pieces: each covers the other's samples, but once one goes the other is needed.
+        v = np.concatenate([box.vertices, fin, fin])
+        twice = np.concatenate([f, [[11, 12, 13]]])
+        kept = drop_strays(v, twice, keep=1, surface=np.concatenate([surface, fin_samples]))
+        assert len(kept) == 13 and np.array_equal(kept[:12], box.faces)
 
 
 def test_vertices_far_from_the_input_are_pulled_onto_it_and_only_those():

@@ -135,9 +135,11 @@ def drop_strays(vertices: np.ndarray, faces: np.ndarray, keep: int, surface: np.
     small[np.argmax(piece_area)] = False
     stray = small & (span <= STRAY_SPAN)
     if surface is not None and len(surface):
-        for p in np.flatnonzero(small & ~stray):
-            samples = norm.apply(surface[:: max(1, len(surface) // COVER_SAMPLES)])
-            stray[p] = _covered(v, f, labels == p, samples, STRAY_SPAN * size)
+        samples = norm.apply(surface[:: max(1, len(surface) // COVER_SAMPLES)])
+        for p in np.argsort(piece_area, kind="stable"):  # each weighed against what the strays before it leave
+            if small[p] and not stray[p]:
+                left = ~np.isin(labels, np.flatnonzero(stray))
+                stray[p] = _covered(v, f[left], labels[left] == p, samples, STRAY_SPAN * size)
     order = [p for p in np.argsort(piece_area, kind="stable") if stray[p]][: n - max(keep, 1)]
     return f[~np.isin(labels, order)]
 

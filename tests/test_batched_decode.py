@@ -133,8 +133,11 @@ def test_pipeline_candidates_are_each_seed_alone(monkeypatch):
     """Every candidate (not only the chosen one) is the mesh its seed gives alone, scored as before."""
     import fastmesh.pipeline.result as fp
 
-    # Candidates are scored before the whole step; the random networks' strays would be pulled in after it.
+    # Candidates are scored before the whole step; the random networks' strays would be pulled in after it, and
+    # those the rest covers dropped.
     monkeypatch.setattr(fp, "pull_in", lambda vertices, surface, limit: (vertices, np.zeros(len(vertices), bool)))
+    drop = fp.drop_strays
+    monkeypatch.setattr(fp, "drop_strays", lambda vertices, faces, keep, surface=None: drop(vertices, faces, keep))
     pipe = Pipeline.random(seed=0)
     shape = point_cloud(primitive("l_block"), 4000)  # its points: the block's own 20 faces would come back
     # Open: a closed block's points are rebuilt from its planes, with no candidates decoded.

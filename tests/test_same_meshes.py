@@ -26,9 +26,10 @@ from fastmesh.pipeline import Pipeline
 from fastmesh.shapes.shape import Shape
 
 STORED = Path(__file__).parent / "data" / "same_meshes.npz"
-# Vertices may move by float64 rounding between releases of numpy and scipy (their sums in another order):
-# 1e-16 to 3e-12 seen; any change of the method moves them by far more.
-ROUNDING = 1e-9
+# Vertices may move by float64 rounding between releases of numpy and scipy and between CPUs (their sums in
+# another order): up to 1e-9 of the result's size seen (an ellipsoid's fit, whose planes around a vertex are
+# nearly one); any change of the method moves them by far more.
+ROUNDING = 1e-8  # of the result's size
 PICKED = (0, 3, 4, 6, 9)  # of varied(12, seed=9): ellipsoid cloud, box mesh, torus cloud with target, f13, wavy
 
 
@@ -74,7 +75,7 @@ def test_same_mesh_as_stored(pipe, stored, case):
         want = stored[f"{name}/{key}"]
         assert value.shape == want.shape, f"{name} {key}: {value.shape} now, {want.shape} stored"
         if key == "vertices":
-            same = np.allclose(value, want, rtol=0, atol=ROUNDING)
+            same = np.allclose(value, want, rtol=0, atol=ROUNDING * np.ptp(want, axis=0).max())
         elif key == "faces":  # the same oriented triangles in the same order, each from any of its corners
             same = np.array_equal(_from_least(value), _from_least(want))
         else:

@@ -260,6 +260,17 @@ def dense_grid_flat(flat, logits) -> torch.Tensor:
     return grid
 
 
+def raise_cells(grid: torch.Tensor, points: np.ndarray, logodds: float) -> torch.Tensor:
+    """``grid`` (..., 128^3) with the cells of ``points`` (K, 3) (unit cube) raised to at least ``logodds``:
+    evidence the input gives outright (a mesh's corners, ``shapes.corners``), beside what the network reads."""
+    if len(points) == 0:
+        return grid
+    flat = torch.as_tensor(flat_index(quantize(np.asarray(points))), dtype=torch.long, device=grid.device)
+    out = grid.clone()
+    out[..., flat] = out[..., flat].clamp(min=logodds)
+    return out
+
+
 def select_cells(cells: torch.Tensor | np.ndarray, logits: torch.Tensor | np.ndarray, count: int | None = None,
                  threshold: float = 0.0) -> np.ndarray:
     """The evidence alone as a vertex set: best cells first, each suppressing its 26 neighbours.

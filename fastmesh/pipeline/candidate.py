@@ -16,11 +16,13 @@ from ..export.quads import EdgeEvidence
 from ..faces import mesh_from_adjacency
 from ..faces.facecount import CountRule, count_rule
 from ..faces.filtering import predict_edges
+from ..faces.meshops import weld
 from ..fitting import distinct, fit_radius, fit_samples, fit_to_planes
-from ..models.cells import snap_to_cells
+from ..models.cells import raise_cells, snap_to_cells
 from ..models.generate import GenerationError
 from ..params import GenerateParams
 from ..request import Frame, Request
+from ..shapes.corners import mesh_corners
 from ..tokenizer import dequantize
 from ..tokenizer import vertex as vt
 from ..tokenizer.grid import CELL
@@ -40,9 +42,9 @@ class CandidateSteps:
             raise ValueError("target_faces: this vertex decoder was not trained with a face-count condition")
         return torch.tensor([params.target_faces], device=self.device)
 
-    def _logodds(self, frame: Frame) -> torch.Tensor | None:
+    def _logodds(self, frame: Frame, params: GenerateParams | None = None) -> torch.Tensor | None:
         """(1, 128^3) cell log-odds of the input in ``frame`` for a decoder that reads them (``models.cells``),
-        else None.
+        else None; a mesh input's corners (``shapes.corners``) raised to ``params``' ``SamplingConfig.corner_logodds``.
 
         Evidence about the input, not a random choice: drawn from one sample of fixed seed, so every
         candidate reads the same grid and candidate k stays exactly what seed + k gives alone.
@@ -50,7 +52,11 @@ class CandidateSteps:
         if not self.vertex.cfg.evidence_cells:
             return None
         pts, nrm = frame.samples(self.cell_net.cfg.n_points, CELL_SEED)
-        return self.cell_net.grid(pts, nrm)[None].to(self.device)
+        grid = self.cell_net.grid(pts, nrm)[None].to(self.device)
+        corner = (params or GenerateParams()).sampling(self.max_vertices).corner_logodds
+        if corner is None or frame.shape.faces is None:
+            return grid
+        return raise_cells(grid, mesh_corners(*weld(frame.unit, frame.shape.faces)), corner)
 
     def _encode(self, frame: Frame, seed: int, params: GenerateParams, logodds: torch.Tensor | None = None) -> tuple:
         """The surface sample of ``seed`` in ``frame`` (points, normals: (n, 3) float32 in its unit cube) and the

@@ -81,7 +81,7 @@ class FrameSteps(CandidateSteps):
         # Candidate k is exactly what seed + k gives alone; all are scored against one sample of the input.
         frame.reference = frame.surface(self.triangle_config.support_points, seed) if n_cand > 1 else None
         with stage("encode", req.timings):
-            frame.logodds = self._logodds(frame)
+            frame.logodds = self._logodds(frame, req.params)
             frame.encoded = [self._encode(frame, seed + k, req.params, frame.logodds) for k in range(n_cand)]
         return frame
 

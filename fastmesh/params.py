@@ -208,8 +208,8 @@ class SamplingConfig:
     snap_margin: float | None = 1.0
     # A mesh input's corners (``shapes.corners``: where three of its planes meet at creases) raise their cells'
     # log-odds to at least this, so the decoder emits a vertex there (None: off).  On the 60 held-out mesh
-    # inputs, off: P@1 0.499 / R@1 0.392, CD 1.45; 3: 0.539 / 0.451, 1.45; 8: 0.540 / 0.457, 1.43
-    # (docs/results.md).
+    # inputs, off: P@1 0.499 / R@1 0.392, CD 1.45; 8: 0.560 / 0.472, 1.42 (docs/results.md); 3 did a little
+    # worse than 8 in a first measure.
     corner_logodds: float | None = 8.0
 
     def validate(self) -> None:

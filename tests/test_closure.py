@@ -168,6 +168,22 @@ def test_an_opening_of_the_input_stays_open():
     assert len(close_loops(v, hemi, _book(v, hemi, pts), pts, support_limit(pts, 0.0))[1]) == len(hemi)
 
 
+def test_without_bounds_every_loop_closes_however_far_its_cap_strays():
+    """A closed mesh input has no openings (``TriangleConfig.close_everywhere``): the cap the bounded closure
+    refuses above is taken, and the result is watertight and edge-manifold, for caps of random heights."""
+    rng = np.random.default_rng(4)
+    m = trimesh.creation.icosphere(2)
+    v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    for cut in rng.uniform(0.4, 0.8, 3):
+        part = f[m.triangles_center[:, 2] < cut]
+        pts = sample_surface(Shape(vertices=v, faces=part), 4000)[0].astype(np.float64)
+        limit = support_limit(pts, 0.0)
+        assert len(close_loops(v, part, _book(v, part, pts), pts, limit)[1]) == len(part)
+        out_v, out_f = close_loops(v, part, _book(v, part, pts), pts, limit, bounded=False)
+        top = topology(orient_faces(out_v, out_f))
+        assert top["watertight"] and top["non_manifold_vertices"] == 0
+
+
 def test_a_loop_no_triangulation_closes_gets_a_fan_about_an_input_point(monkeypatch):
     """Where no triangulation of a loop's own vertices fits, the loop is joined to a new vertex: the input
     point nearest its middle.  (The triangulations are refused here to reach that step.)"""
@@ -185,3 +201,27 @@ def test_a_loop_no_triangulation_closes_gets_a_fan_about_an_input_point(monkeypa
     top = topology(orient_faces(out_v, out_f))
     assert top["watertight"] and top["non_manifold_vertices"] == 0 and len(out_v) == len(v) + holes
     assert np.isin(out_v[len(v):], pts).all(1).all()  # the new vertices are input points
+
+
+@pytest.mark.parametrize(("holed", "closed", "everywhere"),
+                         [(False, "auto", True), (True, "auto", False), (False, "true", False)])
+def test_the_pipeline_closes_everywhere_only_for_a_closed_mesh_it_decided_on(monkeypatch, holed, closed, everywhere):
+    """A closed mesh input (``closed=auto``) has no openings; one with a hole, or a closure asked for whatever
+    the input, keeps the closure's reach."""
+    import fastmesh.pipeline.candidate as candidate
+    from fastmesh.params import GenerateParams
+    from fastmesh.pipeline import Pipeline
+
+    seen = []
+
+    def spy(positions, edges, config, **kw):
+        seen.append(config.close_everywhere)
+        return real(positions, edges, config, **kw)
+
+    real = candidate.mesh_from_adjacency
+    monkeypatch.setattr(candidate, "mesh_from_adjacency", spy)
+    m = trimesh.creation.icosphere(2)
+    faces = np.asarray(m.faces)[m.triangles_center[:, 2] < 0.9] if holed else np.asarray(m.faces)
+    Pipeline.random().generate(Shape(vertices=np.asarray(m.vertices), faces=faces),
+                               GenerateParams(seed=0, closed=closed, max_vertices=48))
+    assert seen and set(seen) == {everywhere}

@@ -148,7 +148,8 @@ def _winding(queries: np.ndarray, points: np.ndarray, normals: np.ndarray, area:
 
 
 def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarray, limit: float,
-                tree: cKDTree | None = None, max_loop: int = CLOSE_MAX_LOOP) -> tuple[np.ndarray, np.ndarray]:
+                tree: cKDTree | None = None, max_loop: int = CLOSE_MAX_LOOP, bounded: bool = True
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Close the boundary loops of a selected surface, giving up a little more at each step.
 
     Each loop of at most ``max_loop`` edges is closed, at the first step that closes it, by: ear clipping
@@ -158,7 +159,8 @@ def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarra
     already has, folds allowed (it stays edge-manifold); a loop that passes a vertex twice and does not close
     so is closed in its simple parts.
     A cap with a point farther from the input than the last relaxed limit is not taken: a loop whose every
-    cap strays so far is an opening of the input, and stays open.  A loop that nothing on its own vertices
+    cap strays so far is an opening of the input, and stays open (not ``bounded``: the input has no openings,
+    and every loop is closed however far its cap strays).  A loop that nothing on its own vertices
     closes gets a fan about a new vertex, the input point nearest its middle.
 
     Parameters
@@ -170,6 +172,7 @@ def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarra
     limit : float, the selection's support limit
     tree : cKDTree of ``points``, optional
     max_loop : int
+    bounded : bool, hold the caps to the last relaxed limit
 
     Returns
     -------
@@ -178,7 +181,7 @@ def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarra
     """
     # A cap may lie on the input by the median of each face and still cross an opening the input has: the
     # farthest point of its faces is held to the last relaxed limit too.
-    reach = limit * RELAX[-1]
+    reach = limit * RELAX[-1] if bounded else np.inf
     support = SupportCache(vertices, points, tree, bound=reach)  # no step compares with more than reach
     tree = support.tree
 

@@ -199,7 +199,7 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
     edges : (E, 2) int, the model's predicted edges
     points : (P, 3) float, samples of the input surface in the frame of ``vertices``
     config : TriangleConfig
-        ``surface_tol``, ``fold_angle``, ``fill_max_loop``, ``model_weight``, ``close``.
+        ``surface_tol``, ``fold_angle``, ``fill_max_loop``, ``model_weight``, ``close``, ``close_everywhere``.
     logits : (N, N) float, optional
         The model's edge logits: a triangle scores ``model_weight`` times the mean log-probability of
         its edges minus its support distance in units of the limit.  Without them the
@@ -228,6 +228,6 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
     if cfg.fill_max_loop:
         f = orient_faces(v, fill_holes(v, f, book, pts, limit, tree, cfg.fill_max_loop))
     if cfg.close:
-        v, f = close_loops(v, f, book, pts, limit, tree)
+        v, f = close_loops(v, f, book, pts, limit, tree, bounded=not cfg.close_everywhere)
         f = orient_faces(v, f)
     return v, f

@@ -68,6 +68,10 @@ class TriangleConfig:
     close : bool
         ``"surface"``: close the loops hole filling left open (:func:`fastmesh.faces.closure.close_loops`): the
         pipeline sets it per request, for an input that is closed (``closure.decide_closed``).
+    close_everywhere : bool
+        ``close`` with no reach: every loop is closed, however far its cap lies from the input samples (the
+        closure's last steps otherwise leave a loop open whose every cap strays beyond a few support limits:
+        an opening of the input).  The pipeline sets it per request for a closed mesh input, which has none.
     flat_tol : float or None
         Last, remove the vertices of flat regions, straight creases and straight open borders
         (:func:`fastmesh.faces.simplify.collapse_flat`): a kept vertex stays within ``flat_tol * L``
@@ -90,6 +94,7 @@ class TriangleConfig:
     fill_max_loop: int = 64
     model_weight: float = 0.1
     close: bool = False
+    close_everywhere: bool = False
     flat_tol: float | None = 0.5 * CELL
 
     def __post_init__(self):

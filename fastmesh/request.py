@@ -97,6 +97,8 @@ class Request:
     frame : Frame, the input's own (identity rotation)
     close : bool, whether the result is closed (``closure.decide_closed``); ``reason`` says why: one of
         ``decide_closed``'s, or "open_planes" (an open surface rebuilt from its planes, ``open_planar``)
+    sealed : bool, the result is closed and the input is a closed mesh (``closure.without_openings``): it has no
+        openings, so the closure closes every loop however far its cap strays (``TriangleConfig.close_everywhere``)
     """
 
     shape: Shape
@@ -108,6 +110,7 @@ class Request:
     frame: Frame
     close: bool = True
     reason: str = "closed_points"
+    sealed: bool = False
 
     @classmethod
     def start(cls, shape: Shape, params: GenerateParams, progress: Callable[[str, float], None] | None = None,

@@ -204,10 +204,10 @@ def test_a_loop_no_triangulation_closes_gets_a_fan_about_an_input_point(monkeypa
 
 
 @pytest.mark.parametrize(("holed", "closed", "everywhere"),
-                         [(False, "auto", True), (True, "auto", False), (False, "true", False)])
-def test_the_pipeline_closes_everywhere_only_for_a_closed_mesh_it_decided_on(monkeypatch, holed, closed, everywhere):
-    """A closed mesh input (``closed=auto``) has no openings; one with a hole, or a closure asked for whatever
-    the input, keeps the closure's reach."""
+                         [(False, "auto", True), (False, "true", True), (True, "auto", False), (True, "true", False)])
+def test_the_pipeline_closes_everywhere_only_for_a_closed_mesh(monkeypatch, holed, closed, everywhere):
+    """A closed mesh input has no openings, whether ``closed`` is decided or asked; one with a hole, even asked
+    to close, keeps the closure's reach."""
     import fastmesh.pipeline.candidate as candidate
     from fastmesh.params import GenerateParams
     from fastmesh.pipeline import Pipeline

@@ -76,12 +76,18 @@ def decide_closed(shape: Shape, closed: str = "auto") -> tuple[bool, str]:
     if closed != "auto":
         return closed == "true", "asked"
     if shape.faces is not None:
-        close = mesh_open_share(shape.vertices, shape.faces) <= OPEN_SHARE
+        close = without_openings(shape)
         return close, "closed_mesh" if close else "open_mesh"
     if shape.normals is None:
         return False, "open_points"
     close = winding_closed_share(shape.vertices, shape.normals) >= CLOSED_SHARE
     return close, "closed_points" if close else "open_points"
+
+
+def without_openings(shape: Shape) -> bool:
+    """Whether ``shape`` is a closed mesh: its edges (vertices welded) with one face are at most ``OPEN_SHARE``
+    of all.  A point cloud is never known to be one."""
+    return shape.faces is not None and mesh_open_share(shape.vertices, shape.faces) <= OPEN_SHARE
 
 
 def mesh_open_share(vertices: np.ndarray, faces: np.ndarray) -> float:

@@ -71,7 +71,8 @@ class TriangleConfig:
     close_everywhere : bool
         ``close`` with no reach: every loop is closed, however far its cap lies from the input samples (the
         closure's last steps otherwise leave a loop open whose every cap strays beyond a few support limits:
-        an opening of the input).  The pipeline sets it per request for a closed mesh input, which has none.
+        an opening of the input).  The pipeline sets it per request for a closed mesh input, which has none
+        (``Request.sealed``).
     flat_tol : float or None
         Last, remove the vertices of flat regions, straight creases and straight open borders
         (:func:`fastmesh.faces.simplify.collapse_flat`): a kept vertex stays within ``flat_tol * L``

@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from ..batch import DecodeRequest
-from ..faces.closure import decide_closed
+from ..faces.closure import decide_closed, without_openings
 from ..faces.filtering import FilterConfig
 from ..faces.triangles import TriangleConfig
 from ..fitting import FitConfig
@@ -273,6 +273,7 @@ class Pipeline(FrameSteps):
         cheap = shape.faces is not None or params.closed != "auto"
         if cheap:
             req.close, req.reason = decide_closed(shape, params.closed)
+            req.sealed = req.close and (req.reason == "closed_mesh" or without_openings(shape))
         flat = step8.planar(req) if req.close else None
         if flat is not None:
             return self._unrun(req, *flat)

@@ -171,8 +171,7 @@ class CandidateSteps:
         # Triangles on the input surface, scored by the edge logits, kept a surface, holes closed, flat vertices
         # removed (but not below a face-count target: ``req.count.remove_flat``).
         with stage("faces", timings):
-            # A closed mesh has no openings: every loop its result keeps is closed, however far its cap strays.
-            tc = replace(self.triangle_config, close=req.close, close_everywhere=req.reason == "closed_mesh")
+            tc = replace(self.triangle_config, close=req.close, close_everywhere=req.sealed)
             if not req.count.remove_flat:  # the count asked for: flat regions keep their vertices
                 tc = replace(tc, flat_tol=None)
             surface = None

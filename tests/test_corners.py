@@ -113,3 +113,16 @@ def _params(corner):
     from fastmesh.params import TunedParams
 
     return TunedParams({"corner_logodds": corner})
+
+
+def test_windings_flipped_at_random_change_no_corner():
+    """Faces of one file wound either way: its flat regions read as creases, but their planes fix one direction
+    and make no corner; the corners are the same."""
+    rng = np.random.default_rng(8)
+    v, f, own = dense(random_shape("l_block", rng), rng)
+    flipped = f.copy()
+    turn = rng.random(len(f)) < 0.5
+    flipped[turn] = flipped[turn][:, ::-1]
+    a, b = mesh_corners(v, f), mesh_corners(v, flipped)
+    assert len(a) == len(b) == len(own)
+    assert cKDTree(a).query(b)[0].max() < 1e-9

@@ -116,8 +116,8 @@ def _params(corner):
 
 
 def test_windings_flipped_at_random_change_no_corner():
-    """Faces of one file wound either way: its flat regions read as creases, but their planes fix one direction
-    and make no corner; the corners are the same."""
+    """Faces of one file wound either way: the same creases (the normals' signs are not read), the same
+    corners."""
     rng = np.random.default_rng(8)
     v, f, own = dense(random_shape("l_block", rng), rng)
     flipped = f.copy()
@@ -126,3 +126,35 @@ def test_windings_flipped_at_random_change_no_corner():
     a, b = mesh_corners(v, f), mesh_corners(v, flipped)
     assert len(a) == len(b) == len(own)
     assert cKDTree(a).query(b)[0].max() < 1e-9
+
+
+def test_seeds_read_in_chunks_give_the_corners_read_at_once(monkeypatch):
+    import fastmesh.shapes.corners as corners
+
+    rng = np.random.default_rng(2)
+    v, f, _ = dense(random_shape("prism", rng), rng)
+    whole = mesh_corners(v, f)
+    monkeypatch.setattr(corners, "SEED_CHUNK", 7)
+    assert np.array_equal(mesh_corners(v, f), whole)
+
+
+def test_a_mesh_creased_everywhere_shows_no_corners(monkeypatch):
+    """Noise makes most vertices seeds: such a mesh is not read (its corners would be noise), nor one of more
+    than ``MAX_SEEDS`` seeds (its cost is bounded); a low-poly mesh, all of whose vertices are seeds, is."""
+    import fastmesh.shapes.corners as corners
+
+    rng = np.random.default_rng(1)
+    box = trimesh.creation.box(extents=rng.uniform(0.3, 1.0, 3))
+    v, f = trimesh.remesh.subdivide_to_size(box.vertices, box.faces, 0.02)
+    clean = mesh_corners(v, f)
+    assert len(clean) == 8
+    noisy = v + 0.002 * rng.standard_normal(v.shape)
+    seeds = len(corners.corner_seeds(noisy, crease_edges(noisy, f)))
+    assert seeds > corners.MAX_SEED_SHARE * len(v) and seeds > corners.FEW_SEEDS
+    monkeypatch.setattr(corners, "MAX_SEED_SHARE", 1.0)
+    assert len(mesh_corners(noisy, f)) > 100  # what the noise would give
+    monkeypatch.undo()
+    assert len(mesh_corners(noisy, f)) == 0
+    assert len(mesh_corners(box.vertices, box.faces)) == 8
+    monkeypatch.setattr(corners, "MAX_SEEDS", 7)
+    assert len(mesh_corners(box.vertices, box.faces)) == 0

@@ -7,7 +7,7 @@ each corner where the planes of the faces around it meet (the least-squares poin
 ``fitting.fit_to_planes`` does for samples), keeping only those the planes fix in all three directions.
 
 The vertex stage reads them as evidence (``pipeline.candidate``: their cells' log-odds raised), so the decoder
-emits a vertex there and the fit puts it on the corner.  On the 60 held-out mesh inputs 96 % of the corners
+emits a vertex there and the fit puts it on the corner.  On the 60 held-out mesh inputs 95 % of the corners
 found lie within one cell of an artist's vertex, and they hold 46 % of the artist's vertices (docs/results.md).
 """
 

@@ -158,16 +158,15 @@ def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarra
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Close the boundary loops of a selected surface, giving up a little more at each step.
 
-    Each loop of at most ``max_loop`` edges is closed, at the first step that closes it, by: ear clipping
-    and (up to ``WHOLE_MAX`` edges) whole triangulation under the selection's rules
-    (:func:`fastmesh.faces.holes._close_loop`) with the support limit relaxed by each factor of ``RELAX``; then,
-    within the last of them, the whole triangulation of least support distance that adds no edge the surface
-    already has, folds allowed (it stays edge-manifold); a loop that passes a vertex twice and does not close
-    so is closed in its simple parts.
-    A cap with a point farther from the input than the last relaxed limit is not taken: a loop whose every
-    cap strays so far is an opening of the input, and stays open (not ``bounded``: the input has no openings,
-    and every loop is closed however far its cap strays).  A loop that nothing on its own vertices
-    closes gets a fan about a new vertex, the input point nearest its middle.
+    Each loop of at most ``max_loop`` edges is closed, at the first step that closes it, by: ear clipping and (up to
+    ``WHOLE_MAX`` edges) whole triangulation under the selection's rules (:func:`fastmesh.faces.holes._close_loop`)
+    with the support limit relaxed by each factor of ``RELAX``; then, within the last of them, the whole
+    triangulation of least support distance that adds no edge the surface already has, folds allowed (it stays
+    edge-manifold); a loop that passes a vertex twice and does not close so is closed in its simple parts. A cap
+    with a point farther from the input than the last relaxed limit is not taken: a loop whose every cap strays so
+    far is an opening of the input, and stays open (not ``bounded``: the input has no openings, and every loop is
+    closed however far its cap strays). A loop that nothing on its own vertices closes gets a fan about a new
+    vertex, the input point nearest its middle.
 
     Parameters
     ----------
@@ -178,15 +177,14 @@ def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarra
     limit : float, the selection's support limit
     tree : cKDTree of ``points``, optional
     max_loop : int
-    bounded : bool, hold the caps to the last relaxed limit
+    bounded : bool, caps held to the last relaxed limit
 
     Returns
     -------
     vertices : (N + k, 3) float64, ``vertices`` and the k the closure added (:func:`_fan`)
     faces : (F', 3) int64, ``faces`` and the closing faces (windings to be made consistent by the caller)
     """
-    # A cap may lie on the input by the median of each face and still cross an opening the input has: the
-    # farthest point of its faces is held to the last relaxed limit too.
+    # A cap may lie on the input by the median of each face and still cross an opening: its farthest point counts.
     reach = limit * RELAX[-1] if bounded else np.inf
     support = SupportCache(vertices, points, tree, bound=reach)  # no step compares with more than reach
     tree = support.tree

@@ -99,6 +99,8 @@ class Request:
         ``decide_closed``'s, or "open_planes" (an open surface rebuilt from its planes, ``open_planar``)
     sealed : bool, the result is closed and the input is a closed mesh (``closure.without_openings``): it has no
         openings, so the closure closes every loop however far its cap strays (``TriangleConfig.close_everywhere``)
+    corners : (K, 3) float64 or None, a mesh input's corners in its own coordinates once found
+        (``FrameSteps._corners_in``; every frame reads them turned)
     """
 
     shape: Shape
@@ -111,6 +113,7 @@ class Request:
     close: bool = True
     reason: str = "closed_points"
     sealed: bool = False
+    corners: np.ndarray | None = None
 
     @classmethod
     def start(cls, shape: Shape, params: GenerateParams, progress: Callable[[str, float], None] | None = None,

@@ -9,6 +9,7 @@ from scipy.spatial import cKDTree
 
 from fastmesh.evaluation.primitives import point_cloud
 from fastmesh.evaluation.quality import topology
+from fastmesh.faces import closure
 from fastmesh.faces.closure import _winding, close_loops, decide_closed, mesh_open_share, winding_closed_share
 from fastmesh.faces.orient import orient_faces
 from fastmesh.faces.selection import Selection
@@ -75,6 +76,30 @@ def test_a_closed_mesh_split_at_its_seams_is_closed_and_asking_overrides():
     assert decide_closed(Shape(vertices=np.random.default_rng(2).random((100, 3)))) == (False, "open_points")
     with pytest.raises(ValueError, match="closed must be one of"):
         decide_closed(sheet, "yes")
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_dense_mesh_with_a_wide_opening_is_open_and_one_with_small_holes_closed(seed):
+    """The decision does not hang on the density: a box drawn at random without its lid, split into so many faces
+    that under 1 % of its edges are on the opening, is open; its openings' area is the lid's.  The closed box of
+    the same density with a face taken out here and there (cracks a scan leaves) is closed."""
+    rng = np.random.default_rng(seed)
+    ext = rng.uniform(0.2, 1.0, 3) * 10.0 ** rng.uniform(-2, 2)
+    box = trimesh.creation.box(extents=ext)
+    box.apply_transform(trimesh.transformations.random_rotation_matrix(rng.random(3)))
+    top = np.argmax(np.abs(box.face_normals @ box.vertices[0]))  # any one side serves as the lid
+    side = np.abs(box.face_normals @ box.face_normals[top]) > 0.99
+    lid = side & (box.face_normals @ box.face_normals[top] > 0)
+    v, f = trimesh.remesh.subdivide_to_size(box.vertices, box.faces[~lid], ext.max() / 40)
+    open_box = Shape(vertices=v, faces=f)
+    assert 0 < mesh_open_share(v, f) <= closure.OPEN_SHARE
+    lid_area = box.area_faces[lid].sum()
+    assert closure.opening_area_share(v, f) == pytest.approx(lid_area / (box.area - lid_area), rel=1e-6)
+    assert decide_closed(open_box) == (False, "open_mesh")
+    v, f = trimesh.remesh.subdivide_to_size(box.vertices, box.faces, ext.max() / 40)
+    cracked = np.delete(f, rng.choice(len(f), 5, replace=False), axis=0)
+    assert closure.opening_area_share(v, cracked) < closure.HOLE_AREA_SHARE
+    assert decide_closed(Shape(vertices=v, faces=cracked)) == (True, "closed_mesh")
 
 
 def test_winding_numbers_match_the_sum_over_dipoles():

@@ -158,3 +158,30 @@ def test_a_mesh_creased_everywhere_shows_no_corners(monkeypatch):
     assert len(mesh_corners(box.vertices, box.faces)) == 8
     monkeypatch.setattr(corners, "MAX_SEEDS", 7)
     assert len(mesh_corners(box.vertices, box.faces)) == 0
+
+
+def test_a_turned_input_finds_its_corners_once_and_every_frame_reads_the_same_points(shipped, monkeypatch):
+    """The canonical frame reads the corners found in the input's own frame, turned: the points it would find
+    itself (up to rounding), without a second search."""
+    import fastmesh.pipeline.candidate as candidate
+    from fastmesh.params import GenerateParams
+    from fastmesh.request import Request
+    from fastmesh.shapes.canonical import canonical_rotation, frame_normals
+
+    rng = np.random.default_rng(5)
+    v, f, own = dense(random_shape("l_block", rng), rng)
+    shape = Shape(vertices=v, faces=f)
+    calls = []
+    monkeypatch.setattr(candidate, "mesh_corners", lambda *a: calls.append(1) or mesh_corners(*a))
+    req = Request.start(shape, GenerateParams())
+    rotation = canonical_rotation(shape.vertices, frame_normals(shape))
+    turned = Frame.of(shape, rotation)
+    assert shipped._corners_in(req, req.frame) is not None and len(calls) == 1
+    read = shipped._corners_in(req, turned)
+    assert len(calls) == 1  # the second frame found none itself
+    found = mesh_corners(*candidate.weld(turned.unit, turned.shape.faces))
+    assert len(read) == len(found) == len(own)
+    assert cKDTree(found).query(read)[0].max() < 1e-9
+    assert shipped._corners_in(Request.start(Shape(vertices=v), GenerateParams()), req.frame) is None
+    off = Request.start(shape, _params(None))
+    assert shipped._corners_in(off, req.frame) is None and len(calls) == 1

@@ -42,9 +42,11 @@ class CandidateSteps:
             raise ValueError("target_faces: this vertex decoder was not trained with a face-count condition")
         return torch.tensor([params.target_faces], device=self.device)
 
-    def _logodds(self, frame: Frame, params: GenerateParams | None = None) -> torch.Tensor | None:
+    def _logodds(self, frame: Frame, params: GenerateParams | None = None, corners: np.ndarray | None = None
+                 ) -> torch.Tensor | None:
         """(1, 128^3) cell log-odds of the input in ``frame`` for a decoder that reads them (``models.cells``),
-        else None; a mesh input's corners (``shapes.corners``) raised to ``params``' ``SamplingConfig.corner_logodds``.
+        else None; a mesh input's corners (``corners`` (K, 3) in ``frame``'s unit cube, found in ``frame`` when
+        not given: :meth:`_corners`) raised to ``params``' ``SamplingConfig.corner_logodds``.
 
         Evidence about the input, not a random choice: drawn from one sample of fixed seed, so every
         candidate reads the same grid and candidate k stays exactly what seed + k gives alone.
@@ -56,7 +58,12 @@ class CandidateSteps:
         corner = (params or GenerateParams()).sampling(self.max_vertices).corner_logodds
         if corner is None or frame.shape.faces is None:
             return grid
-        return raise_cells(grid, mesh_corners(*weld(frame.unit, frame.shape.faces)), corner)
+        return raise_cells(grid, self._corners(frame) if corners is None else corners, corner)
+
+    @staticmethod
+    def _corners(frame: Frame) -> np.ndarray:
+        """(K, 3) float64 corners of ``frame``'s mesh (``shapes.corners``) in its unit cube."""
+        return mesh_corners(*weld(frame.unit, frame.shape.faces))
 
     def _encode(self, frame: Frame, seed: int, params: GenerateParams, logodds: torch.Tensor | None = None) -> tuple:
         """The surface sample of ``seed`` in ``frame`` (points, normals: (n, 3) float32 in its unit cube) and the

@@ -81,9 +81,20 @@ class FrameSteps(CandidateSteps):
         # Candidate k is exactly what seed + k gives alone; all are scored against one sample of the input.
         frame.reference = frame.surface(self.triangle_config.support_points, seed) if n_cand > 1 else None
         with stage("encode", req.timings):
-            frame.logodds = self._logodds(frame, req.params)
+            frame.logodds = self._logodds(frame, req.params, self._corners_in(req, frame))
             frame.encoded = [self._encode(frame, seed + k, req.params, frame.logodds) for k in range(n_cand)]
         return frame
+
+    def _corners_in(self, req: Request, frame: Frame) -> np.ndarray | None:
+        """(K, 3) a mesh input's corners in ``frame``'s unit cube, found once per request in the input's own
+        frame (``req.corners``) and turned: a second frame would find the same points a second time.  None for a
+        point cloud or where the corners are not read."""
+        reads = self.vertex.cfg.evidence_cells and req.params.sampling(self.max_vertices).corner_logodds is not None
+        if req.shape.faces is None or not reads:
+            return None
+        if req.corners is None:
+            req.corners = req.frame.norm.invert(self._corners(req.frame))
+        return frame.norm.apply(req.corners @ frame.rotation.T)
 
     def _choose(self, req: Request, frame: Frame) -> dict:
         """The frame's candidate nearest its input surface (``support.surface_fit``), turned back to the input's

@@ -5,13 +5,15 @@ the same runs on the CPU with fewer runs.
     python benchmarks/gpu_check.py
 
 1. Installs.  PyTorch must be there.  Of the rest the check needs (numpy, scipy, trimesh, safetensors,
-   mapbox-earcut, pytest and its dependencies) what does not import is installed into ``.gpu-check/site`` (``pip
-   --target``, nothing else of the environment changes): from ``./wheels`` alone when that folder exists (a
-   machine with no network: ``pip install --no-index --find-links wheels``), else from the package index.  To
-   fill ``wheels/`` on a machine with a network, for the GPU machine's Python (here 3.12) and what it lacks::
+   mapbox-earcut, fast-simplification, pytest and its dependencies) what does not import is installed into
+   ``.gpu-check/site`` (``pip --target``, nothing else of the environment changes): from ``./wheels`` alone when
+   that folder exists (a machine with no network: ``pip install --no-index --find-links wheels``), else from the
+   package index.  To fill ``wheels/`` on a machine with a network, for the GPU machine's Python (here 3.12) and
+   what it lacks::
 
        python -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \\
-           --platform manylinux2014_x86_64 --platform manylinux_2_28_x86_64 -d wheels trimesh mapbox-earcut
+           --platform manylinux2014_x86_64 --platform manylinux_2_28_x86_64 -d wheels \\
+           trimesh mapbox-earcut fast-simplification
 
 2. ``pytest -m gpu`` over the test files that hold GPU tests (``tests/test_gpu.py``, ``tests/test_static_decode.py``):
    CUDA and CPU results of the same quality, ``FASTMESH_GPU_CHECK_RUNS`` generate runs on varied inputs with no
@@ -43,8 +45,8 @@ RECORD = WORK / "runs.json"
 WHEELS = REPO / "wheels"
 # module -> distribution: what the pipeline and its tests import beyond PyTorch (and PyTorch's own dependencies)
 NEEDS = {"numpy": "numpy", "scipy": "scipy", "trimesh": "trimesh", "safetensors": "safetensors",
-         "mapbox_earcut": "mapbox-earcut", "pytest": "pytest", "iniconfig": "iniconfig", "packaging": "packaging",
-         "pluggy": "pluggy", "pygments": "pygments"}
+         "mapbox_earcut": "mapbox-earcut", "fast_simplification": "fast-simplification", "pytest": "pytest",
+         "iniconfig": "iniconfig", "packaging": "packaging", "pluggy": "pluggy", "pygments": "pygments"}
 CUDA_SIZES = {"runs": 100, "jobs": 16, "runs_500v": 5, "decode_inputs": 3}
 CPU_SIZES = {"runs": 3, "jobs": 2, "runs_500v": 1, "decode_inputs": 1}
 

@@ -131,6 +131,10 @@ def _quadric_error(q: list[float], p) -> float:
             + 2 * q[6] * y + q[7] * z * z + 2 * q[8] * z + q[9])
 
 
+def _trace(q: list[float]) -> float:
+    return q[0] + q[4] + q[7]
+
+
 def _quadrics(mesh: _Mesh) -> list[list[float]]:
     """Per vertex, the area-weighted quadrics of the planes of its faces, plus, along an open border, the
     planes through each border edge upright on its face (weighted ``BORDER_WEIGHT``)."""
@@ -163,9 +167,10 @@ def _quadrics(mesh: _Mesh) -> list[list[float]]:
     return q
 
 
-def decimate(vertices: np.ndarray, faces: np.ndarray, target: int, area_tol: float = 1e-10) -> np.ndarray:
+def decimate(vertices: np.ndarray, faces: np.ndarray, target: int, area_tol: float = 1e-10,
+             max_move: float | None = None) -> np.ndarray:
     """Half-edge collapses ``v -> u`` of least quadric error until at most ``target`` faces are left (or no
-    collapse keeps the surface a surface).
+    collapse keeps the surface a surface, or none stays within ``max_move``).
 
     Parameters
     ----------
@@ -174,6 +179,9 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, target: int, area_tol: flo
         Vertices whose faces are not one fan (pinches, edges of three faces) are never removed.
     target : int
     area_tol : float, a triangle of area at most ``area_tol * L**2`` is a sliver (``simplify.collapse_flat``)
+    max_move : float or None
+        Only collapses that put the merged vertex within this distance of the planes it stands for (the
+        root of its quadric's error over the quadric's weight: their area-weighted RMS distance) are made.
 
     Returns
     -------
@@ -182,7 +190,7 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, target: int, area_tol: flo
     pos = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     length = float(np.ptp(pos, axis=0).max()) if len(pos) else 0.0
     mesh = _Mesh(pos, np.asarray(faces, dtype=np.int64).reshape(-1, 3), 2 * area_tol * length**2)
-    queue = _Collapses(mesh)
+    queue = _Collapses(mesh, max_move)
     alive = sum(mesh.alive)
     # A collapse changes the link condition up to two rings away: passes over every vertex repeat until the
     # target is reached or a pass collapses nothing (the next would be the same pass).
@@ -207,8 +215,8 @@ class _Collapses:
     """The half-edge collapses of :func:`decimate` waiting in a heap, least quadric error first; a vertex's
     entry counts only while its ``version`` is the one it was queued with."""
 
-    def __init__(self, mesh: _Mesh):
-        self.mesh = mesh
+    def __init__(self, mesh: _Mesh, max_move: float | None = None):
+        self.mesh, self.bound = mesh, None if max_move is None else max_move * max_move
         self.quadric = _quadrics(mesh)
         self.own = [_quadric_error(q, p) for q, p in zip(self.quadric, mesh.p, strict=True)]  # each at itself
         self.version = [0] * len(mesh.p)
@@ -226,6 +234,8 @@ class _Collapses:
         qv, pv = self.quadric[v], mesh.p[v]
         options = sorted((_quadric_error(qv, mesh.p[u]) + self.own[u],
                           _dot(d := _sub(mesh.p[u], pv), d), u) for u in fan[1])
+        if self.bound is not None:  # a quadric's weight is its trace: the sum of its planes' weights
+            options = [o for o in options if o[0] <= self.bound * (_trace(qv) + _trace(self.quadric[o[2]]))]
         for err, length2, u in options:
             if not check or mesh.valid(v, u, *fan, math.inf):
                 heapq.heappush(self.heap, (err, length2, v, u, self.version[v]))

@@ -255,7 +255,8 @@ class Pipeline(FrameSteps):
 
     @staticmethod
     def _unrun(req: Request, vertices: np.ndarray, faces: np.ndarray, source: str) -> GenerateResult:
-        """The result of a request the networks did not run for: rebuilt from planes, or the input itself."""
+        """The result of a request the networks did not run for: rebuilt from planes, simplified within a flat-faced
+        input's surface, or the input itself."""
         req.report.done("faces")
         return step8.finished(req, vertices, faces, tokens=0, info={"turned_degrees": 0.0, "result_from": source})
 
@@ -282,6 +283,9 @@ class Pipeline(FrameSteps):
         few = step8.low_poly(shape, step8.FEW_FACES) if req.count.low_poly_input and params.closed != "true" else None
         if few is not None:
             return self._unrun(req, *few, "input")
+        simple = step8.flat_faced(req)
+        if simple is not None:
+            return self._unrun(req, *simple)
         turn = canonical_rotation(shape.vertices, frame_normals(shape))
         # An open piecewise-planar surface (a ramp, a roof without its floor) from its planes: where the points
         # stop on the sides of its box, there is no surface, whatever the winding numbers decided.

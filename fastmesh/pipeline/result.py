@@ -1,7 +1,8 @@
 """Step 8, the result: made whole, brought to the face count asked for, its quality measured, written out.
 
 :func:`whole` makes the chosen candidate whole (pieces, pinches, far vertices) or gives back a low-poly input;
-:func:`planar` rebuilds a polyhedron from its planes instead of generating; :func:`finished` makes the
+:func:`planar` rebuilds a polyhedron from its planes instead of generating, :func:`flat_faced` simplifies a mesh
+made of flat faces within its own surface; :func:`finished` makes the
 :class:`GenerateResult` (face count, quality report, quads, UVs, placement).
 """
 
@@ -16,6 +17,7 @@ from ..export.output import MeshOut, finish
 from ..export.quads import EdgeEvidence
 from ..faces.facecount import TOLERANCE as COUNT_TOLERANCE
 from ..faces.facecount import hold_count
+from ..faces.flat import simplify_flat
 from ..faces.meshops import edge_face_counts, remove_unreferenced, triangle_areas, weld
 from ..faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
 from ..models.generate import GenerationError
@@ -131,6 +133,20 @@ def planar(req: Request, open_: bool = False, turn: np.ndarray | None = None
         return None
     low = low_poly(shape, int(LOW_POLY_SLACK * len(found[1])))
     return (frame.norm.invert(found[0]), found[1], "planes") if low is None else (*low, "input")
+
+
+def flat_faced(req: Request) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """A mesh input made of flat faces simplified within a fraction of a cell of its own surface
+    (``flat.simplify_flat``), in the input's frame, with where it comes from ("simplified"); None where it is not
+    one, a face count is asked for, or the result must be closed and the input is not.  Its vertices are the
+    input's, its openings and pieces the input's."""
+    shape = req.shape
+    if shape.faces is None or not req.count.low_poly_input or (req.close and not req.sealed):
+        return None
+    with stage("faces", req.timings):
+        vertices, faces = weld(req.frame.unit, shape.faces)
+        found = simplify_flat(vertices, faces)
+    return None if found is None else (req.frame.norm.invert(found[0]), found[1], "simplified")
 
 
 def finished(req: Request, vertices: np.ndarray, faces: np.ndarray, tokens: int, info: dict,

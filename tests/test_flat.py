@@ -1,0 +1,94 @@
+"""A dense mesh made of flat faces simplified within its own surface (``fastmesh.faces.flat``), and the pipeline
+giving it back without running the networks."""
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from fastmesh.evaluation.primitives import posed, random_shape
+from fastmesh.evaluation.quality import topology
+from fastmesh.faces import flat
+from fastmesh.faces.facecount import decimate
+from fastmesh.faces.meshops import piece_labels, remove_unreferenced
+from fastmesh.params import GenerateParams
+from fastmesh.shapes.shape import Normalization, Shape
+from fastmesh.tokenizer.grid import CELL
+
+
+def _dense(shape: Shape, rng: np.random.Generator, size: float = 0.06) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``shape`` turned at random into the unit cube and split into faces under ``size``; its own vertices too."""
+    turned = posed(shape, rng)
+    unit = Normalization.fit(turned.vertices).apply(turned.vertices)
+    v, f = trimesh.remesh.subdivide_to_size(unit, turned.faces, size)
+    return v, f, unit
+
+
+@pytest.mark.parametrize("kind", ["box", "l_block", "prism"])
+def test_flat_shapes_of_any_proportions_and_pose_come_back_as_their_own_corners(kind):
+    rng = np.random.default_rng({"box": 1, "l_block": 2, "prism": 3}[kind])
+    for _ in range(2):
+        v, f, own = _dense(random_shape(kind, rng), rng)
+        out_v, out_f = flat.simplify_flat(v, f)
+        assert len(out_v) == len(own)
+        assert cKDTree(own).query(out_v)[0].max() < 1e-9 and cKDTree(out_v).query(own)[0].max() < 1e-9
+        assert topology(out_f)["watertight"]
+
+
+def test_an_open_mesh_in_two_pieces_keeps_its_opening_and_its_pieces():
+    rng = np.random.default_rng(4)
+    box = trimesh.creation.box(extents=rng.uniform(0.3, 1.0, 3))
+    lidless = box.submesh([np.flatnonzero(box.face_normals[:, 2] < 0.5)], append=True)
+    other = trimesh.creation.box(extents=(0.2, 0.3, 0.1))
+    other.apply_translation((1.5, 0.0, 0.0))
+    both = trimesh.util.concatenate([lidless, other])
+    unit = Normalization.fit(both.vertices).apply(both.vertices)
+    mesh = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(unit, both.faces, 0.04))
+    mesh.merge_vertices()
+    out_v, out_f = flat.simplify_flat(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+    assert len(out_v) == 16 and len(out_f) == 10 + 12  # the lidless box's 8 corners and 10 faces, the box's
+    assert topology(out_f)["boundary_edges"] == 4 and len(np.unique(piece_labels(out_f))) == 2
+
+
+def test_a_curved_mesh_is_left_to_the_networks():
+    sphere = trimesh.creation.icosphere(4)
+    assert flat.flat_share(sphere.vertices, sphere.faces, 0.5) < 0.1
+    assert flat.simplify_flat(np.asarray(sphere.vertices), np.asarray(sphere.faces)) is None
+
+
+def test_collapses_stay_within_the_bound_and_the_gap_sees_a_stray_vertex():
+    # A flat square grid with one vertex raised by half a cell: the bound keeps the bump, no bound flattens it.
+    n = 12
+    x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
+    v = np.c_[x.ravel(), y.ravel(), np.zeros(n * n)]
+    i = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
+    f = np.r_[np.c_[i, i + 1, i + n], np.c_[i + 1, i + n + 1, i + n]]
+    bump = (n // 2) * n + n // 2
+    v[bump, 2] = 0.5 * CELL
+    kept = remove_unreferenced(v, decimate(v, f, 1, max_move=0.1 * CELL))[0]
+    assert np.isclose(kept[:, 2].max(), 0.5 * CELL)
+    flattened = remove_unreferenced(v, decimate(v, f, 1))[0]
+    assert flattened[:, 2].max() == 0.0
+    moved = v.copy()
+    moved[bump, 2] = 2.5 * CELL
+    assert 1.9 * CELL < flat._gap(v, f, moved, f) <= 2.0 * CELL  # the bump is half a cell high
+    assert flat._gap(v, f, v, f) < 1e-6 * CELL  # the input samples are float32
+
+
+def test_the_pipeline_gives_a_flat_mesh_back_simplified_unless_a_count_or_closing_is_asked():
+    from fastmesh.pipeline import Pipeline
+
+    rng = np.random.default_rng(6)
+    box = trimesh.creation.box(extents=rng.uniform(0.3, 1.0, 3))
+    lidless = box.submesh([np.flatnonzero(box.face_normals[:, 2] < 0.5)], append=True)
+    mesh = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(lidless.vertices * 250.0 + 1e4, lidless.faces, 10.0))
+    mesh.merge_vertices()
+    shape = Shape(vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces))
+    pipe = Pipeline.random()
+    res = pipe.generate(shape, GenerateParams(seed=0, max_vertices=48))
+    assert res.info["result_from"] == "simplified" and res.tokens == 0 and len(res.faces) == 10
+    assert cKDTree(lidless.vertices * 250.0 + 1e4).query(res.vertices)[0].max() < 1e-6
+    assert res.quality["boundary_edges"] == 4
+    for params in (GenerateParams(seed=0, max_vertices=48, target_faces=40),
+                   GenerateParams(seed=0, max_vertices=48, closed="true")):
+        assert pipe.generate(shape, params).info["result_from"] != "simplified"

@@ -92,3 +92,12 @@ def test_the_pipeline_gives_a_flat_mesh_back_simplified_unless_a_count_or_closin
     for params in (GenerateParams(seed=0, max_vertices=48, target_faces=40),
                    GenerateParams(seed=0, max_vertices=48, closed="true")):
         assert pipe.generate(shape, params).info["result_from"] != "simplified"
+
+
+def test_a_mesh_split_at_every_face_like_an_stl_is_welded_first():
+    rng = np.random.default_rng(7)
+    v, f, own = _dense(random_shape("l_block", rng), rng, size=0.1)
+    split_v, split_f = v[f].reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3)
+    out_v, out_f = flat.simplify_flat(split_v, split_f)
+    assert len(out_v) == len(own) and cKDTree(own).query(out_v)[0].max() < 1e-9
+    assert topology(out_f)["watertight"]

@@ -144,8 +144,7 @@ def flat_faced(req: Request) -> tuple[np.ndarray, np.ndarray, str] | None:
     if shape.faces is None or not req.count.low_poly_input or (req.close and not req.sealed):
         return None
     with stage("faces", req.timings):
-        vertices, faces = weld(req.frame.unit, shape.faces)
-        found = simplify_flat(vertices, faces)
+        found = simplify_flat(req.frame.unit, shape.faces)
     return None if found is None else (req.frame.norm.invert(found[0]), found[1], "simplified")
 
 

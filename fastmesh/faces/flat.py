@@ -13,14 +13,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import fast_simplification
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..shapes.corners import edge_turns
 from ..shapes.io import sample_surface
 from ..shapes.shape import Shape
 from ..tokenizer.grid import CELL
 from .facecount import decimate
-from .meshops import distance_to_triangles, edge_face_counts, face_sides, remove_unreferenced, triangle_areas, weld
+from .meshops import distance_to_triangles, edge_face_counts, remove_unreferenced, triangle_areas, weld
 
 
 @dataclass(frozen=True)
@@ -47,29 +49,10 @@ class FlatConfig:
 
 
 def flat_share(vertices: np.ndarray, faces: np.ndarray, degrees: float) -> float:
-    """The share of the edges of exactly two faces whose faces' planes turn by at most ``degrees`` (0 without
-    such edges).
-
-    Parameters
-    ----------
-    vertices : (N, 3) float
-    faces : (F, 3) int, welded
-    """
-    v, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n /= np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
-    e = np.sort(face_sides(f), axis=1)
-    owner = np.tile(np.arange(len(f)), 3)
-    order = np.lexsort((e[:, 1], e[:, 0]))
-    e, owner = e[order], owner[order]
-    same = (e[1:] == e[:-1]).all(1)
-    # Exactly two faces: the pair is neither continued nor preceded by a third use of the edge.
-    two = same & np.r_[True, ~same[:-1]] & np.r_[~same[1:], True]
-    first = np.flatnonzero(two)
-    if len(first) == 0:
-        return 0.0
-    cos = np.einsum("ij,ij->i", n[owner[first]], n[owner[first + 1]])
-    return float((cos >= np.cos(np.radians(degrees))).mean())
+    """The share of the edges of exactly two faces (``shapes.corners.edge_turns``; ``faces`` welded) whose faces'
+    planes turn by at most ``degrees``, their windings read (0 without such edges)."""
+    cos = edge_turns(vertices, faces)[1]
+    return float((cos >= np.cos(np.radians(degrees))).mean()) if len(cos) else 0.0
 
 
 def simplify_flat(vertices: np.ndarray, faces: np.ndarray, cfg: FlatConfig = FlatConfig()
@@ -92,8 +75,6 @@ def simplify_flat(vertices: np.ndarray, faces: np.ndarray, cfg: FlatConfig = Fla
     v, f = weld(vertices, faces)
     if flat_share(v, f, cfg.flat_degrees) < cfg.flat_share:
         return None
-    import fast_simplification
-
     # Collapses of no error (fast-simplification's lossless mode, C++) halve a flat mesh in milliseconds; ours,
     # in Python, then go as far as the bound allows.  Where the lossless ones stray (they may, at open borders),
     # the gap below refuses the result.

@@ -32,25 +32,39 @@ MAX_SEEDS = 20_000
 SEED_CHUNK = 2048  # seeds whose faces are gathered at once: bounds the memory on a dense mesh
 
 
-def crease_edges(vertices: np.ndarray, faces: np.ndarray, degrees: float = CREASE_DEGREES) -> np.ndarray:
-    """(E, 2) int64 edges shared by exactly two faces (F, 3) whose planes turn by more than ``degrees`` (and less
-    than 180 minus it: the normals' signs are not read)."""
-    v, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64)
+def edge_turns(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The edges shared by exactly two faces and how their faces' planes turn there.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float
+    faces : (F, 3) int, welded (a split seam has no two faces on an edge)
+
+    Returns
+    -------
+    edges : (E, 2) int64, sorted pairs
+    cos : (E,) float64, the cosine between the two faces' unit normals as wound (-1: folded back)
+    """
+    v, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     n /= np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     owner = np.tile(np.arange(len(f)), 3)
     order = np.argsort(e[:, 0] * len(v) + e[:, 1], kind="stable")  # one int64 key sorts faster than two
     e, owner = e[order], owner[order]
-    first = np.flatnonzero((e[1:] == e[:-1]).all(1))
-    # Exactly two faces: not a run of three or more (a non-manifold edge has no one turn).
-    alone = np.ones(len(first), dtype=bool)
-    alone &= (first + 2 >= len(e)) | ~(e[np.minimum(first + 2, len(e) - 1)] == e[first]).all(1)
-    alone &= (first == 0) | ~(e[np.maximum(first - 1, 0)] == e[first]).all(1)
-    first = first[alone]
-    # Unsigned: a file whose windings flip between two faces of a flat region has no crease there.
-    cos = np.abs(np.einsum("ij,ij->i", n[owner[first]], n[owner[first + 1]]))
-    return e[first][cos < np.cos(np.radians(degrees))]
+    same = (e[1:] == e[:-1]).all(1)
+    # Exactly two faces: the pair is neither continued nor preceded by a third use of the edge (a non-manifold
+    # edge has no one turn).
+    first = np.flatnonzero(same & np.r_[True, ~same[:-1]] & np.r_[~same[1:], True])
+    return e[first], np.einsum("ij,ij->i", n[owner[first]], n[owner[first + 1]])
+
+
+def crease_edges(vertices: np.ndarray, faces: np.ndarray, degrees: float = CREASE_DEGREES) -> np.ndarray:
+    """(E, 2) int64 edges shared by exactly two faces (F, 3) whose planes turn by more than ``degrees`` (and less
+    than 180 minus it: the normals' signs are not read, so a file whose windings flip between two faces of a
+    flat region has no crease there)."""
+    edges, cos = edge_turns(vertices, faces)
+    return edges[np.abs(cos) < np.cos(np.radians(degrees))]
 
 
 def corner_seeds(vertices: np.ndarray, creases: np.ndarray, turn_degrees: float = TURN_DEGREES) -> np.ndarray:

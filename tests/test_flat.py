@@ -101,3 +101,28 @@ def test_a_mesh_split_at_every_face_like_an_stl_is_welded_first():
     out_v, out_f = flat.simplify_flat(split_v, split_f)
     assert len(out_v) == len(own) and cKDTree(own).query(out_v)[0].max() < 1e-9
     assert topology(out_f)["watertight"]
+
+
+def _grid(a: np.ndarray, b: np.ndarray, point) -> tuple[np.ndarray, np.ndarray]:
+    """A flat sheet of triangles over the grid ``a`` x ``b``; ``point(x, y)`` places a grid point in 3D."""
+    x, y = np.meshgrid(a, b, indexing="ij")
+    v = np.stack(point(x.ravel(), y.ravel()), axis=1)
+    n = len(b)
+    i = np.arange(len(a) * n).reshape(len(a), n)[:-1, :-1].ravel()
+    return v, np.r_[np.c_[i, i + n, i + 1], np.c_[i + 1, i + n, i + n + 1]]
+
+
+def test_a_mesh_with_an_edge_in_three_faces_is_left_to_the_networks():
+    """A fin standing on a plate along a line of the plate's edges: flat everywhere, but those edges have three
+    faces each, and a result must be edge-manifold."""
+    a = np.linspace(-1.0, 1.0, 21)
+    plate_v, plate_f = _grid(a, a, lambda x, y: (x, y, 0 * x))
+    fin_v, fin_f = _grid(a, np.linspace(0.0, 1.0, 11), lambda x, z: (x, 0 * x, z))
+    mesh = trimesh.Trimesh(np.vstack([plate_v, fin_v]), np.vstack([plate_f, fin_f + len(plate_v)]), process=False)
+    mesh.merge_vertices()
+    counts = np.unique(np.sort(mesh.edges, axis=1), axis=0, return_counts=True)[1]
+    assert counts.max() == 3
+    assert flat.flat_share(mesh.vertices, mesh.faces, 0.5) > 0.9
+    assert flat.simplify_flat(np.asarray(mesh.vertices), np.asarray(mesh.faces)) is None
+    plate = flat.simplify_flat(plate_v, plate_f)  # the plate alone is simplified
+    assert plate is not None and len(plate[1]) == 2

@@ -57,8 +57,9 @@ def flat_share(vertices: np.ndarray, faces: np.ndarray, degrees: float) -> float
 
 def simplify_flat(vertices: np.ndarray, faces: np.ndarray, cfg: FlatConfig = FlatConfig()
                   ) -> tuple[np.ndarray, np.ndarray] | None:
-    """The mesh simplified within ``cfg.max_move`` of its own planes, or None where it is not made of flat faces,
-    the result has more than ``cfg.max_faces`` faces or strays farther than ``cfg.max_gap`` from it.
+    """The mesh simplified within ``cfg.max_move`` of its own planes, or None where it is not made of flat faces
+    or not edge-manifold, or the result has more than ``cfg.max_faces`` faces or strays farther than
+    ``cfg.max_gap`` from it.
 
     Parameters
     ----------
@@ -68,12 +69,14 @@ def simplify_flat(vertices: np.ndarray, faces: np.ndarray, cfg: FlatConfig = Fla
     Returns
     -------
     vertices : (V, 3) float64, on the input's surface (the lossless collapses move a vertex by float rounding)
-    faces : (G, 3) int64, windings kept; edges in three faces only where the input has them
+    faces : (G, 3) int64, windings kept, no edge in more than two (an input with such edges gives None)
     """
     if not 0 < len(faces) <= cfg.max_input_faces:
         return None
     v, f = weld(vertices, faces)
-    if flat_share(v, f, cfg.flat_degrees) < cfg.flat_share:
+    # An edge in three faces or more (fins on a plate, sheets crossing) would stay one: the networks make a
+    # manifold surface of such an input.
+    if edge_face_counts(f).max() > 2 or flat_share(v, f, cfg.flat_degrees) < cfg.flat_share:
         return None
     # Collapses of no error (fast-simplification's lossless mode, C++) halve a flat mesh in milliseconds; ours,
     # in Python, then go as far as the bound allows.  Where the lossless ones stray (they may, at open borders),
@@ -83,7 +86,7 @@ def simplify_flat(vertices: np.ndarray, faces: np.ndarray, cfg: FlatConfig = Fla
     if not 0 < len(kept) <= cfg.max_faces:
         return None
     out_v, out_f = remove_unreferenced(np.asarray(part_v, dtype=np.float64), kept)[:2]
-    if edge_face_counts(out_f).max() > max(2, edge_face_counts(f).max()):
+    if edge_face_counts(out_f).max() > 2:
         return None
     return (out_v, out_f) if _gap(v, f, out_v, out_f) <= cfg.max_gap else None
 

@@ -36,8 +36,8 @@ class FlatConfig:
     max_move : a collapse keeps the merged vertex within this RMS distance of the planes it stands for
     max_gap : the result and the input lie within this distance of each other, both ways
     max_faces : the simplified mesh is kept only with at most this many faces
-    max_input_faces : a larger input is not tried (the collapses run in Python: 0.2-3 s for the 17 flat ones of
-        20,000 faces in the held-out mesh inputs, 6-9 s for a box split into a grid of 15,000)
+    max_input_faces : a larger input is not tried (the collapses run in Python: 0.2-4 s for the 17 flat ones of
+        about 20,000 faces in the held-out mesh inputs, 6-9 s for a box split into a grid of 15,000)
     """
 
     flat_share: float = 0.9

@@ -24,6 +24,21 @@ def _dense(shape: Shape, rng: np.random.Generator, size: float = 0.06) -> tuple[
     return v, f, unit
 
 
+def _grid(a: np.ndarray, b: np.ndarray, point) -> tuple[np.ndarray, np.ndarray]:
+    """A flat sheet of triangles over the grid ``a`` x ``b``; ``point(x, y)`` places a grid point in 3D."""
+    x, y = np.meshgrid(a, b, indexing="ij")
+    v = np.stack(point(x.ravel(), y.ravel()), axis=1)
+    n = len(b)
+    i = np.arange(len(a) * n).reshape(len(a), n)[:-1, :-1].ravel()
+    return v, np.r_[np.c_[i, i + n, i + 1], np.c_[i + 1, i + n, i + n + 1]]
+
+
+def _lidless(rng: np.random.Generator) -> trimesh.Trimesh:
+    """A box of extents drawn at random without its top face's two triangles."""
+    box = trimesh.creation.box(extents=rng.uniform(0.3, 1.0, 3))
+    return box.submesh([np.flatnonzero(box.face_normals[:, 2] < 0.5)], append=True)
+
+
 @pytest.mark.parametrize("kind", ["box", "l_block", "prism"])
 def test_flat_shapes_of_any_proportions_and_pose_come_back_as_their_own_corners(kind):
     rng = np.random.default_rng({"box": 1, "l_block": 2, "prism": 3}[kind])
@@ -37,8 +52,7 @@ def test_flat_shapes_of_any_proportions_and_pose_come_back_as_their_own_corners(
 
 def test_an_open_mesh_in_two_pieces_keeps_its_opening_and_its_pieces():
     rng = np.random.default_rng(4)
-    box = trimesh.creation.box(extents=rng.uniform(0.3, 1.0, 3))
-    lidless = box.submesh([np.flatnonzero(box.face_normals[:, 2] < 0.5)], append=True)
+    lidless = _lidless(rng)
     other = trimesh.creation.box(extents=(0.2, 0.3, 0.1))
     other.apply_translation((1.5, 0.0, 0.0))
     both = trimesh.util.concatenate([lidless, other])
@@ -59,10 +73,7 @@ def test_a_curved_mesh_is_left_to_the_networks():
 def test_collapses_stay_within_the_bound_and_the_gap_sees_a_stray_vertex():
     # A flat square grid with one vertex raised by half a cell: the bound keeps the bump, no bound flattens it.
     n = 12
-    x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
-    v = np.c_[x.ravel(), y.ravel(), np.zeros(n * n)]
-    i = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
-    f = np.r_[np.c_[i, i + 1, i + n], np.c_[i + 1, i + n + 1, i + n]]
+    v, f = _grid(np.linspace(0, 1, n), np.linspace(0, 1, n), lambda x, y: (x, y, 0 * x))
     bump = (n // 2) * n + n // 2
     v[bump, 2] = 0.5 * CELL
     kept = remove_unreferenced(v, decimate(v, f, 1, max_move=0.1 * CELL))[0]
@@ -79,8 +90,7 @@ def test_the_pipeline_gives_a_flat_mesh_back_simplified_unless_a_count_or_closin
     from fastmesh.pipeline import Pipeline
 
     rng = np.random.default_rng(6)
-    box = trimesh.creation.box(extents=rng.uniform(0.3, 1.0, 3))
-    lidless = box.submesh([np.flatnonzero(box.face_normals[:, 2] < 0.5)], append=True)
+    lidless = _lidless(rng)
     mesh = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(lidless.vertices * 250.0 + 1e4, lidless.faces, 10.0))
     mesh.merge_vertices()
     shape = Shape(vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces))
@@ -101,15 +111,6 @@ def test_a_mesh_split_at_every_face_like_an_stl_is_welded_first():
     out_v, out_f = flat.simplify_flat(split_v, split_f)
     assert len(out_v) == len(own) and cKDTree(own).query(out_v)[0].max() < 1e-9
     assert topology(out_f)["watertight"]
-
-
-def _grid(a: np.ndarray, b: np.ndarray, point) -> tuple[np.ndarray, np.ndarray]:
-    """A flat sheet of triangles over the grid ``a`` x ``b``; ``point(x, y)`` places a grid point in 3D."""
-    x, y = np.meshgrid(a, b, indexing="ij")
-    v = np.stack(point(x.ravel(), y.ravel()), axis=1)
-    n = len(b)
-    i = np.arange(len(a) * n).reshape(len(a), n)[:-1, :-1].ravel()
-    return v, np.r_[np.c_[i, i + n, i + 1], np.c_[i + 1, i + n, i + n + 1]]
 
 
 def test_a_mesh_with_an_edge_in_three_faces_is_left_to_the_networks():

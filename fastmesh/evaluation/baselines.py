@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..faces.meshops import weld
+from ..faces.decimation import quadric_decimation
 from ..shapes.io import sample_surface
 from ..shapes.shape import Shape, ShapeError
 
@@ -32,17 +32,11 @@ def poisson(shape: Shape, target_faces: int, seed: int = 0) -> tuple[np.ndarray,
 
 
 def decimation(shape: Shape, target_faces: int) -> tuple[np.ndarray, np.ndarray]:
-    """Quadric edge-collapse decimation of a mesh input to about ``target_faces`` (``fast-simplification``,
-    the input's vertices welded first): what a user does with a dense mesh instead of retopology."""
-    import fast_simplification
-
+    """Quadric edge-collapse decimation of a mesh input to about ``target_faces``
+    (``decimation.quadric_decimation``): what a user does with a dense mesh instead of retopology."""
     if shape.faces is None:
         raise ShapeError("not_a_mesh", "decimation needs a mesh input")
-    v, f = weld(shape.vertices, shape.faces)
-    if len(f) <= target_faces:
-        return v, f
-    return fast_simplification.simplify(v.astype(np.float32), f.astype(np.int32),
-                                        target_reduction=1.0 - target_faces / len(f))
+    return quadric_decimation(shape.vertices, shape.faces, target_faces)
 
 
 def dense_remesh(vertices: np.ndarray, faces: np.ndarray, target_faces: int = 20_000, seed: int = 0

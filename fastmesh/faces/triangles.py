@@ -78,6 +78,10 @@ class TriangleConfig:
         (:func:`fastmesh.faces.simplify.collapse_flat`): a kept vertex stays within ``flat_tol * L``
         of the faces it replaces (None: keep every vertex).  Default: half a 7-bit cell.  The pipeline
         turns it off for a face-count target (the count asked for).
+    weigh_decimation : bool
+        The pipeline, last: a mesh input's result is weighed against the input's quadric decimation to the same
+        face count where that is as much an asset (``pipeline.result.decimated``), and the one nearer the input
+        comes back.  ``Pipeline.random`` turns it off (its networks' meshes would never be the nearer).
     """
 
     selection: str = "surface"
@@ -97,6 +101,7 @@ class TriangleConfig:
     close: bool = False
     close_everywhere: bool = False
     flat_tol: float | None = 0.5 * CELL
+    weigh_decimation: bool = True
 
     def __post_init__(self):
         if self.selection not in ("cliques", "surface"):

@@ -148,7 +148,8 @@ class Pipeline(FrameSteps):
         (meaningless) mesh on every input, so the service can be tested end to end.
         The face stage is the shipped one (:class:`TriangleConfig`'s defaults) but for its support limit:
         a random decoder's vertices lie anywhere in the unit cube, so a candidate triangle may stray from
-        the input by the input's size (``surface_tol`` 1.0).  Keep ``max_vertices`` small with it.
+        the input by the input's size (``surface_tol`` 1.0); and a mesh input's decimation is not weighed
+        (``weigh_decimation``: it would replace every such mesh).  Keep ``max_vertices`` small with it.
         """
         from ..models.enhancer import Enhancer, EnhancerConfig
         from ..models.face import FaceModel, FaceModelConfig
@@ -165,7 +166,8 @@ class Pipeline(FrameSteps):
         with torch.no_grad():
             face.edge_out.bias.fill_(8.0)
         return cls(vertex, enhancer, face, device=auto_device(device), source=f"random:{size}:{seed}",
-                   threads=threads, triangle_config=TriangleConfig(surface_tol=RANDOM_SURFACE_TOL))
+                   threads=threads, triangle_config=TriangleConfig(surface_tol=RANDOM_SURFACE_TOL,
+                                                                 weigh_decimation=False))
 
     def save(self, directory: str | os.PathLike) -> None:
         """Write the networks and ``pipeline.json`` (every setting of the face stage and the fit, whole) so
@@ -260,6 +262,17 @@ class Pipeline(FrameSteps):
         req.report.done("faces")
         return step8.finished(req, vertices, faces, tokens=0, info={"turned_degrees": 0.0, "result_from": source})
 
+    def _weighed(self, req: Request, vertices: np.ndarray, faces: np.ndarray, result_from: str, info: dict
+                 ) -> tuple[np.ndarray, np.ndarray, str]:
+        """The generated result, or a mesh input's decimation to its face count where that lies nearer the input
+        (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go into ``info``)."""
+        if result_from != "model" or not self.triangle_config.weigh_decimation:
+            return vertices, faces, result_from
+        rival, fits = step8.decimated(req, vertices, faces, self.triangle_config.support_points)
+        if fits:
+            info["decimation_fits"] = fits
+        return (vertices, faces, result_from) if rival is None else (*rival, "decimated")
+
     def steps(self, shape: Shape, params: GenerateParams | None = None,
               progress: Callable[[str, float], None] | None = None, should_cancel: Callable[[], bool] | None = None
               ) -> Generator[DecodeRequest, list[torch.Tensor], GenerateResult]:
@@ -303,9 +316,9 @@ class Pipeline(FrameSteps):
             raise errors[0]
         best = self._nearest_frame(req, made)
         vertices, faces, result_from, pulled = step8.whole(req, best["vertices"], best["faces"])
-        result = step8.finished(req, vertices, faces, tokens=best["tokens"],
-                                info={**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3),
-                                      "result_from": result_from, "pulled_in": pulled},
+        info = {**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3), "pulled_in": pulled}
+        vertices, faces, result_from = self._weighed(req, vertices, faces, result_from, info)
+        result = step8.finished(req, vertices, faces, tokens=best["tokens"], info={**info, "result_from": result_from},
                                 evidence=best["evidence"] if result_from == "model" else None)
         req.report.done()
         return result

@@ -15,11 +15,13 @@ import numpy as np
 from ..evaluation.quality import mesh_quality
 from ..export.output import MeshOut, finish
 from ..export.quads import EdgeEvidence
+from ..faces.decimation import asset_decimation
 from ..faces.facecount import TOLERANCE as COUNT_TOLERANCE
 from ..faces.facecount import hold_count
 from ..faces.flat import simplify_flat
 from ..faces.meshops import edge_face_counts, remove_unreferenced, triangle_areas, weld
 from ..faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
+from ..faces.support import surface_fit
 from ..models.generate import GenerationError
 from ..request import PLANAR_SAMPLES, Request
 from ..shapes.open_planar import open_polyhedron
@@ -146,6 +148,28 @@ def flat_faced(req: Request) -> tuple[np.ndarray, np.ndarray, str] | None:
     with stage("faces", req.timings):
         found = simplify_flat(req.frame.unit, shape.faces)
     return None if found is None else (req.frame.norm.invert(found[0]), found[1], "simplified")
+
+
+def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, support_points: int
+              ) -> tuple[tuple[np.ndarray, np.ndarray] | None, dict]:
+    """A mesh input decimated to the result's face count (``decimation.asset_decimation``: as much an asset as
+    the result) where it lies nearer the input surface than the result, in the input's frame; and both fits
+    (``support.surface_fit`` against the candidates' sample of ``support_points`` at the request's seed; empty
+    where not weighed).  None where the input is a point cloud, a face count is asked for (the count step holds
+    it), the decimation is not an asset or the result is nearer: what comes back is never farther from a mesh
+    input than its decimation to the same count that a user could use instead."""
+    shape, frame, seed = req.shape, req.frame, req.params.seed
+    if shape.faces is None or req.count.hold:
+        return None, {}
+    with stage("filtering", req.timings):
+        rival = asset_decimation(frame.unit, shape.faces, len(faces), req.pieces_in, req.close, COUNT_TOLERANCE)
+        if rival is None:
+            return None, {}
+        reference = frame.surface(support_points, seed)
+        fits = {"model": surface_fit(frame.norm.apply(vertices), faces, reference, seed),
+                "decimated": surface_fit(*rival, reference, seed)}
+    fits = {k: round(v, 6) for k, v in fits.items()}
+    return (frame.norm.invert(rival[0]), rival[1]) if fits["decimated"] < fits["model"] else None, fits
 
 
 def finished(req: Request, vertices: np.ndarray, faces: np.ndarray, tokens: int, info: dict,

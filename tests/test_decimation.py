@@ -1,0 +1,117 @@
+"""Quadric decimation of a mesh input kept only where it is an asset (``fastmesh.faces.decimation``), and the
+pipeline returning it where it lies nearer the input than the generated mesh (``pipeline.result.decimated``)."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import trimesh
+
+from fastmesh.evaluation.quality import topology
+from fastmesh.faces import decimation
+from fastmesh.faces.meshops import piece_labels
+from fastmesh.params import GenerateParams
+from fastmesh.pipeline import result as step8
+from fastmesh.request import Request
+from fastmesh.shapes.shape import Shape
+
+
+def _ellipsoid(rng: np.random.Generator, subdivisions: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A dense ellipsoid of random proportions and size, turned at random and placed far from the origin; and the
+    map that takes its points back onto the unit sphere."""
+    sphere = trimesh.creation.icosphere(subdivisions)
+    axes = rng.uniform(0.5, 1.0, 3) * 10.0 ** rng.uniform(-3, 3)
+    turn = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
+    offset = rng.uniform(-1e3, 1e3, 3) * axes.max()
+    v = (np.asarray(sphere.vertices) * axes) @ turn.T + offset
+    return v, np.asarray(sphere.faces), lambda p: ((p - offset) @ turn) / axes
+
+
+def test_closed_surfaces_of_any_proportions_size_and_pose_decimate_to_their_count_closed_and_whole():
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        v, f, back = _ellipsoid(rng)
+        target = int(rng.integers(80, 600))
+        out = decimation.asset_decimation(v, f, target, pieces=1, closed=True, tolerance=0.02)
+        assert out is not None
+        out_v, out_f = out
+        assert abs(len(out_f) - target) <= 0.02 * target
+        mesh = trimesh.Trimesh(out_v, out_f, process=False)
+        assert topology(out_f)["watertight"] and mesh.is_winding_consistent and mesh.volume > 0  # outward, as given
+        assert piece_labels(out_f).max() == 0
+        # On the surface: quadric placement keeps each vertex within a few percent of the radius.
+        assert np.abs(np.linalg.norm(back(out_v), axis=1) - 1.0).max() < 0.05
+
+
+def test_an_open_surface_is_refused_where_the_result_must_be_closed():
+    sphere = trimesh.creation.icosphere(4)
+    upper = np.asarray(sphere.faces)[sphere.triangles_center[:, 2] > 0]
+    assert decimation.asset_decimation(sphere.vertices, upper, 200, pieces=1, closed=True, tolerance=0.02) is None
+    kept = decimation.asset_decimation(sphere.vertices, upper, 200, pieces=1, closed=False, tolerance=0.02)
+    assert kept is not None and topology(kept[1])["boundary_edges"] > 0
+
+
+def test_more_pieces_than_the_input_has_and_an_unreached_count_are_refused():
+    a = trimesh.creation.icosphere(3)
+    b = a.copy()
+    b.apply_translation([3.0, 0.0, 0.0])
+    two = trimesh.util.concatenate([a, b])
+    assert decimation.asset_decimation(two.vertices, two.faces, 300, pieces=1, closed=True, tolerance=0.02) is None
+    kept = decimation.asset_decimation(two.vertices, two.faces, 300, pieces=2, closed=True, tolerance=0.02)
+    assert kept is not None and piece_labels(kept[1]).max() == 1
+    # Asked for more faces than the input has: it comes back as it is, short of the count.
+    assert decimation.asset_decimation(a.vertices, a.faces, 2 * len(a.faces), 1, True, 0.02) is None
+
+
+def test_faces_wound_against_their_neighbours_are_seen():
+    faces = np.asarray(trimesh.creation.icosphere(2).faces)
+    assert decimation._wound_alike(faces)
+    flipped = faces.copy()
+    flipped[7] = flipped[7, ::-1]
+    assert not decimation._wound_alike(flipped)
+
+
+def test_the_decimation_the_evaluation_sets_beside_us_is_the_one_weighed():
+    from fastmesh.evaluation.baselines import decimation as baseline
+
+    v, f, _ = _ellipsoid(np.random.default_rng(1), subdivisions=3)
+    ours_v, ours_f = baseline(Shape(vertices=v, faces=f), 200)
+    kept_v, kept_f = decimation.asset_decimation(v, f, 200, pieces=1, closed=True, tolerance=0.02)
+    assert np.array_equal(ours_f, kept_f) and np.allclose(ours_v, kept_v, rtol=0, atol=0)
+
+
+def test_a_result_nearer_the_input_than_its_decimation_is_kept():
+    """An icosphere's 320 faces lie on its sphere as exactly as 320 faces can; the decimation of a finer one to 320
+    is weighed, found farther, and not returned (both fits reported)."""
+    fine, coarse = trimesh.creation.icosphere(4), trimesh.creation.icosphere(2)
+    req = Request.start(Shape(vertices=np.asarray(fine.vertices), faces=np.asarray(fine.faces)), GenerateParams())
+    rival, fits = step8.decimated(req, np.asarray(coarse.vertices), np.asarray(coarse.faces), 4096)
+    assert rival is None and fits["model"] < fits["decimated"]
+
+
+@pytest.fixture(scope="module")
+def pipe():
+    from fastmesh.pipeline import Pipeline
+
+    pipe = Pipeline.random()
+    pipe.triangle_config = replace(pipe.triangle_config, weigh_decimation=True)  # as shipped
+    return pipe
+
+
+def test_the_pipeline_returns_a_mesh_inputs_decimation_where_it_lies_nearer(pipe):
+    """Tiny random networks make a mesh far from the input: a dense ellipsoid comes back as its decimation to that
+    mesh's count, closed, on the ellipsoid; not with a face count asked for, and never for a point cloud."""
+    v, f, back = _ellipsoid(np.random.default_rng(2), subdivisions=3)
+    shape = Shape(vertices=v, faces=f)
+    res = pipe.generate(shape, GenerateParams(seed=0, max_vertices=48))
+    assert res.info["result_from"] == "decimated" and res.quality["watertight"]
+    fits = res.info["decimation_fits"]
+    assert fits["decimated"] < fits["model"]
+    # About 24 faces: the quadrics place a vertex up to a sixth of the radius off the sphere (an icosahedron's
+    # vertices lie outside the sphere its faces cut), the tiny networks' vertices anywhere in its box.
+    assert np.abs(np.linalg.norm(back(res.vertices), axis=1) - 1.0).max() < 0.2
+    asked = pipe.generate(shape, GenerateParams(seed=0, max_vertices=48, target_faces=60))
+    assert asked.info["result_from"] == "model" and "decimation_fits" not in asked.info
+    normals = np.asarray(trimesh.Trimesh(v, f).vertex_normals)
+    cloud = pipe.generate(Shape(vertices=v, normals=normals), GenerateParams(seed=0, max_vertices=48))
+    assert cloud.info["result_from"] == "model" and "decimation_fits" not in cloud.info

@@ -83,6 +83,9 @@ def test_mesh_inputs_are_set_beside_their_decimation_per_package(tmp_path):
         assert {"share_watertight", "share_pieces_within_reference", "median_boundary_edges",
                 "median_boundary_edges_closed_references"} <= set(whole)
     assert report["summary"]["decimation"]["share_watertight"] == 1.0
+    # Where each result comes from, counted (the tiny networks' pipeline does not weigh the decimation).
+    assert report["summary"]["fastmesh"]["result_from"] == {"model": 2} and "result_from" not in report["summary"][
+        "decimation"]
 
 
 def test_artist_vertices_merge_per_cell_in_the_reference_frame(box_set):

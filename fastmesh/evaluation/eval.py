@@ -22,6 +22,7 @@ A mesh that fails to generate is a failure, counted in ``failure_rate``, never d
 from __future__ import annotations
 
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -122,7 +123,8 @@ def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("
                     raise ValueError(f"unknown system {system!r}")
                 out = {**_score(mesh, ref, artist), **_topology_row(*mesh)}
                 if system == "fastmesh":
-                    out.update(tokens=res.tokens, timings={k: round(v, 4) for k, v in res.timings.items()})
+                    out.update(tokens=res.tokens, timings={k: round(v, 4) for k, v in res.timings.items()},
+                               result_from=res.info["result_from"])
                 _save(save, system, inp.stem, *mesh)
                 out["seconds"] = round(time.perf_counter() - t, 4)
             except (GenerationError, ShapeError, RuntimeError) as e:
@@ -189,6 +191,8 @@ def summarise(rows: list[dict], system: str) -> dict:
             out["mean_timings"] = {k: float(np.mean([r[system]["timings"][k] for r in ok]))
                                    for k in ok[0][system]["timings"]}
             out["mean_tokens"] = float(np.mean([r[system]["tokens"] for r in ok]))
+        if "result_from" in ok[0][system]:  # generated, or the input, its planes, its simplification, its decimation
+            out["result_from"] = dict(sorted(Counter(r[system]["result_from"] for r in ok).items()))
     return out
 
 

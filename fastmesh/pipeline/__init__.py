@@ -262,16 +262,23 @@ class Pipeline(FrameSteps):
         req.report.done("faces")
         return step8.finished(req, vertices, faces, tokens=0, info={"turned_degrees": 0.0, "result_from": source})
 
-    def _weighed(self, req: Request, vertices: np.ndarray, faces: np.ndarray, result_from: str, info: dict
-                 ) -> tuple[np.ndarray, np.ndarray, str]:
-        """The generated result, or a mesh input's decimation to its face count where that lies nearer the input
-        (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go into ``info``)."""
-        if result_from != "model" or not self.triangle_config.weigh_decimation:
-            return vertices, faces, result_from
+    def _last(self, req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
+              ) -> tuple[np.ndarray, np.ndarray, str, str | None]:
+        """The generated result brought to a ``target_faces`` (``step8.held``), then weighed against a mesh input's
+        decimation to its face count (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go
+        into ``info``): vertices, faces, where they come from ("model" or "decimated") and the count step."""
+        step = None
+        if req.count.hold:
+            info["model_faces"] = int(len(faces))
+            vertices, faces, step = step8.held(req, vertices, faces)
+        if not self.triangle_config.weigh_decimation:
+            return vertices, faces, "model", step
         rival, fits = step8.decimated(req, vertices, faces, self.triangle_config.support_points)
         if fits:
             info["decimation_fits"] = fits
-        return (vertices, faces, result_from) if rival is None else (*rival, "decimated")
+        if rival is None:
+            return vertices, faces, "model", step
+        return *rival, "decimated", None if step is None else "decimated"
 
     def steps(self, shape: Shape, params: GenerateParams | None = None,
               progress: Callable[[str, float], None] | None = None, should_cancel: Callable[[], bool] | None = None
@@ -317,9 +324,11 @@ class Pipeline(FrameSteps):
         best = self._nearest_frame(req, made)
         vertices, faces, result_from, pulled = step8.whole(req, best["vertices"], best["faces"])
         info = {**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3), "pulled_in": pulled}
-        vertices, faces, result_from = self._weighed(req, vertices, faces, result_from, info)
+        step = None
+        if result_from == "model":  # not a low-poly input given back
+            vertices, faces, result_from, step = self._last(req, vertices, faces, info)
         result = step8.finished(req, vertices, faces, tokens=best["tokens"], info={**info, "result_from": result_from},
-                                evidence=best["evidence"] if result_from == "model" else None)
+                                evidence=best["evidence"] if result_from == "model" else None, count_step=step)
         req.report.done()
         return result
 

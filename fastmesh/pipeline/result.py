@@ -15,7 +15,7 @@ import numpy as np
 from ..evaluation.quality import mesh_quality
 from ..export.output import MeshOut, finish
 from ..export.quads import EdgeEvidence
-from ..faces.decimation import asset_decimation
+from ..faces.decimation import COUNT_SLACK, asset_decimation
 from ..faces.facecount import TOLERANCE as COUNT_TOLERANCE
 from ..faces.facecount import hold_count
 from ..faces.flat import simplify_flat
@@ -50,7 +50,8 @@ class GenerateResult:
     quality : dict, distance to the input and topology (:func:`fastmesh.evaluation.quality.mesh_quality`): cd, hd (% of
         the input's size), boundary_edges, non_manifold_edges, components, watertight; and faces, target_faces,
         target_met (faces within ``facecount.TOLERANCE`` of the target; None without one) and count_step
-        (``facecount.hold_count``'s: kept, simplified or split; None without a target); quads and quad_share
+        (``facecount.hold_count``'s: kept, simplified or split, or decimated where the input's decimation came back;
+        None without a target); quads and quad_share
         (of the polygons the OBJ and PLY files hold)
     mesh : fastmesh.export.output.MeshOut, the result as written (quads, UV layout, baked texture, placement); the
         vertices above are placed as it says
@@ -153,16 +154,17 @@ def flat_faced(req: Request) -> tuple[np.ndarray, np.ndarray, str] | None:
 def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, support_points: int
               ) -> tuple[tuple[np.ndarray, np.ndarray] | None, dict]:
     """A mesh input decimated to the result's face count (``decimation.asset_decimation``: as much an asset as
-    the result) where it lies nearer the input surface than the result, in the input's frame; and both fits
-    (``support.surface_fit`` against the candidates' sample of ``support_points`` at the request's seed; empty
-    where not weighed).  None where the input is a point cloud, a face count is asked for (the count step holds
-    it), the decimation is not an asset or the result is nearer: what comes back is never farther from a mesh
-    input than its decimation to the same count that a user could use instead."""
+    the result, its count within ``decimation.COUNT_SLACK``) where it lies nearer the input surface than the
+    result, in the input's frame; and both fits (``support.surface_fit`` against the candidates' sample of
+    ``support_points`` at the request's seed; empty where not weighed).  None where the input is a point cloud,
+    the decimation is not an asset or the result is nearer: what comes back is never farther from a mesh input than
+    its decimation to the same count that a user could use instead.  With a ``target_faces`` the result is weighed
+    once brought to it (:func:`held`)."""
     shape, frame, seed = req.shape, req.frame, req.params.seed
-    if shape.faces is None or req.count.hold:
+    if shape.faces is None:
         return None, {}
     with stage("filtering", req.timings):
-        rival = asset_decimation(frame.unit, shape.faces, len(faces), req.pieces_in, req.close, COUNT_TOLERANCE)
+        rival = asset_decimation(frame.unit, shape.faces, len(faces), req.pieces_in, req.close, COUNT_SLACK)
         if rival is None:
             return None, {}
         reference = frame.surface(support_points, seed)
@@ -172,23 +174,28 @@ def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, support_poi
     return (frame.norm.invert(rival[0]), rival[1]) if fits["decimated"] < fits["model"] else None, fits
 
 
+def held(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+    """The result brought to the ``target_faces`` asked for (``facecount.hold_count``), pinched vertices split
+    again; and the count step taken (kept, simplified or split)."""
+    with stage("faces", req.timings):
+        vertices, faces = unsplit(vertices, faces)
+        vertices, faces, step = hold_count(vertices, faces, req.params.target_faces, *req.count_samples)
+        return (*split_pinches(vertices, faces), step)
+
+
 def finished(req: Request, vertices: np.ndarray, faces: np.ndarray, tokens: int, info: dict,
-             evidence: EdgeEvidence | None = None) -> GenerateResult:
-    """The result with its quality report, brought to the face count asked for (``req.count.hold``);
-    ``evidence``: the face model's edges, which choose the quads first (``quads.pair_triangles``)."""
+             evidence: EdgeEvidence | None = None, count_step: str | None = None) -> GenerateResult:
+    """The result with its quality report; ``count_step``: how it was brought to the face count asked for
+    (:func:`held`, or "decimated" where the input's decimation came back); ``evidence``: the face model's edges,
+    which choose the quads first (``quads.pair_triangles``)."""
     params, timings = req.params, req.timings
-    step, met = None, None
+    met = None
     if req.count.hold:  # the count asked for holds (``facecount``)
-        info = {**info, "model_faces": int(len(faces))}
-        with stage("faces", timings):
-            vertices, faces = unsplit(vertices, faces)
-            vertices, faces, step = hold_count(vertices, faces, params.target_faces, *req.count_samples)
-            vertices, faces = split_pinches(vertices, faces)
         met = bool(abs(len(faces) - params.target_faces) <= COUNT_TOLERANCE * params.target_faces)
     why = req.reason
     quality = {**mesh_quality(vertices, faces, req.shape, pieces_in=req.pieces_in), "faces": int(len(faces)),
                "closed_decision": why if why == "asked" else ("closed" if req.close else "open"),
-               "target_faces": params.target_faces, "target_met": met, "count_step": step}
+               "target_faces": params.target_faces, "target_met": met, "count_step": count_step}
     # Quads, UVs, baking and placement: timed with the faces they are made of.
     with stage("faces", timings):
         mesh, where, notes = finish(vertices, faces, params, source=req.shape, evidence=evidence)

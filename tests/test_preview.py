@@ -298,11 +298,13 @@ def big_result(store: Store, c: httpx.Client) -> str:
 
 
 def get_all(c: httpx.Client, urls: list[str]) -> list[httpx.Response]:
-    """The URLs requested at the same time, one thread each."""
+    """The URLs requested at the same time, one thread each.  The renders wait for two slots in turn: on a
+    loaded 2-core machine the last of eight dense ones ended after the client's usual 30 s, so each request
+    waits up to 180 s here (the tests time what is refused, not how fast a render is)."""
     from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(len(urls)) as pool:
-        return list(pool.map(c.get, urls))
+        return list(pool.map(lambda url: c.get(url, timeout=180), urls))
 
 
 def test_concurrent_requests_for_one_preview_render_it_once(open_app):

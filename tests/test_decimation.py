@@ -96,6 +96,19 @@ def test_the_nearer_of_a_result_and_the_inputs_decimation_to_its_count_is_return
     assert abs(len(rival[1]) - 320) <= 0.02 * 320 and topology(rival[1])["watertight"]
 
 
+def test_a_result_open_where_it_must_be_closed_gives_way_to_a_closed_decimation_a_little_farther():
+    fine = trimesh.creation.icosphere(4)
+    req = Request.start(Shape(vertices=np.asarray(fine.vertices), faces=np.asarray(fine.faces)), GenerateParams())
+    req.close = True  # as ``closure.decide_closed`` decides for a closed mesh
+    finer = trimesh.creation.icosphere(3)
+    holed = np.asarray(finer.faces)[np.argsort(finer.triangles_center[:, 2])[:-3]]  # three faces off the top
+    rival, fits = step8.decimated(req, np.asarray(finer.vertices), holed, 4096)
+    assert fits["model"] < fits["decimated"] <= step8.CLOSED_MARGIN * fits["model"]
+    assert rival is not None and topology(rival[1])["watertight"]
+    req.close = False  # an open result of an open input is not weighed so
+    assert step8.decimated(req, np.asarray(finer.vertices), holed, 4096)[0] is None
+
+
 @pytest.fixture(scope="module")
 def pipe():
     from fastmesh.pipeline import Pipeline

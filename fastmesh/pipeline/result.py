@@ -32,6 +32,10 @@ from .runtime import stage
 # A low-poly mesh input of a polyhedron is given back as it is when it has at most this many times the faces
 # of the polyhedron rebuilt from its planes (which has no vertex inside a face, such as a cylinder cap's centre).
 LOW_POLY_SLACK = 1.25
+# A result that must be closed and is open loses to the input's decimation (closed) up to this factor farther from
+# the input than it: closed where the input is comes before a little closeness, as a turned frame's result is kept
+# up to as much farther (``frames.FRAME_MARGIN``).
+CLOSED_MARGIN = 1.1
 # A mesh input of at most this many faces (welded, a surface) comes back as it is without running the networks: a
 # shape that few faces describe has no cheaper mesh for them to find, and ``whole`` would keep it over one as big.
 FEW_FACES = 32
@@ -157,7 +161,8 @@ def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, support_poi
     the result, its count within ``decimation.COUNT_SLACK``) where it lies nearer the input surface than the
     result, in the input's frame; and both fits (``support.surface_fit`` against the candidates' sample of
     ``support_points`` at the request's seed; empty where not weighed).  None where the input is a point cloud,
-    the decimation is not an asset or the result is nearer: what comes back is never farther from a mesh input than
+    the decimation is not an asset or the result is nearer (or, open where it must be closed, not ``CLOSED_MARGIN``
+    farther): what comes back is never farther from a mesh input than
     its decimation to the same count that a user could use instead.  With a ``target_faces`` the result is weighed
     once brought to it (:func:`held`)."""
     shape, frame, seed = req.shape, req.frame, req.params.seed
@@ -171,7 +176,9 @@ def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, support_poi
         fits = {"model": surface_fit(frame.norm.apply(vertices), faces, reference, seed),
                 "decimated": surface_fit(*rival, reference, seed)}
     fits = {k: round(v, 6) for k, v in fits.items()}
-    return (frame.norm.invert(rival[0]), rival[1]) if fits["decimated"] < fits["model"] else None, fits
+    # A result that must be closed and is open is not the asset the decimation is (closed by asset_decimation).
+    margin = CLOSED_MARGIN if req.close and (edge_face_counts(faces) == 1).any() else 1.0
+    return (frame.norm.invert(rival[0]), rival[1]) if fits["decimated"] < margin * fits["model"] else None, fits
 
 
 def held(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:

@@ -161,10 +161,10 @@ def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, support_poi
     the result, its count within ``decimation.COUNT_SLACK``) where it lies nearer the input surface than the
     result, in the input's frame; and both fits (``support.surface_fit`` against the candidates' sample of
     ``support_points`` at the request's seed; empty where not weighed).  None where the input is a point cloud,
-    the decimation is not an asset or the result is nearer (or, open where it must be closed, not ``CLOSED_MARGIN``
-    farther): what comes back is never farther from a mesh input than
-    its decimation to the same count that a user could use instead.  With a ``target_faces`` the result is weighed
-    once brought to it (:func:`held`)."""
+    the decimation is not an asset, or the result is nearer (or, open where it must be closed, not
+    ``CLOSED_MARGIN`` farther): what comes back is never farther from a mesh input than its decimation to the same
+    count that a user could use instead.  With a ``target_faces`` the result is weighed once brought to it
+    (:func:`held`)."""
     shape, frame, seed = req.shape, req.frame, req.params.seed
     if shape.faces is None:
         return None, {}

@@ -365,6 +365,7 @@ function showResultFacts(result) {
     'c-watertight': q.watertight == null ? null : q.watertight ? 'yes' : 'no',
     'c-pieces': q.pieces == null ? null : `${q.pieces} / ${q.input_pieces ?? '-'}`,
     'c-closed': q.closed_decision,
+    'c-from': result.result_from,
     'c-quads': q.quads == null ? null : `${q.quads} (${(100 * (q.quad_share ?? 0)).toFixed(0)} % of the polygons)`,
     'c-notes': (result.notes || []).join('; ') || null,
   };

@@ -62,7 +62,7 @@ def family_row(kind: str, given: str, rng: np.random.Generator, pipe: Pipeline |
             return {**row, "failed": e.code}
         v, f, step = res.vertices, res.faces, res.quality["count_step"]
         closed_before = None
-        row["before"] = res.info["model_faces"]
+        row["before"] = res.info["faces_before_count"]
     q = topology(f)
     return {**row, "achieved": int(len(f)), "within": _within(len(f), target), "step": step,
             "closed_before": closed_before, "closed": q["watertight"], "seconds": round(time.perf_counter() - t, 3)}

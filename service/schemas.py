@@ -80,10 +80,10 @@ class Quality(BaseModel):
     faces: int | None = Field(None, description="Faces of the result.")
     target_faces: int | None = Field(None, description="Faces asked for (null: the model chose).")
     target_met: bool | None = Field(None, description="faces within 20 % of target_faces (null without a target).")
-    count_step: Literal["kept", "simplified", "split"] | None = Field(
-        None, description="How the count was held: kept (the model's mesh was within 10 % already), simplified "
-                          "(edges collapsed) or split (edges split, the new vertices on the input surface); null "
-                          "without a target.")
+    count_step: Literal["kept", "simplified", "split", "decimated"] | None = Field(
+        None, description="How the count was held: kept (the mesh was within 10 % already), simplified (edges "
+                          "collapsed), split (edges split, the new vertices on the input surface) or decimated (the "
+                          "input mesh's own decimation to the count came back); null without a target.")
     quads: int | None = Field(None, description="Quads in the OBJ and PLY files (topology=quad).")
     quad_share: float | None = Field(None, description="The quads' share of the polygons of the OBJ and PLY files, "
                                                        "0..1 (0 with topology=triangle).")

@@ -182,11 +182,11 @@ def test_the_pipeline_holds_the_count_and_reports_target_and_achieved(pipe, monk
         q = res.quality
         assert q["target_faces"] == target and q["faces"] == len(res.faces)
         assert abs(len(res.faces) - target) <= TOLERANCE * target and q["target_met"] is True
-        assert q["count_step"] == "split" and res.info["model_faces"] < len(res.faces)
+        assert q["count_step"] == "split" and res.info["faces_before_count"] < len(res.faces)
         assert q["watertight"] == made[-1]
     plain = pipe.generate(mesh, GenerateParams(seed=0, max_vertices=24))
     assert plain.quality["target_faces"] is None and plain.quality["target_met"] is None
-    assert plain.quality["count_step"] is None and "model_faces" not in plain.info
+    assert plain.quality["count_step"] is None and "faces_before_count" not in plain.info
     assert len(made) == 2
 
 

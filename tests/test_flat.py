@@ -86,7 +86,7 @@ def test_collapses_stay_within_the_bound_and_the_gap_sees_a_stray_vertex():
     assert flat._gap(v, f, v, f) < 1e-6 * CELL  # the input samples are float32
 
 
-def test_the_pipeline_gives_a_flat_mesh_back_simplified_unless_a_count_or_closing_is_asked():
+def test_the_pipeline_gives_a_flat_mesh_back_simplified_at_the_count_asked_unless_closing_is_asked():
     from fastmesh.pipeline import Pipeline
 
     rng = np.random.default_rng(6)
@@ -99,9 +99,17 @@ def test_the_pipeline_gives_a_flat_mesh_back_simplified_unless_a_count_or_closin
     assert res.info["result_from"] == "simplified" and res.tokens == 0 and len(res.faces) == 10
     assert cKDTree(lidless.vertices * 250.0 + 1e4).query(res.vertices)[0].max() < 1e-6
     assert res.quality["boundary_edges"] == 4
-    for params in (GenerateParams(seed=0, max_vertices=48, target_faces=40),
-                   GenerateParams(seed=0, max_vertices=48, closed="true")):
-        assert pipe.generate(shape, params).info["result_from"] != "simplified"
+    asked = pipe.generate(shape, GenerateParams(seed=0, max_vertices=48, target_faces=40))
+    assert asked.info["result_from"] == "simplified" and asked.quality["count_step"] == "split"
+    assert asked.quality["target_met"] and len(asked.faces) >= 40 and asked.quality["boundary_edges"] >= 4
+    tris = lidless.vertices[lidless.faces] * 250.0 + 1e4  # the input's surface, as its few flat faces
+    at = np.tile(asked.vertices, (len(tris), 1))
+    near = trimesh.triangles.closest_point(np.repeat(tris, len(asked.vertices), 0), at)
+    gap = np.linalg.norm(near - at, axis=1).reshape(len(tris), -1).min(0)
+    assert gap.max() < 1e-6  # every vertex on the input's surface
+    assert np.isclose(trimesh.Trimesh(asked.vertices, asked.faces, process=False).area, mesh.area)
+    closed = pipe.generate(shape, GenerateParams(seed=0, max_vertices=48, closed="true"))
+    assert closed.info["result_from"] != "simplified"
 
 
 def test_a_mesh_split_at_every_face_like_an_stl_is_welded_first():

@@ -64,16 +64,22 @@ def test_generate_returns_mesh_in_input_frame(pipe):
     assert res.info["closed_decision"] == {"close": True, "reason": "closed_mesh"}
 
 
-def test_a_low_poly_mesh_input_comes_back_as_it_is_unless_a_count_is_asked(pipe):
+def test_a_low_poly_mesh_input_comes_back_as_it_is_or_at_the_count_asked(pipe):
     """A mesh with fewer faces than the result (here the 12 of a box split at its seams, as files store
-    it) is returned welded: never more faces than a low-poly input.  A face-count target is a request."""
+    it) is returned welded: never more faces than a low-poly input.  A face-count target is a request: the
+    input's own surface split to it, closed and exact, without the networks."""
     m = trimesh.creation.box(extents=(1.0, 2.0, 0.5))
     split = Shape(vertices=m.vertices[m.faces].reshape(-1, 3) + 100.0, faces=np.arange(36).reshape(-1, 3))
     res = pipe.generate(split, GenerateParams(seed=0, max_vertices=24))
     assert res.info["result_from"] == "input" and len(res.vertices) == 8 and len(res.faces) == 12
     assert res.quality["watertight"] and res.quality["hd"] == 0.0
     asked = pipe.generate(split, GenerateParams(seed=0, max_vertices=24, target_faces=40))
-    assert asked.info["result_from"] == "model"
+    assert asked.info["result_from"] == "input" and asked.tokens == 0
+    assert asked.quality["count_step"] == "split" and asked.quality["target_met"] and len(asked.faces) >= 40
+    assert asked.quality["watertight"] and asked.info["faces_before_count"] == 12
+    on = trimesh.Trimesh(asked.vertices - 100.0, asked.faces, process=False)
+    assert np.isclose(on.area, m.area) and np.isclose(on.volume, m.volume)  # the box's own surface, no fold
+    assert np.abs(np.abs(on.vertices) - m.extents / 2).min(1).max() < 1e-9  # every vertex on a side
     dense = pipe.generate(_sphere(), GenerateParams(seed=0, max_vertices=24))
     assert dense.info["result_from"] == "model" and len(dense.faces) < 1280
 

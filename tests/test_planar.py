@@ -62,7 +62,8 @@ def test_curved_or_noisy_inputs_are_not_polyhedra():
 
 def test_the_pipeline_rebuilds_a_dense_flat_mesh_unless_asked_otherwise():
     """A subdivided, turned box (192 faces, no low-poly input): its 8 corners from the planes, no tokens decoded;
-    closed=false or a face-count target leave it to the networks."""
+    with a face-count target the rebuild split to it, closed, every vertex on the box; closed=false leaves it to
+    the networks."""
     pipe = Pipeline.random("tiny", seed=0)
     box = trimesh.creation.box(extents=(3.0, 2.0, 1.0)).subdivide().subdivide()
     box.apply_transform(trimesh.transformations.rotation_matrix(0.6, [1.0, 2.0, 3.0]))
@@ -73,6 +74,11 @@ def test_the_pipeline_rebuilds_a_dense_flat_mesh_unless_asked_otherwise():
     corners = np.asarray(trimesh.creation.box(extents=(3.0, 2.0, 1.0)).vertices)
     corners = trimesh.transform_points(corners, trimesh.transformations.rotation_matrix(0.6, [1.0, 2.0, 3.0]))
     assert np.linalg.norm(res.vertices[:, None] - corners[None], axis=-1).min(1).max() < 1e-3
-    for params in (GenerateParams(seed=0, max_vertices=24, closed="false"),
-                   GenerateParams(seed=0, max_vertices=24, target_faces=40)):
-        assert pipe.generate(shape, params).info["result_from"] != "planes"
+    asked = pipe.generate(shape, GenerateParams(seed=0, max_vertices=24, target_faces=40))
+    assert asked.info["result_from"] == "planes" and asked.tokens == 0 and asked.quality["count_step"] == "split"
+    assert asked.quality["target_met"] and asked.quality["watertight"] and len(asked.faces) >= 40
+    assert np.isclose(trimesh.Trimesh(asked.vertices, asked.faces, process=False).area, box.area)
+    own = trimesh.transform_points(asked.vertices, np.linalg.inv(trimesh.transformations.rotation_matrix(
+        0.6, [1.0, 2.0, 3.0])))  # back in the box's frame: every vertex on a side
+    assert np.abs(np.abs(own) - np.array([1.5, 1.0, 0.5])).min(1).max() < 1e-6
+    assert pipe.generate(shape, GenerateParams(seed=0, max_vertices=24, closed="false")).info["result_from"] != "planes"

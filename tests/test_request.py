@@ -57,10 +57,8 @@ def test_a_request_reads_the_planar_draw_for_its_surface_points():
 
 def test_the_count_rule_says_what_a_target_changes():
     free, held = count_rule(None), count_rule(300)
-    assert (free.rebuild_planes, free.low_poly_input, free.snap, free.remove_flat, free.hold) == (
-        True, True, True, True, False)
-    assert (held.rebuild_planes, held.low_poly_input, held.snap, held.remove_flat, held.hold) == (
-        False, False, False, False, True)
+    assert (free.low_poly_input, free.snap, free.remove_flat, free.hold) == (True, True, True, False)
+    assert (held.low_poly_input, held.snap, held.remove_flat, held.hold) == (False, False, False, True)
     assert held.target == 300
 
 

@@ -45,15 +45,13 @@ class CountRule:
     Attributes
     ----------
     target : int or None, faces asked for (None: the model chooses)
-    rebuild_planes : bool, a piecewise-planar input may come back as its polyhedron (which has the count it has)
-    low_poly_input : bool, a low-poly mesh input may come back as it is
+    low_poly_input : bool, a low-poly mesh input may come back as it is (in place of a generated result)
     snap : bool, vertex cells may move by the cell evidence (``SamplingConfig.snap_margin``)
     remove_flat : bool, the vertices of flat regions may be removed (``TriangleConfig.flat_tol``)
     hold : bool, the result is brought to the count (:func:`hold_count`)
     """
 
     target: int | None
-    rebuild_planes: bool
     low_poly_input: bool
     snap: bool
     remove_flat: bool
@@ -62,11 +60,11 @@ class CountRule:
 
 def count_rule(target: int | None) -> CountRule:
     """The stages' rule for a ``target_faces`` of ``target``: with a target the result keeps the vertices the
-    decoder made for that count (no rebuild from planes, no low-poly input given back, no move by the cell
-    evidence, no flat vertex removed) and is brought to it; without one the model's own choices stand."""
+    decoder made for that count (no low-poly input in its place, no move by the cell evidence, no flat vertex
+    removed) and is brought to it; without one the model's own choices stand.  A result the networks do not make
+    (the input's planes, its flat faces simplified) is brought to the count all the same."""
     free = target is None
-    return CountRule(target=target, rebuild_planes=free, low_poly_input=free, snap=free, remove_flat=free,
-                     hold=not free)
+    return CountRule(target=target, low_poly_input=free, snap=free, remove_flat=free, hold=not free)
 
 
 def hold_count(vertices: np.ndarray, faces: np.ndarray, target: int, points: np.ndarray | None = None,

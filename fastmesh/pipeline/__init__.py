@@ -258,9 +258,14 @@ class Pipeline(FrameSteps):
     @staticmethod
     def _unrun(req: Request, vertices: np.ndarray, faces: np.ndarray, source: str) -> GenerateResult:
         """The result of a request the networks did not run for: rebuilt from planes, simplified within a flat-faced
-        input's surface, or the input itself."""
+        input's surface, or the input itself; brought to a ``target_faces`` (``step8.held``): the input's own
+        surface split or simplified is nearer it than anything generated."""
+        info, step = {"turned_degrees": 0.0, "result_from": source}, None
+        if req.count.hold:
+            info["faces_before_count"] = int(len(faces))
+            vertices, faces, step = step8.held(req, vertices, faces)
         req.report.done("faces")
-        return step8.finished(req, vertices, faces, tokens=0, info={"turned_degrees": 0.0, "result_from": source})
+        return step8.finished(req, vertices, faces, tokens=0, info=info, count_step=step)
 
     def _last(self, req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
               ) -> tuple[np.ndarray, np.ndarray, str, str | None]:
@@ -269,7 +274,7 @@ class Pipeline(FrameSteps):
         into ``info``): vertices, faces, where they come from ("model" or "decimated") and the count step."""
         step = None
         if req.count.hold:
-            info["model_faces"] = int(len(faces))
+            info["faces_before_count"] = int(len(faces))
             vertices, faces, step = step8.held(req, vertices, faces)
         if not self.triangle_config.weigh_decimation:
             return vertices, faces, "model", step

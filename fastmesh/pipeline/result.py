@@ -122,10 +122,7 @@ def planar(req: Request, open_: bool = False, turn: np.ndarray | None = None
     turned by ``turn`` (3, 3), in its canonical one (``open_planar.open_polyhedron``); in the input's frame, with
     where it comes from ("planes"); or a low-poly mesh input of the same shape, welded, where it has at most
     ``LOW_POLY_SLACK`` times the rebuild's faces ("input": a cylinder's caps keep their centres).  None where the
-    input is not one or a face count is asked for (``req.count.rebuild_planes``: the rebuild has the count it
-    has)."""
-    if not req.count.rebuild_planes:
-        return None
+    input is not one."""
     shape, frame = req.shape, req.frame
     with stage("faces", req.timings):
         if shape.faces is None and shape.normals is not None:
@@ -145,10 +142,10 @@ def planar(req: Request, open_: bool = False, turn: np.ndarray | None = None
 def flat_faced(req: Request) -> tuple[np.ndarray, np.ndarray, str] | None:
     """A mesh input made of flat faces simplified within a fraction of a cell of its own surface
     (``flat.simplify_flat``), in the input's frame, with where it comes from ("simplified"); None where it is not
-    one, a face count is asked for, or the result must be closed and the input is not.  Its vertices are the
-    input's, its openings and pieces the input's."""
+    one, or the result must be closed and the input is not.  Its vertices are the input's, its openings and pieces
+    the input's."""
     shape = req.shape
-    if shape.faces is None or not req.count.low_poly_input or (req.close and not req.sealed):
+    if shape.faces is None or (req.close and not req.sealed):
         return None
     with stage("faces", req.timings):
         found = simplify_flat(req.frame.unit, shape.faces)

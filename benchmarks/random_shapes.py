@@ -2,13 +2,16 @@
 their pose?
 
     python benchmarks/random_shapes.py [--n 10] [--kinds box,l_block,prism,cylinder,cone,tray,roof]
-                                       [--inputs mesh,points] [--pose turned|axes|mm] [--seed 0] [--weights DIR]
+                                       [--inputs mesh,points,points_signs,points_bare] [--pose turned|axes|mm]
+                                       [--seed 0] [--weights DIR]
                                        [--json]
     python benchmarks/random_shapes.py --kinds capsule,tube,torus,ellipsoid ...
 
 Each shape of ``fastmesh.evaluation.primitives.random_shape`` (proportions and outlines at random) is posed
 (``turned``: a random rotation; ``axes``: as built; ``mm``: turned, in millimetres up to 10 m from the origin)
-and given to the pipeline (default settings) as its mesh or as 8,192 points with normals.  Per shape:
+and given to the pipeline (default settings) as its mesh or as 8,192 points with normals (``points``; with
+normals of random sign, ``points_signs``; without normals, estimated as the service does, ``points_bare``).
+Per shape:
 ``exact`` (as many vertices as the shape and each within one 7-bit cell of one of its own), ``closed``
 (watertight), ``as_shape`` (edge-manifold with as many open edges as the shape: none for a closed one), the
 pieces, CD/HD against the shape (% of its longest side), the frame the pipeline kept
@@ -41,12 +44,19 @@ from fastmesh.evaluation.primitives import (  # noqa: E402
 from fastmesh.evaluation.quality import topology  # noqa: E402
 from fastmesh.params import GenerateParams  # noqa: E402
 from fastmesh.pipeline import GenerationError, Pipeline  # noqa: E402
-from fastmesh.shapes.shape import Normalization
+from fastmesh.shapes.io import with_normals  # noqa: E402
+from fastmesh.shapes.shape import Normalization, Shape  # noqa: E402
 
 
 def run_one(pipe: Pipeline, kind: str, rng: np.random.Generator, given: str, pose: str) -> dict:
     mesh = posed(random_shape(kind, rng), rng, turn=pose != "axes", millimetres=pose == "mm")
-    shape = mesh if given == "mesh" else point_cloud(mesh, seed=int(rng.integers(1 << 16)))
+    cloud_seed = 0 if given == "mesh" else int(rng.integers(1 << 16))  # the same shapes for each input
+    shape = mesh if given == "mesh" else point_cloud(mesh, seed=cloud_seed)
+    if given == "points_signs":  # as a scanner's or PCA's normals point
+        signs = np.random.default_rng([cloud_seed, 1]).choice([-1.0, 1.0], (len(shape.vertices), 1))
+        shape = Shape(vertices=shape.vertices, normals=shape.normals * signs)
+    elif given == "points_bare":  # no normals: estimated as the service does (``io.with_normals``)
+        shape = with_normals(Shape(vertices=shape.vertices))
     norm = Normalization.fit(mesh.vertices)
     t = time.perf_counter()
     try:
@@ -85,7 +95,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, default=10, help="shapes of each kind")
     ap.add_argument("--kinds", default=",".join(RANDOM_KINDS + OPEN_KINDS))
-    ap.add_argument("--inputs", default="mesh,points", help="give each shape as its mesh, its points, or both")
+    ap.add_argument("--inputs", default="mesh,points",
+                    help="give each shape as its mesh, its points, points_signs, points_bare (comma-separated)")
     ap.add_argument("--pose", choices=("turned", "axes", "mm"), default="turned")
     ap.add_argument("--seed", type=int, default=0, help="of the family drawn")
     ap.add_argument("--weights", default=None, metavar="DIR")

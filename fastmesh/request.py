@@ -12,6 +12,7 @@ and seed were tuned with it), so results are those of a sample per stage.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -25,6 +26,7 @@ from .params import GenerateParams
 from .progress import STAGES, Progress
 from .shapes.canonical import rotate_shape
 from .shapes.io import sample_surface
+from .shapes.orientation import oriented
 from .shapes.shape import Normalization, Shape
 
 PLANAR_SAMPLES = 8192  # surface samples of a mesh input read by ``planar.polyhedron`` and the whole step
@@ -88,7 +90,7 @@ class Request:
 
     Attributes
     ----------
-    shape : Shape, the input in its own frame
+    shape : Shape, the input in its own frame (a point cloud's normals outward: ``Request.start``)
     params : GenerateParams, validated
     count : CountRule, what the face-count target changes (``facecount.count_rule``)
     report : Progress
@@ -118,9 +120,15 @@ class Request:
     @classmethod
     def start(cls, shape: Shape, params: GenerateParams, progress: Callable[[str, float], None] | None = None,
               should_cancel: Callable[[], bool] | None = None) -> Request:
+        """The request of ``shape``: a point cloud's normals turned outward where they point in
+        (``orientation.oriented``), timed with the encoding."""
+        timings = {name: 0.0 for name, _, _ in STAGES}
+        t = time.perf_counter()
+        shape = oriented(shape)
+        timings["encode"] += time.perf_counter() - t
         return cls(shape=shape, params=params, count=count_rule(params.target_faces),
                    report=Progress(progress, params.filtering), should_cancel=should_cancel,
-                   timings={name: 0.0 for name, _, _ in STAGES}, frame=Frame.of(shape))
+                   timings=timings, frame=Frame.of(shape))
 
     @property
     def decision(self) -> dict:

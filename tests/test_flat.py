@@ -11,6 +11,7 @@ from fastmesh.evaluation.quality import topology
 from fastmesh.faces import flat
 from fastmesh.faces.facecount import decimate
 from fastmesh.faces.meshops import edge_face_counts, piece_labels, remove_unreferenced
+from fastmesh.models.generate import Cancelled
 from fastmesh.params import GenerateParams
 from fastmesh.shapes.shape import Normalization, Shape
 from fastmesh.tokenizer.grid import CELL
@@ -110,6 +111,8 @@ def test_the_pipeline_gives_a_flat_mesh_back_simplified_at_the_count_asked_unles
     assert np.isclose(trimesh.Trimesh(asked.vertices, asked.faces, process=False).area, mesh.area)
     closed = pipe.generate(shape, GenerateParams(seed=0, max_vertices=48, closed="true"))
     assert closed.info["result_from"] != "simplified"
+    with pytest.raises(Cancelled):  # a cancel asked while it simplifies stops the job, not a result
+        pipe.generate(shape, GenerateParams(seed=0, max_vertices=48), should_cancel=lambda: True)
 
 
 def test_a_mesh_split_at_every_face_like_an_stl_is_welded_first():

@@ -314,6 +314,17 @@ def test_cancel_raises(pipe):
         pipe.generate(_sphere(), GenerateParams(max_vertices=40), should_cancel=lambda: True)
 
 
+def test_cancel_is_heard_where_no_network_runs(pipe):
+    """A dense box rebuilt from its planes: a cancel asked meanwhile stops the job, not a result (the flat path:
+    ``test_flat``)."""
+    box = trimesh.creation.box(extents=(3.0, 2.0, 1.0)).subdivide().subdivide()
+    shape = Shape(vertices=np.asarray(box.vertices), faces=np.asarray(box.faces))
+    params = GenerateParams(max_vertices=24)
+    assert pipe.generate(shape, params).info["result_from"] == "planes"
+    with pytest.raises(Cancelled):
+        pipe.generate(shape, params, should_cancel=lambda: True)
+
+
 @pytest.mark.parametrize("bad", [dict(temperature=-1), dict(top_p=0), dict(top_k=-2), dict(max_vertices=2),
                                  dict(max_vertices=10**6), dict(seed=-1), dict(target_faces=3),
                                  dict(target_faces=10**5), dict(target_faces=1.5)])

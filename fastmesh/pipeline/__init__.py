@@ -259,7 +259,9 @@ class Pipeline(FrameSteps):
     def _unrun(req: Request, vertices: np.ndarray, faces: np.ndarray, source: str) -> GenerateResult:
         """The result of a request the networks did not run for: rebuilt from planes, simplified within a flat-faced
         input's surface, or the input itself; brought to a ``target_faces`` (``step8.held``): the input's own
-        surface split or simplified is nearer it than anything generated."""
+        surface split or simplified is nearer it than anything generated.  A cancel asked while it was made
+        stops it here (the flat simplification can take seconds)."""
+        req.check()
         info, step = {"turned_degrees": 0.0, "result_from": source}, None
         if req.count.hold:
             info["faces_before_count"] = int(len(faces))
@@ -295,6 +297,7 @@ class Pipeline(FrameSteps):
         params.validate(limit=self.max_vertices)
         self._target(params)  # refuses a target_faces this decoder cannot read, before any work
         req = Request.start(shape, params, progress, should_cancel)
+        shape = req.shape  # a point cloud's normals turned outward
         # A point cloud that bounds a polyhedron is closed: the winding numbers are read only where it does not.
         cheap = shape.faces is not None or params.closed != "auto"
         if cheap:

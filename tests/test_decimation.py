@@ -9,7 +9,7 @@ import trimesh
 
 from fastmesh.evaluation.quality import topology
 from fastmesh.faces import decimation
-from fastmesh.faces.meshops import piece_labels, weld
+from fastmesh.faces.meshops import edge_face_counts, piece_labels, weld
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import result as step8
 from fastmesh.request import Request
@@ -63,6 +63,33 @@ def test_more_pieces_than_the_input_has_and_an_unreached_count_are_refused():
     assert kept is not None and piece_labels(kept[1]).max() == 1
     # Asked for more faces than the input has: it comes back as it is, short of the count.
     assert decimation.asset_decimation(a.vertices, a.faces, 2 * len(a.faces), 1, True, 0.02) is None
+
+
+def test_a_side_whose_decimation_is_no_asset_gives_way_to_the_next(monkeypatch):
+    """The first side that reaches the count makes a fin (an edge of three faces, as fast-simplification sometimes
+    does): the plain decimation keeps it, the asset is a later side's."""
+    v, f, back = _ellipsoid(np.random.default_rng(3))
+    simplify, sides, fins = decimation.fast_simplification.simplify, [], []
+
+    def finned(points, faces, **kwargs):
+        out_v, out_f = simplify(points, faces, **kwargs)
+        sides.append(float(np.ptp(points, axis=0).max()))
+        if not fins and len(out_f) <= 300:  # a third face on an edge, to a vertex of the far side
+            a, b = out_f[0][:2]
+            out_f = np.concatenate([out_f, [[a, b, out_f[len(out_f) // 2][2]]]])
+            fins.append(len(sides))
+        return out_v, out_f
+
+    monkeypatch.setattr(decimation.fast_simplification, "simplify", finned)
+    plain = decimation.quadric_decimation(v, f, 300)
+    assert edge_face_counts(plain[1]).max() == 3 and len(sides) == fins[0]
+    first = fins[0]
+    sides.clear()
+    fins.clear()
+    out = decimation.asset_decimation(v, f, 300, pieces=1, closed=True, tolerance=0.02)
+    assert fins == [first] and out is not None and topology(out[1])["watertight"] and len(sides) > first
+    assert np.allclose(sides, decimation.SIDES[:len(sides)], rtol=1e-6)
+    assert np.abs(np.linalg.norm(back(out[0]), axis=1) - 1.0).max() < 0.05
 
 
 def test_faces_wound_against_their_neighbours_are_seen():

@@ -11,6 +11,7 @@ from fastmesh.evaluation.primitives import OPEN_KINDS, RANDOM_KINDS, ROUND_KINDS
 from fastmesh.faces.closure import decide_closed
 from fastmesh.params import GenerateParams
 from fastmesh.shapes import orientation
+from fastmesh.shapes.io import estimate_normals, with_normals
 from fastmesh.shapes.orientation import oriented, outward_signs
 from fastmesh.shapes.shape import Shape
 
@@ -71,6 +72,20 @@ def test_an_open_shape_has_no_inside_and_stays_open(kind):
         shape, _ = _cloud(kind, rng)
         assert not outward_signs(shape.vertices, shape.normals).any()
         assert oriented(shape) is shape and not decide_closed(shape)[0]
+
+
+@pytest.mark.parametrize("kind", ["l_block", "torus", "tube"])
+def test_normals_estimated_for_a_bare_cloud_point_outward(kind):
+    """Without normals they are estimated from neighbours and pointed away from the centroid, which a concave part
+    defeats (an L block's inner corner, a torus's hole); then turned outward where the points tell."""
+    rng = np.random.default_rng([18, len(kind)])
+    for _ in range(3):
+        shape, outward = _cloud(kind, rng)
+        bare = with_normals(Shape(vertices=shape.vertices))
+        guessed = estimate_normals(shape.vertices)
+        right = (np.einsum("ni,ni->n", bare.normals, outward) > 0).mean()
+        assert right >= max(0.95, (np.einsum("ni,ni->n", guessed, outward) > 0).mean()) or kind == "tube"
+        assert right >= (np.einsum("ni,ni->n", guessed, outward) > 0).mean()  # never fewer outward
 
 
 def test_a_mesh_or_a_cloud_without_normals_is_not_touched():

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .orientation import outward
 from .shape import EXPORT_FORMATS, MAX_FACES, MAX_POINTS, Normalization, Shape, ShapeError, too_many
 
 NORMAL_BLOCK = 32_768  # points whose normals are estimated at once (bounds that step's memory)
@@ -205,7 +206,8 @@ def validate_shape(shape: Shape, max_points: int = MAX_POINTS, max_faces: int = 
 
 def with_normals(shape: Shape) -> Shape:
     """The point cloud with a unit normal at every point: the given ones where finite and non-zero,
-    estimated ones (:func:`estimate_normals`) elsewhere.  A mesh is returned as it is.
+    estimated ones (:func:`estimate_normals`) elsewhere, all of them turned outward where the points enclose a
+    volume (``orientation.outward``) when none was given.  A mesh is returned as it is.
 
     All-zero or NaN normal columns are what some exporters write for "no normals"; taken as given
     they would all point one way and mislead the models.
@@ -213,12 +215,13 @@ def with_normals(shape: Shape) -> Shape:
     if shape.faces is not None:
         return shape
     given = shape.normals
-    if given is None:
-        return Shape(vertices=shape.vertices, normals=estimate_normals(shape.vertices))
-    given = np.asarray(given, dtype=np.float64)
-    with np.errstate(over="ignore", invalid="ignore"):
-        length = np.linalg.norm(given, axis=1)
-    usable = np.isfinite(length) & (length > 1e-12)
+    if given is not None:
+        given = np.asarray(given, dtype=np.float64)
+        with np.errstate(over="ignore", invalid="ignore"):
+            length = np.linalg.norm(given, axis=1)
+        usable = np.isfinite(length) & (length > 1e-12)
+    if given is None or not usable.any():  # signs of our own guess: outward wherever the points tell
+        return Shape(vertices=shape.vertices, normals=outward(shape.vertices, estimate_normals(shape.vertices)))
     if usable.all():
         return Shape(vertices=shape.vertices, normals=given / length[:, None])
     out = estimate_normals(shape.vertices)

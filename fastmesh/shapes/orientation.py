@@ -117,5 +117,18 @@ def oriented(shape: Shape) -> Shape:
     told, inward = np.count_nonzero(sign), np.count_nonzero(sign < 0)
     if told < TOLD_SHARE * len(sign) or min(inward, told - inward) <= MIXED_SHARE * told:
         return shape
-    sign = _spread(Normalization.fit(shape.vertices).apply(shape.vertices), n, sign)
-    return Shape(vertices=shape.vertices, normals=n * np.where(sign < 0, -1.0, 1.0)[:, None])
+    return Shape(vertices=shape.vertices, normals=_turned(shape.vertices, n, sign))
+
+
+def outward(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(N, 3) ``normals`` turned outward wherever the points enclose a volume, whatever share points in: for normals
+    whose signs are our own guess (``io.estimate_normals``), not the input's."""
+    if len(points) < 4 * K:
+        return normals
+    return _turned(points, np.asarray(normals, dtype=np.float64), outward_signs(points, normals))
+
+
+def _turned(points: np.ndarray, normals: np.ndarray, sign: np.ndarray) -> np.ndarray:
+    """``normals`` times the signs told (``outward_signs``), spread to the undecided ones (:func:`_spread`)."""
+    sign = _spread(Normalization.fit(points).apply(points), normals, sign)
+    return normals * np.where(sign < 0, -1.0, 1.0)[:, None]

@@ -27,6 +27,9 @@ class PlanarConfig:
 
     tolerance: float = 2e-4  # a point lies on a plane within this distance (exact data: float32 rounding)
     normal_degrees: float = 5.0  # ... and with its normal this close to the plane's
+    # ... or, once the plane is fitted, this close: normals estimated from a point's neighbours (a cloud without
+    # normals) tilt by up to 45 degrees within a few points of an edge, though the points lie on their planes.
+    loose_degrees: float = 89.0
     min_points: int = 12  # points a plane needs
     inliers: float = 0.998  # share of the points the planes must explain
     max_planes: int = 40
@@ -121,7 +124,7 @@ def detect_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig
     normals) and (N,) the plane of each point, or None where planes leave more than ``1 - cfg.inliers`` of the
     points unexplained.  Greedy: each unexplained point in turn seeds a plane from its own normal, refitted to
     the points it gathers."""
-    cos = np.cos(np.radians(cfg.normal_degrees))
+    cos = (np.cos(np.radians(cfg.normal_degrees)), np.cos(np.radians(cfg.loose_degrees)))
     labels = np.full(len(points), -1)
     planes, failed = [], 0
     allowed = len(points) * (1 - cfg.inliers)
@@ -150,10 +153,11 @@ def detect_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig
 
 
 def _grow(points, normals, free, n, d, tol, cos):
-    """The plane a seed (normal ``n``, offset ``d``) grows to among the ``free`` points: its members refitted
-    by least squares twice.  Returns ((n, d), member mask), or None when it gathers under three points."""
+    """The plane a seed (normal ``n``, offset ``d``) grows to among the ``free`` points: its members (normals
+    within ``cos[0]``) refitted by least squares twice, then every free point on it with its normal within
+    ``cos[1]``.  Returns ((n, d), member mask), or None when it gathers under three points."""
     for _ in range(2):
-        members = free & (np.abs(points @ n - d) < tol) & (np.abs(normals @ n) > cos)
+        members = free & (np.abs(points @ n - d) < tol) & (np.abs(normals @ n) > cos[0])
         if members.sum() < 3:
             return None
         mine = points[members]
@@ -161,7 +165,7 @@ def _grow(points, normals, free, n, d, tol, cos):
         fitted = np.linalg.svd(mine - centre, full_matrices=False)[2][-1]
         n = fitted if fitted @ normals[members].sum(0) >= 0 else -fitted
         d = float(n @ centre)
-    members = free & (np.abs(points @ n - d) < tol) & (np.abs(normals @ n) > cos)
+    members = free & (np.abs(points @ n - d) < tol) & (np.abs(normals @ n) > cos[1])
     return (n, d), members
 
 

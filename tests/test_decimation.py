@@ -53,6 +53,18 @@ def test_an_open_surface_is_refused_where_the_result_must_be_closed():
     assert kept is not None and topology(kept[1])["boundary_edges"] > 0
 
 
+def test_a_closed_mesh_with_a_crack_may_decimate_closed():
+    """A face short (a crack a closed mesh's file may have, read as closed): the collapses close it, and the
+    decimation, closed, counts; where they leave it open it is refused (as above)."""
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        v, f, back = _ellipsoid(rng)
+        cracked = np.delete(f, int(rng.integers(len(f))), axis=0)
+        out = decimation.asset_decimation(v, cracked, 200, pieces=1, closed=True, tolerance=0.02)
+        assert out is not None and topology(out[1])["watertight"] and abs(len(out[1]) - 200) <= 4
+        assert np.abs(np.linalg.norm(back(out[0]), axis=1) - 1.0).max() < 0.05
+
+
 def test_more_pieces_than_the_input_has_and_an_unreached_count_are_refused():
     a = trimesh.creation.icosphere(3)
     b = a.copy()

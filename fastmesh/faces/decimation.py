@@ -96,8 +96,9 @@ def asset_decimation(vertices: np.ndarray, faces: np.ndarray, target: int, piece
     """
     v, f = weld(vertices, faces)
     counts = edge_face_counts(f)
-    # Collapses keep an edge of three faces and an open border: such an input has no decimation to weigh.
-    if not len(f) or counts.max() > 2 or (closed and counts.min() < 2):
+    # Collapses keep an edge of three faces: such an input has no decimation to weigh.  They may close a crack (a
+    # closed mesh's few open edges), so an input with some is decimated and its result checked.
+    if not len(f) or counts.max() > 2:
         return None
     for out_v, out_f in [(v, f)] if len(f) <= target else _each_side(v, f, target):
         asset = _as_asset(out_v, out_f, target, pieces, closed, tolerance)

@@ -122,10 +122,14 @@ def oriented(shape: Shape) -> Shape:
 
 def outward(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """(N, 3) ``normals`` turned outward wherever the points enclose a volume, whatever share points in: for normals
-    whose signs are our own guess (``io.estimate_normals``), not the input's."""
+    whose signs are our own guess (``io.estimate_normals``), not the input's.  As they are where under
+    ``TOLD_SHARE`` of the points can tell (no surface enclosing a volume: a sheet, a blob of points)."""
     if len(points) < 4 * K:
         return normals
-    return _turned(points, np.asarray(normals, dtype=np.float64), outward_signs(points, normals))
+    sign = outward_signs(points, normals)
+    if np.count_nonzero(sign) < TOLD_SHARE * len(sign):
+        return normals
+    return _turned(points, np.asarray(normals, dtype=np.float64), sign)
 
 
 def _turned(points: np.ndarray, normals: np.ndarray, sign: np.ndarray) -> np.ndarray:

@@ -106,16 +106,27 @@ def _spread(p: np.ndarray, n: np.ndarray, sign: np.ndarray) -> np.ndarray:
     return sign
 
 
+def _told(points: np.ndarray, normals: np.ndarray) -> np.ndarray | None:
+    """:func:`outward_signs` where at least ``TOLD_SHARE`` of the points tell, else None (also for fewer than
+    4 K points): the one rule both :func:`oriented` and :func:`outward` turn by."""
+    if len(points) < 4 * K:
+        return None
+    sign = outward_signs(points, normals)
+    return sign if np.count_nonzero(sign) >= TOLD_SHARE * len(sign) else None
+
+
 def oriented(shape: Shape) -> Shape:
     """``shape`` with mixed normals turned outward (see the module's docstring and ``MIXED_SHARE``); a mesh, a point
     cloud without normals, or one whose normals agree (all outward or all inward where they can tell) comes back
     as it is."""
-    if shape.faces is not None or shape.normals is None or len(shape.vertices) < 4 * K:
+    if shape.faces is not None or shape.normals is None:
         return shape
     n = np.asarray(shape.normals, dtype=np.float64)
-    sign = outward_signs(shape.vertices, n)
+    sign = _told(shape.vertices, n)
+    if sign is None:
+        return shape
     told, inward = np.count_nonzero(sign), np.count_nonzero(sign < 0)
-    if told < TOLD_SHARE * len(sign) or min(inward, told - inward) <= MIXED_SHARE * told:
+    if min(inward, told - inward) <= MIXED_SHARE * told:
         return shape
     return Shape(vertices=shape.vertices, normals=_turned(shape.vertices, n, sign))
 
@@ -124,12 +135,8 @@ def outward(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """(N, 3) ``normals`` turned outward wherever the points enclose a volume, whatever share points in: for normals
     whose signs are our own guess (``io.estimate_normals``), not the input's.  As they are where under
     ``TOLD_SHARE`` of the points can tell (no surface enclosing a volume: a sheet, a blob of points)."""
-    if len(points) < 4 * K:
-        return normals
-    sign = outward_signs(points, normals)
-    if np.count_nonzero(sign) < TOLD_SHARE * len(sign):
-        return normals
-    return _turned(points, np.asarray(normals, dtype=np.float64), sign)
+    sign = _told(points, normals)
+    return normals if sign is None else _turned(points, np.asarray(normals, dtype=np.float64), sign)
 
 
 def _turned(points: np.ndarray, normals: np.ndarray, sign: np.ndarray) -> np.ndarray:

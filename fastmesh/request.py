@@ -22,7 +22,7 @@ import numpy as np
 from .evaluation.quality import input_pieces
 from .faces.facecount import CountRule, count_rule, input_samples
 from .models.generate import Cancelled
-from .params import GenerateParams
+from .params import LARGEST_VERTEX_LIMIT, GenerateParams
 from .progress import STAGES, Progress
 from .shapes.canonical import rotate_shape
 from .shapes.io import sample_surface
@@ -126,7 +126,8 @@ class Request:
         t = time.perf_counter()
         shape = oriented(shape)
         timings["encode"] += time.perf_counter() - t
-        return cls(shape=shape, params=params, count=count_rule(params.target_faces),
+        told = params.sampling(LARGEST_VERTEX_LIMIT).read_count
+        return cls(shape=shape, params=params, count=count_rule(params.target_faces, told),
                    report=Progress(progress, params.filtering), should_cancel=should_cancel,
                    timings=timings, frame=Frame.of(shape))
 

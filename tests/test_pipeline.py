@@ -231,10 +231,12 @@ def test_vertices_merged_below_three_are_a_clear_error(monkeypatch):
     assert err.value.code == "no_vertices"
 
 
-def test_flat_vertices_go_except_with_a_face_count_target(pipe):
-    """``TriangleConfig.flat_tol`` removes vertices on the box's faces; a ``target_faces`` keeps them (the
-    count asked for).  The box as points: its own 12 faces would come back as they are."""
+def test_flat_vertices_go_except_with_a_face_count_target_told(pipe):
+    """``TriangleConfig.flat_tol`` removes vertices on the box's faces; a ``target_faces`` told to the decoder
+    keeps them (it made them for that count).  The box as points: its own 12 faces would come back as they are."""
     from dataclasses import replace
+
+    from fastmesh.params import TunedParams
 
     box = point_cloud(Shape(vertices=np.asarray(trimesh.creation.box().vertices),
                             faces=np.asarray(trimesh.creation.box().faces)), 4000)
@@ -245,8 +247,8 @@ def test_flat_vertices_go_except_with_a_face_count_target(pipe):
         for tol in (surface.flat_tol, None):
             pipe.triangle_config = replace(surface, flat_tol=tol)
             for target in (None, 40):
-                runs[tol is None, target] = pipe.generate(box, GenerateParams(seed=0, max_vertices=24,
-                                                                              target_faces=target, closed="false"))
+                runs[tol is None, target] = pipe.generate(box, TunedParams({"read_count": True}, GenerateParams(
+                    seed=0, max_vertices=24, target_faces=target, closed="false")))
     finally:
         pipe.triangle_config = saved
     assert len(runs[False, None].vertices) < len(runs[True, None].vertices)
@@ -333,9 +335,13 @@ def test_bad_params_raise_value_error(pipe, bad):
         pipe.generate(_sphere(), GenerateParams(**bad))
 
 
-def test_target_faces_conditions_the_decoder(pipe):
-    """The face count asked for reaches the decoder's count token: it changes what is sampled (a random
-    decoder follows no target, but must read it), and a decoder without the token refuses it up front."""
+def test_target_faces_reaches_the_decoder_only_where_it_is_told(pipe):
+    """Untold, a face-count target leaves the decoder as it is (the same tokens as without one: the result is
+    brought to the count afterwards); told (``SamplingConfig.read_count``), it reaches the decoder's count token
+    and changes what is sampled (a random decoder follows no target, but must read it), and a decoder without
+    the token refuses it up front."""
+    from fastmesh.params import TunedParams
+
     shape = _sphere()
     plain = pipe.generate(shape, GenerateParams(seed=1, candidates=1))
     assert plain.faces.tolist() == pipe.generate(shape, GenerateParams(seed=1, candidates=1,
@@ -344,28 +350,58 @@ def test_target_faces_conditions_the_decoder(pipe):
     with torch.no_grad():
         pipe.vertex.count_emb.weight.normal_(0, 3.0)
     try:
-        small = pipe.generate(shape, GenerateParams(seed=1, candidates=1, target_faces=20))
-        large = pipe.generate(shape, GenerateParams(seed=1, candidates=1, target_faces=4000))
+        made = {(told, target): pipe.generate(shape, TunedParams(
+            {"read_count": told, "tell_below": 0.0}, GenerateParams(seed=1, candidates=1, target_faces=target)))
+            for told in (False, True) for target in (None, 20, 4000)}
     finally:
         with torch.no_grad():
             pipe.vertex.count_emb.weight.copy_(saved)
+    plain = made[False, None]  # the count token's "model's choice" is random too
+    for target in (20, 4000):
+        assert made[False, target].tokens == plain.tokens
+        assert made[False, target].info["generated_vertices"] == plain.info["generated_vertices"]
+        assert made[False, target].info["faces_before_count"] == len(plain.faces)
+    small, large = made[True, 20], made[True, 4000]
     assert small.info["generated_vertices"] != large.info["generated_vertices"] or \
         small.vertices.tolist() != large.vertices.tolist()
     blind = Pipeline.random(seed=0)
     blind.vertex.cfg.count_condition = False
+    assert len(blind.generate(shape, GenerateParams(candidates=1, target_faces=300)).faces) > 0
     with pytest.raises(ValueError, match="target_faces"):
-        blind.generate(shape, GenerateParams(target_faces=300))
+        blind.generate(shape, TunedParams({"read_count": True}, GenerateParams(target_faces=300)))
 
 
-def test_vertex_cells_move_by_the_cells_only_when_asked_and_without_a_target(pipe):
+def test_a_target_far_under_the_cells_count_is_told_to_the_decoder(pipe):
+    """By default the decoder is told a target only under ``tell_below`` x the vertices the cells expect (their
+    probabilities' sum, cells at FLOOR none), where it has a count token and cells to read."""
+    from fastmesh.models.cells import FLOOR
+    from fastmesh.params import SamplingConfig, TunedParams
+
+    cells = torch.full((1, 128 ** 3), FLOOR)
+    cells[0, :400] = 0.0  # 400 cells of probability 1/2: 200 vertices expected
+
+    def told(target, logodds=cells, **settings):
+        return pipe._target(TunedParams(settings, GenerateParams(target_faces=target)), logodds) is not None
+
+    assert SamplingConfig().tell_below == 0.5 and not SamplingConfig().read_count
+    assert told(99) and not told(100) and not told(4000)
+    assert not told(99, tell_below=0.0) and told(4000, read_count=True)
+    assert not told(99, logodds=None) and told(99, logodds=None, read_count=True)
+    assert pipe._target(GenerateParams(), cells) is None
+    blind = Pipeline.random(seed=0)
+    blind.vertex.cfg.count_condition = False
+    assert blind._target(GenerateParams(target_faces=99), cells) is None
+
+
+def test_vertex_cells_move_by_the_cells_only_when_asked_and_without_a_told_target(pipe):
     """``Pipeline.vertex_cells``: the tokens' cells as they are, unless ``snap_margin`` is set and no face-count
-    target is: then ``models.cells.snap_to_cells`` of them."""
+    target is told to the decoder: then ``models.cells.snap_to_cells`` of them."""
     from fastmesh.models.cells import FLOOR, snap_to_cells
     from fastmesh.params import SamplingConfig, TunedParams
     from fastmesh.tokenizer import vertex as vt
 
-    def snapping(**fields):
-        return TunedParams({"snap_margin": 0.5}, GenerateParams(**fields))
+    def snapping(told=False, **fields):
+        return TunedParams({"snap_margin": 0.5, "read_count": told}, GenerateParams(**fields))
 
     q = np.array([[3, 4, 5], [3, 4, 6], [40, 40, 40]])
     tokens = vt.encode(q)
@@ -374,8 +410,9 @@ def test_vertex_cells_move_by_the_cells_only_when_asked_and_without_a_target(pip
     assert SamplingConfig().snap_margin == GenerateParams().sampling(100).snap_margin is not None  # on by default
     assert pipe.vertex_cells(tokens, cells, TunedParams({"snap_margin": None})).tolist() == vt.decode(tokens).tolist()
     assert pipe.vertex_cells(tokens, None, snapping()).tolist() == vt.decode(tokens).tolist()
-    assert pipe.vertex_cells(tokens, cells, snapping(target_faces=100)).tolist() == vt.decode(tokens).tolist()
+    assert pipe.vertex_cells(tokens, cells, snapping(True, target_faces=100)).tolist() == vt.decode(tokens).tolist()
     moved = pipe.vertex_cells(tokens, cells, snapping())
+    assert pipe.vertex_cells(tokens, cells, snapping(target_faces=100)).tolist() == moved.tolist()
     assert moved.tolist() == snap_to_cells(vt.decode(tokens), cells[0], 0.5).tolist() == [[3, 5, 6], [40, 40, 40]]
 
 

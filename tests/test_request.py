@@ -56,10 +56,12 @@ def test_a_request_reads_the_planar_draw_for_its_surface_points():
 
 
 def test_the_count_rule_says_what_a_target_changes():
-    free, held = count_rule(None), count_rule(300)
+    free, held, told = count_rule(None), count_rule(300), count_rule(300, told=True)
     assert (free.low_poly_input, free.snap, free.remove_flat, free.hold) == (True, True, True, False)
-    assert (held.low_poly_input, held.snap, held.remove_flat, held.hold) == (False, False, False, True)
-    assert held.target == 300
+    assert (held.low_poly_input, held.snap, held.remove_flat, held.hold) == (True, True, True, True)
+    assert (told.low_poly_input, told.snap, told.remove_flat, told.hold) == (False, False, False, True)
+    assert held.target == told.target == 300
+    assert count_rule(None, told=True) == free
 
 
 @pytest.mark.parametrize("target", [None, 400])
@@ -72,9 +74,9 @@ def test_a_mesh_job_draws_each_sample_once_and_reads_the_count_rule_once(pipe, m
         draws[(id(shape), n, seed)] += 1
         return sample_surface(shape, n, seed=seed, vertices=vertices)
 
-    def rule(t):
+    def rule(t, told=False):
         rules.append(t)
-        return count_rule(t)
+        return count_rule(t, told)
 
     monkeypatch.setattr(request_module, "sample_surface", counted)
     monkeypatch.setattr(request_module, "count_rule", rule)

@@ -1,8 +1,9 @@
 """A face count that holds: a result brought to the ``target_faces`` asked for.
 
-The vertex decoder reads the count asked for, but follows it loosely (and its vertex limit caps what it can
-make: 1,000 vertices are about 2,000 faces).  :func:`hold_count` brings the result it made to the target
-when it is off by more than ``KEEP``:
+The vertex decoder makes the count it chooses (a decoder trained to read the count follows it loosely and
+breaks far from its own: ``SamplingConfig.read_count``; and its vertex limit caps what it can make: 1,000
+vertices are about 2,000 faces).  :func:`hold_count` brings the result it made to the target when it is off
+by more than ``KEEP``:
 
 - too many faces: half-edge collapses of least quadric error (:func:`decimate`); each keeps one of its
   two vertices where it is, so the vertices stay the model's, and each must keep the surface a surface
@@ -58,13 +59,14 @@ class CountRule:
     hold: bool
 
 
-def count_rule(target: int | None) -> CountRule:
-    """The stages' rule for a ``target_faces`` of ``target``: with a target the result keeps the vertices the
-    decoder made for that count (no low-poly input in its place, no move by the cell evidence, no flat vertex
-    removed) and is brought to it; without one the model's own choices stand.  A result the networks do not make
-    (the input's planes, its flat faces simplified) is brought to the count all the same."""
-    free = target is None
-    return CountRule(target=target, low_poly_input=free, snap=free, remove_flat=free, hold=not free)
+def count_rule(target: int | None, told: bool = False) -> CountRule:
+    """The stages' rule for a ``target_faces`` of ``target``: with a target the result is brought to it.  A
+    decoder ``told`` the count (``SamplingConfig.read_count``) made its vertices for it, and they are kept (no
+    low-poly input in their place, no move by the cell evidence, no flat vertex removed); otherwise the model's
+    own choices stand, as without a target.  A result the networks do not make (the input's planes, its flat
+    faces simplified, a low-poly input) is brought to the count all the same."""
+    free = target is None or not told
+    return CountRule(target=target, low_poly_input=free, snap=free, remove_flat=free, hold=target is not None)
 
 
 def hold_count(vertices: np.ndarray, faces: np.ndarray, target: int, points: np.ndarray | None = None,

@@ -77,7 +77,7 @@ class TriangleConfig:
         Last, remove the vertices of flat regions, straight creases and straight open borders
         (:func:`fastmesh.faces.simplify.collapse_flat`): a kept vertex stays within ``flat_tol * L``
         of the faces it replaces (None: keep every vertex).  Default: half a 7-bit cell.  The pipeline
-        turns it off for a face-count target (the count asked for).
+        turns it off for a face-count target told to the decoder (``SamplingConfig.read_count``).
     weigh_decimation : bool
         The pipeline, last: a mesh input's result is weighed against the input's quadric decimation to the same
         face count where that is as much an asset (``pipeline.result.decimated``), and the one nearer the input

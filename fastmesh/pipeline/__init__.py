@@ -269,17 +269,18 @@ class Pipeline(FrameSteps):
         req.report.done("faces")
         return step8.finished(req, vertices, faces, tokens=0, info=info, count_step=step)
 
-    def _last(self, req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
+    def _last(self, req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict, result_from: str
               ) -> tuple[np.ndarray, np.ndarray, str, str | None]:
-        """The generated result brought to a ``target_faces`` (``step8.held``), then weighed against a mesh input's
-        decimation to its face count (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go
-        into ``info``): vertices, faces, where they come from ("model" or "decimated") and the count step."""
+        """The result (``result_from`` "model", or "input": a low-poly input given back) brought to a
+        ``target_faces`` (``step8.held``), then, where generated, weighed against a mesh input's decimation to its
+        face count (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go into ``info``):
+        vertices, faces, where they come from ("model", "input" or "decimated") and the count step."""
         step = None
         if req.count.hold:
             info["faces_before_count"] = int(len(faces))
             vertices, faces, step = step8.held(req, vertices, faces)
-        if not self.triangle_config.weigh_decimation:
-            return vertices, faces, "model", step
+        if result_from != "model" or not self.triangle_config.weigh_decimation:
+            return vertices, faces, result_from, step
         rival, fits = step8.decimated(req, vertices, faces, self.triangle_config.support_points)
         if fits:
             info["decimation_fits"] = fits
@@ -295,7 +296,7 @@ class Pipeline(FrameSteps):
         per candidate); it returns the result.  :class:`fastmesh.batch.Batch` runs several at once."""
         params = params or GenerateParams()
         params.validate(limit=self.max_vertices)
-        self._target(params)  # refuses a target_faces this decoder cannot read, before any work
+        self._target(params)  # refuses a target_faces told to a decoder that cannot read it, before any work
         req = Request.start(shape, params, progress, should_cancel)
         shape = req.shape  # a point cloud's normals turned outward
         # A point cloud that bounds a polyhedron is closed: the winding numbers are read only where it does not.
@@ -332,9 +333,7 @@ class Pipeline(FrameSteps):
         best = self._nearest_frame(req, made)
         vertices, faces, result_from, pulled = step8.whole(req, best["vertices"], best["faces"])
         info = {**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3), "pulled_in": pulled}
-        step = None
-        if result_from == "model":  # not a low-poly input given back
-            vertices, faces, result_from, step = self._last(req, vertices, faces, info)
+        vertices, faces, result_from, step = self._last(req, vertices, faces, info, result_from)
         result = step8.finished(req, vertices, faces, tokens=best["tokens"], info={**info, "result_from": result_from},
                                 evidence=best["evidence"] if result_from == "model" else None, count_step=step)
         req.report.done()

@@ -18,7 +18,7 @@ from ..faces.facecount import CountRule, count_rule
 from ..faces.filtering import predict_edges
 from ..faces.meshops import weld
 from ..fitting import distinct, fit_radius, fit_samples, fit_to_planes
-from ..models.cells import raise_cells, snap_to_cells
+from ..models.cells import FLOOR, raise_cells, snap_to_cells
 from ..models.generate import GenerationError
 from ..params import GenerateParams
 from ..request import Frame, Request
@@ -31,16 +31,29 @@ from .runtime import stage, timed_passes
 CELL_SEED = 0  # of the input sample the cell evidence reads
 
 
+def _expected(logodds: torch.Tensor) -> float:
+    """The vertices cell log-odds (B, 128^3) expect: the sum of their probabilities, cells at ``FLOOR`` none."""
+    return float(torch.where(logodds > FLOOR, torch.sigmoid(logodds.float()), 0.0).sum())
+
+
 class CandidateSteps:
     """One candidate's steps, from the input encoded to its triangles (see the module)."""
 
-    def _target(self, params: GenerateParams) -> torch.Tensor | None:
-        """(1,) faces asked for, as the decoder's count token reads them (None: the model's choice)."""
-        if params.target_faces is None:
+    def _target(self, params: GenerateParams, logodds: torch.Tensor | None = None) -> torch.Tensor | None:
+        """(1,) faces asked for, as the decoder's count token reads them, where it is told them: always with
+        ``SamplingConfig.read_count`` (refused by a decoder without the token), else where the decoder has the
+        token and the target lies under ``tell_below`` x the vertices the cell log-odds ``logodds`` (1, 128^3)
+        expect; None: the model's choice."""
+        sampling, target = params.sampling(self.max_vertices), params.target_faces
+        if target is None:
             return None
-        if not self.vertex.cfg.count_condition:
-            raise ValueError("target_faces: this vertex decoder was not trained with a face-count condition")
-        return torch.tensor([params.target_faces], device=self.device)
+        if sampling.read_count:
+            if not self.vertex.cfg.count_condition:
+                raise ValueError("target_faces: this vertex decoder was not trained with a face-count condition")
+        elif not self.vertex.cfg.count_condition or logodds is None or target >= sampling.tell_below * _expected(
+                logodds):
+            return None
+        return torch.tensor([target], device=self.device)
 
     def _logodds(self, frame: Frame, params: GenerateParams | None = None, corners: np.ndarray | None = None
                  ) -> torch.Tensor | None:
@@ -74,7 +87,7 @@ class CandidateSteps:
         pts_t = torch.from_numpy(pts).to(self.device)[None, :n_vp]
         nrm_t = torch.from_numpy(nrm).to(self.device)[None, :n_vp]
         with torch.inference_mode():
-            target = self._target(params)
+            target = self._target(params, logodds)
             prefix = self.vertex.condition(pts_t, nrm_t, target)
             evidence = self.vertex.point_evidence(pts_t, nrm_t, logodds, target)
         return pts, nrm, prefix, evidence
@@ -112,10 +125,12 @@ class CandidateSteps:
                      count: CountRule | None = None) -> np.ndarray:
         """(N, 3) int64 vertex cells of the decoder's ``tokens``, moved by the cell log-odds ``logodds`` (from
         :meth:`_logodds`) where ``SamplingConfig.snap_margin`` says so (``models.cells.snap_to_cells``) and
-        the face-count rule allows it (``count``, made from ``params`` when not given: not with a target)."""
+        the face-count rule allows it (``count``, made from ``params`` when not given: not with a target told to the
+        decoder)."""
         q = vt.decode(tokens, strict=True)
-        margin = params.sampling(self.max_vertices).snap_margin
-        count = count or count_rule(params.target_faces)
+        sampling = params.sampling(self.max_vertices)
+        margin = sampling.snap_margin
+        count = count or count_rule(params.target_faces, sampling.read_count)
         if logodds is None or margin is None or not count.snap:
             return q
         return snap_to_cells(q, logodds[0].cpu(), margin)
@@ -176,10 +191,10 @@ class CandidateSteps:
         edges, logits = predict_edges(predict, len(q), self.filter_config, req.params.filtering)
 
         # Triangles on the input surface, scored by the edge logits, kept a surface, holes closed, flat vertices
-        # removed (but not below a face-count target: ``req.count.remove_flat``).
+        # removed (but not where a face-count target was told to the decoder: ``req.count.remove_flat``).
         with stage("faces", timings):
             tc = replace(self.triangle_config, close=req.close, close_everywhere=req.sealed)
-            if not req.count.remove_flat:  # the count asked for: flat regions keep their vertices
+            if not req.count.remove_flat:  # the decoder made them for the count told: flat regions keep them
                 tc = replace(tc, flat_tol=None)
             surface = None
             if tc.support_tol is not None or tc.max_faces_per_edge is not None or tc.selection == "surface":

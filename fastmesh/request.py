@@ -92,7 +92,8 @@ class Request:
     ----------
     shape : Shape, the input in its own frame (a point cloud's normals outward: ``Request.start``)
     params : GenerateParams, validated
-    count : CountRule, what the face-count target changes (``facecount.count_rule``)
+    count : CountRule, what the face-count target changes (``facecount.count_rule``); told to the decoder once the
+        input's cells are read where it lies far under their count (``FrameSteps._frame``)
     report : Progress
     should_cancel : callable or None
     timings : dict, seconds per stage (``progress.STAGES``)

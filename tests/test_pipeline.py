@@ -371,9 +371,11 @@ def test_target_faces_reaches_the_decoder_only_where_it_is_told(pipe):
         blind.generate(shape, TunedParams({"read_count": True}, GenerateParams(target_faces=300)))
 
 
-def test_a_target_far_under_the_cells_count_is_told_to_the_decoder(pipe):
+def test_a_target_far_under_the_cells_count_is_told_to_the_decoder(pipe, monkeypatch):
     """By default the decoder is told a target only under ``tell_below`` x the vertices the cells expect (their
-    probabilities' sum, cells at FLOOR none), where it has a count token and cells to read."""
+    probabilities' sum, cells at FLOOR none), where it has a count token and cells to read; then the whole
+    request reads the told count rule (no snap, no flat vertex removed) and every candidate's prefix the count."""
+    from fastmesh.faces.facecount import count_rule
     from fastmesh.models.cells import FLOOR
     from fastmesh.params import SamplingConfig, TunedParams
 
@@ -381,16 +383,38 @@ def test_a_target_far_under_the_cells_count_is_told_to_the_decoder(pipe):
     cells[0, :400] = 0.0  # 400 cells of probability 1/2: 200 vertices expected
 
     def told(target, logodds=cells, **settings):
-        return pipe._target(TunedParams(settings, GenerateParams(target_faces=target)), logodds) is not None
+        return pipe.tells(TunedParams(settings, GenerateParams(target_faces=target)), logodds)
 
     assert SamplingConfig().tell_below == 0.5 and not SamplingConfig().read_count
     assert told(99) and not told(100) and not told(4000)
     assert not told(99, tell_below=0.0) and told(4000, read_count=True)
     assert not told(99, logodds=None) and told(99, logodds=None, read_count=True)
-    assert pipe._target(GenerateParams(), cells) is None
+    assert not pipe.tells(GenerateParams(), cells)
     blind = Pipeline.random(seed=0)
     blind.vertex.cfg.count_condition = False
-    assert blind._target(GenerateParams(target_faces=99), cells) is None
+    assert not blind.tells(GenerateParams(target_faces=99), cells)
+
+    seen = []
+    monkeypatch.setattr(pipe, "_logodds", lambda frame, params, corners=None: cells)
+    monkeypatch.setattr(pipe.vertex, "condition", lambda p, n, target: seen.append(target) or torch.zeros(1, 1, 1))
+    monkeypatch.setattr(pipe.vertex, "point_evidence", lambda *args: None)
+    monkeypatch.setattr(pipe, "_decode", lambda req, frames, report: _stop(req))
+    for target, want in ((99, True), (150, False), (None, False)):
+        seen.clear()
+        with pytest.raises(_Stop) as stop:
+            pipe.generate(_sphere(), GenerateParams(candidates=2, target_faces=target))
+        assert stop.value.req.count == count_rule(target, told=want)
+        assert [None if t is None else int(t) for t in seen] == [target if want else None] * 2
+
+
+class _Stop(Exception):
+    def __init__(self, req):
+        self.req = req
+
+
+def _stop(req):
+    raise _Stop(req)
+    yield  # a generator, as ``_decode`` is
 
 
 def test_vertex_cells_move_by_the_cells_only_when_asked_and_without_a_told_target(pipe):

@@ -50,6 +50,7 @@ class CountRule:
     snap : bool, vertex cells may move by the cell evidence (``SamplingConfig.snap_margin``)
     remove_flat : bool, the vertices of flat regions may be removed (``TriangleConfig.flat_tol``)
     hold : bool, the result is brought to the count (:func:`hold_count`)
+    told : bool, the vertex decoder reads the count (``SamplingConfig.read_count``, ``tell_below``)
     """
 
     target: int | None
@@ -57,6 +58,7 @@ class CountRule:
     snap: bool
     remove_flat: bool
     hold: bool
+    told: bool = False
 
 
 def count_rule(target: int | None, told: bool = False) -> CountRule:
@@ -66,7 +68,8 @@ def count_rule(target: int | None, told: bool = False) -> CountRule:
     own choices stand, as without a target.  A result the networks do not make (the input's planes, its flat
     faces simplified, a low-poly input) is brought to the count all the same."""
     free = target is None or not told
-    return CountRule(target=target, low_poly_input=free, snap=free, remove_flat=free, hold=target is not None)
+    return CountRule(target=target, low_poly_input=free, snap=free, remove_flat=free, hold=target is not None,
+                     told=not free)
 
 
 def hold_count(vertices: np.ndarray, faces: np.ndarray, target: int, points: np.ndarray | None = None,

@@ -296,7 +296,7 @@ class Pipeline(FrameSteps):
         per candidate); it returns the result.  :class:`fastmesh.batch.Batch` runs several at once."""
         params = params or GenerateParams()
         params.validate(limit=self.max_vertices)
-        self._target(params)  # refuses a target_faces told to a decoder that cannot read it, before any work
+        self._target(params, params.sampling(self.max_vertices).read_count)  # refused before any work: no token
         req = Request.start(shape, params, progress, should_cancel)
         shape = req.shape  # a point cloud's normals turned outward
         # A point cloud that bounds a polyhedron is closed: the winding numbers are read only where it does not.

@@ -39,21 +39,24 @@ def _expected(logodds: torch.Tensor) -> float:
 class CandidateSteps:
     """One candidate's steps, from the input encoded to its triangles (see the module)."""
 
-    def _target(self, params: GenerateParams, logodds: torch.Tensor | None = None) -> torch.Tensor | None:
-        """(1,) faces asked for, as the decoder's count token reads them, where it is told them: always with
-        ``SamplingConfig.read_count`` (refused by a decoder without the token), else where the decoder has the
-        token and the target lies under ``tell_below`` x the vertices the cell log-odds ``logodds`` (1, 128^3)
-        expect; None: the model's choice."""
+    def tells(self, params: GenerateParams, logodds: torch.Tensor | None) -> bool:
+        """Whether the decoder is told ``params.target_faces``: always with ``SamplingConfig.read_count``, else
+        where it has the count token and the target lies under ``tell_below`` x the vertices the cell log-odds
+        ``logodds`` (1, 128^3) expect."""
         sampling, target = params.sampling(self.max_vertices), params.target_faces
-        if target is None:
+        if target is None or sampling.read_count:
+            return target is not None
+        return bool(self.vertex.cfg.count_condition and logodds is not None
+                    and target < sampling.tell_below * _expected(logodds))
+
+    def _target(self, params: GenerateParams, told: bool = True) -> torch.Tensor | None:
+        """(1,) faces asked for, as the decoder's count token reads them, where it is ``told`` them; None: the
+        model's choice.  A decoder without the token refuses a target told."""
+        if params.target_faces is None or not told:
             return None
-        if sampling.read_count:
-            if not self.vertex.cfg.count_condition:
-                raise ValueError("target_faces: this vertex decoder was not trained with a face-count condition")
-        elif not self.vertex.cfg.count_condition or logodds is None or target >= sampling.tell_below * _expected(
-                logodds):
-            return None
-        return torch.tensor([target], device=self.device)
+        if not self.vertex.cfg.count_condition:
+            raise ValueError("target_faces: this vertex decoder was not trained with a face-count condition")
+        return torch.tensor([params.target_faces], device=self.device)
 
     def _logodds(self, frame: Frame, params: GenerateParams | None = None, corners: np.ndarray | None = None
                  ) -> torch.Tensor | None:
@@ -78,16 +81,17 @@ class CandidateSteps:
         """(K, 3) float64 corners of ``frame``'s mesh (``shapes.corners``) in its unit cube."""
         return mesh_corners(*weld(frame.unit, frame.shape.faces))
 
-    def _encode(self, frame: Frame, seed: int, params: GenerateParams, logodds: torch.Tensor | None = None) -> tuple:
+    def _encode(self, frame: Frame, seed: int, params: GenerateParams, logodds: torch.Tensor | None = None,
+                told: bool = False) -> tuple:
         """The surface sample of ``seed`` in ``frame`` (points, normals: (n, 3) float32 in its unit cube) and the
         vertex decoder's condition on it: (points, normals, prefix (1, M, dim), evidence); ``logodds`` from
-        :meth:`_logodds`."""
+        :meth:`_logodds`; ``told``: the decoder reads ``params.target_faces`` (:meth:`tells`)."""
         pts, nrm = frame.samples(self._n_points(), seed)
         n_vp = self.vertex.cfg.encoder.n_points
         pts_t = torch.from_numpy(pts).to(self.device)[None, :n_vp]
         nrm_t = torch.from_numpy(nrm).to(self.device)[None, :n_vp]
         with torch.inference_mode():
-            target = self._target(params, logodds)
+            target = self._target(params, told)
             prefix = self.vertex.condition(pts_t, nrm_t, target)
             evidence = self.vertex.point_evidence(pts_t, nrm_t, logodds, target)
         return pts, nrm, prefix, evidence

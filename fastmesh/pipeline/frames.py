@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from ..batch import DecodeRequest
+from ..faces.facecount import count_rule
 from ..faces.support import surface_fit
 from ..models.generate import GenerationError
 from ..request import Frame, Request
@@ -82,7 +83,10 @@ class FrameSteps(CandidateSteps):
         frame.reference = frame.surface(self.triangle_config.support_points, seed) if n_cand > 1 else None
         with stage("encode", req.timings):
             frame.logodds = self._logodds(frame, req.params, self._corners_in(req, frame))
-            frame.encoded = [self._encode(frame, seed + k, req.params, frame.logodds) for k in range(n_cand)]
+            if frame is req.frame and not req.count.told and self.tells(req.params, frame.logodds):
+                req.count = count_rule(req.params.target_faces, told=True)  # every frame reads the same count
+            frame.encoded = [self._encode(frame, seed + k, req.params, frame.logodds, req.count.told)
+                             for k in range(n_cand)]
         return frame
 
     def _corners_in(self, req: Request, frame: Frame) -> np.ndarray | None:

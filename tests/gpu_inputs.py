@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from fastmesh.evaluation.primitives import RANDOM_KINDS, posed, random_shape
-from fastmesh.params import GenerateParams
+from fastmesh.params import GenerateParams, TunedParams
 from fastmesh.shapes.io import load_shape
 from fastmesh.shapes.shape import Shape
 
@@ -112,6 +112,7 @@ def varied(n: int, seed: int = 0) -> list[tuple[str, Shape, GenerateParams]]:
 
 
 def five_hundred(n: int, seed: int = 1) -> list[tuple[str, Shape, GenerateParams]]:
-    """``n`` smooth point clouds asked for ``FACES_500V`` faces: results of about 500 vertices."""
+    """``n`` smooth point clouds asked for ``FACES_500V`` faces, told to the decoder (``SamplingConfig.read_count``):
+    results of about 500 vertices decoded."""
     return [(f"500v-{SMOOTH[i % len(SMOOTH)]}", smooth_cloud(SMOOTH[i % len(SMOOTH)], seed + i),
-             GenerateParams(seed=i, target_faces=FACES_500V)) for i in range(n)]
+             TunedParams({"read_count": True}, GenerateParams(seed=i, target_faces=FACES_500V))) for i in range(n)]

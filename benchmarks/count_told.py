@@ -40,7 +40,7 @@ WAYS = {"default": {}, "held": {"tell_below": 0.0}, "told": {"read_count": True}
 
 
 def runs(pipe: Pipeline, name: str, shape, truth, target: int, candidates: int) -> list[dict]:
-    """Both ways of one input at one target, scored against ``truth`` (vertices, faces)."""
+    """Every way (``WAYS``) of one input at one target, scored against ``truth`` (vertices, faces)."""
     out = []
     for way, settings in WAYS.items():
         t = time.perf_counter()

@@ -247,6 +247,12 @@ class CellNet(nn.Module):
 FLOOR = -12.0  # log-odds of a cell that is no candidate (farther than CANDIDATE_RADIUS from every point)
 
 
+def vertex_probabilities(logodds: torch.Tensor) -> torch.Tensor:
+    """Cell log-odds (any shape) -> the probability of an artist vertex in each cell, 0 at ``FLOOR`` (and NaN):
+    no candidate expects anything (sigmoid(FLOOR) over the 2M cells of the grid would add 13 phantom vertices)."""
+    return torch.where(logodds > FLOOR, torch.sigmoid(logodds), 0.0)
+
+
 def dense_grid(cells: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
     """Candidate cells (C, 3) and their log-odds (C,) -> (128^3,) float32 grid, ``FLOOR`` elsewhere."""
     return dense_grid_flat(flat_index(cells), logits)

@@ -86,7 +86,7 @@ from ..tokenizer.grid import (
     offset_coords,
     quantize,
 )
-from .cells import FLOOR
+from .cells import FLOOR, vertex_probabilities
 
 SHIFTS = (1, 2, 3)  # cube sides 2, 4, 8 cells: the 2048 condition points cover a surface sparsely at 1 cell
 POINT_LEVELS = 6  # count levels 0, 1, 2-3, 4-7, 8-15, 16+
@@ -193,9 +193,9 @@ class Evidence:
             self.logodds = torch.where(self.logodds.isnan(), FLOOR, self.logodds)
             # Expected vertices per block, in block id order (the block of cell (x, y, z) is its top 3 bits).
             per_block = (BLOCKS_PER_AXIS, BLOCK_SIDE) * 3  # (bx, ox, by, oy, bz, oz)
-            # Cells at FLOOR are no candidates: they expect nothing (sigmoid(FLOOR) over the 2M cells of the grid
-            # would add 13 phantom vertices, and "nothing ahead" would never be seen before the last blocks).
-            p = torch.where(self.logodds > FLOOR, torch.sigmoid(self.logodds), 0.0)
+            # Cells at FLOOR are no candidates: they expect nothing (else "nothing ahead" would never be seen before
+            # the last blocks).
+            p = vertex_probabilities(self.logodds)
             expected = p.reshape(b, *per_block).sum((2, 4, 6)).reshape(b, -1)
             if module.count_table is not None:
                 # A target scales what the cells expect to it: (B,) target / expected in all, or 1.

@@ -18,7 +18,7 @@ from ..faces.facecount import CountRule, count_rule
 from ..faces.filtering import predict_edges
 from ..faces.meshops import weld
 from ..fitting import distinct, fit_radius, fit_samples, fit_to_planes
-from ..models.cells import FLOOR, raise_cells, snap_to_cells
+from ..models.cells import raise_cells, snap_to_cells, vertex_probabilities
 from ..models.generate import GenerationError
 from ..params import GenerateParams
 from ..request import Frame, Request
@@ -29,11 +29,6 @@ from ..tokenizer.grid import CELL
 from .runtime import stage, timed_passes
 
 CELL_SEED = 0  # of the input sample the cell evidence reads
-
-
-def _expected(logodds: torch.Tensor) -> float:
-    """The vertices cell log-odds (B, 128^3) expect: the sum of their probabilities, cells at ``FLOOR`` none."""
-    return float(torch.where(logodds > FLOOR, torch.sigmoid(logodds.float()), 0.0).sum())
 
 
 class CandidateSteps:
@@ -47,7 +42,7 @@ class CandidateSteps:
         if target is None or sampling.read_count:
             return target is not None
         return bool(self.vertex.cfg.count_condition and logodds is not None
-                    and target < sampling.tell_below * _expected(logodds))
+                    and target < sampling.tell_below * float(vertex_probabilities(logodds.float()).sum()))
 
     def _target(self, params: GenerateParams, told: bool = True) -> torch.Tensor | None:
         """(1,) faces asked for, as the decoder's count token reads them, where it is ``told`` them; None: the

@@ -82,6 +82,10 @@ class TriangleConfig:
         The pipeline, last: a mesh input's result is weighed against the input's quadric decimation to the same
         face count where that is as much an asset (``pipeline.result.decimated``), and the one nearer the input
         comes back.  ``Pipeline.random`` turns it off (its networks' meshes would never be the nearer).
+    redistribute : float or None
+        The pipeline, last: a point cloud's result is split to this many times its faces and simplified back
+        (:func:`fastmesh.faces.redistribute.redistribute`), and comes back so where that lies nearer the input
+        (``pipeline.result.redistributed``).  None: not tried.
     """
 
     selection: str = "surface"
@@ -102,6 +106,7 @@ class TriangleConfig:
     close_everywhere: bool = False
     flat_tol: float | None = 0.5 * CELL
     weigh_decimation: bool = True
+    redistribute: float | None = 2.0
 
     def __post_init__(self):
         if self.selection not in ("cliques", "surface"):

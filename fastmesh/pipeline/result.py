@@ -21,6 +21,7 @@ from ..faces.facecount import hold_count
 from ..faces.flat import simplify_flat
 from ..faces.meshops import edge_face_counts, remove_unreferenced, triangle_areas, weld
 from ..faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
+from ..faces.redistribute import redistribute
 from ..faces.support import surface_fit
 from ..models.generate import GenerationError
 from ..request import PLANAR_SAMPLES, Request
@@ -176,6 +177,42 @@ def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, support_poi
     # A result that must be closed and is open is not the asset the decimation is (closed by asset_decimation).
     margin = CLOSED_MARGIN if req.close and (edge_face_counts(faces) == 1).any() else 1.0
     return (frame.norm.invert(rival[0]), rival[1]) if fits["decimated"] < margin * fits["model"] else None, fits
+
+
+def redistributed(req: Request, vertices: np.ndarray, faces: np.ndarray, factor: float, support_points: int
+                  ) -> tuple[tuple[np.ndarray, np.ndarray] | None, dict]:
+    """A point cloud's result with its faces spread over the input surface at its face count
+    (``redistribute.redistribute``) where that lies nearer the input than the result and is as closed, in the
+    input's frame; and both fits (``support.surface_fit`` against the candidates' sample of ``support_points`` at
+    the request's seed; empty where not weighed).  None where the input is a mesh (weighed against its own
+    decimation instead, :func:`decimated`) or the result is nearer: the split vertices are not the artist's, so
+    they come back only where the input shows the result cut across its curves."""
+    if req.shape.faces is not None or len(faces) == 0:
+        return None, {}
+    with stage("filtering", req.timings):
+        rival = spread(vertices, faces, *req.count_samples, factor=factor)
+        if rival is None:
+            return None, {}
+        norm, reference, seed = req.frame.norm, req.frame.surface(support_points, req.params.seed), req.params.seed
+        fits = {"model": surface_fit(norm.apply(vertices), faces, reference, seed),
+                "redistributed": surface_fit(norm.apply(rival[0]), rival[1], reference, seed)}
+    fits = {k: round(v, 6) for k, v in fits.items()}
+    return (rival if fits["redistributed"] < fits["model"] else None), fits
+
+
+def spread(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, normals: np.ndarray, factor: float
+           ) -> tuple[np.ndarray, np.ndarray] | None:
+    """``redistribute.redistribute`` of a result as the pipeline holds it (pinches split into copies at one
+    position, ``pieces.split_pinches``): the copies made one first (collapses that saw each copy apart from the
+    other would give an edge of three faces once welded) and split again after.  None where the surface would
+    be worse: an edge of three faces where there was none, or open where it was closed."""
+    v, f = unsplit(vertices, faces)
+    rival = redistribute(v, f, points, normals, factor=factor)
+    now, before = edge_face_counts(rival[1]), edge_face_counts(f)
+    if len(rival[1]) == 0 or ((now > 2).any() and not (before > 2).any()) or ((now == 1).any()
+                                                                            and not (before == 1).any()):
+        return None
+    return split_pinches(*rival)
 
 
 def held(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:

@@ -4,6 +4,8 @@ pairing through the pipeline."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import trimesh
@@ -103,10 +105,14 @@ def test_finish_pairs_by_the_evidence_it_is_given():
     assert finish(v, faces, params)[0].counts()["quads"] == 1
 
 
-def test_the_face_stages_evidence_reaches_the_pairing(monkeypatch):
+@pytest.mark.parametrize("redistribute", [None, 2.0])
+def test_the_face_stages_evidence_reaches_the_pairing(monkeypatch, redistribute):
     """Through Pipeline.generate with the shipped weights, on an artist mesh's point cloud: the pairing is handed
     the face model's evidence in the result's frame, it knows the result's edges, and the quads written are the
-    ones it chooses with it."""
+    ones it chooses with it.  Where step 8 redistributes the faces (it does here, shipped), its split vertices and
+    the edges its collapses make have no evidence; the face stage's vertices keep theirs."""
+    from scipy.spatial import cKDTree
+
     seen = []
 
     def spy(vertices, faces, config=None, evidence=None):
@@ -118,11 +124,20 @@ def test_the_face_stages_evidence_reaches_the_pairing(monkeypatch):
     m = trimesh.Trimesh(artist.vertices, artist.faces, process=False)
     points, index = trimesh.sample.sample_surface(m, 4096, seed=0)
     shape = Shape(vertices=np.asarray(points), faces=None, normals=np.asarray(m.face_normals[index]))
-    res = Pipeline.from_pretrained(device="cpu").generate(shape, GenerateParams(topology="quad", seed=0))
+    pipe = Pipeline.from_pretrained(device="cpu")
+    pipe.triangle_config = replace(pipe.triangle_config, redistribute=redistribute)
+    res = pipe.generate(shape, GenerateParams(topology="quad", seed=0))
     assert res.info["result_from"] == "model" and len(seen) == 1
     vertices, faces, evidence = seen[0]
     assert evidence is not None and len(faces) == len(res.faces)
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    assert np.isfinite(evidence.probabilities(vertices, edges)).mean() > 0.9
+    known = np.isfinite(evidence.probabilities(vertices, edges))
+    if redistribute is None:
+        assert known.mean() > 0.9
+    else:
+        fits = res.info["redistribution_fits"]
+        assert fits["redistributed"] < fits["model"]  # taken: the case this parameter is here for
+        stage = cKDTree(evidence.points).query(vertices)[0] < 1e-9  # the face stage's vertices, where they were
+        assert stage.mean() > 0.8 and known[stage[edges].all(1)].mean() > 0.8
     pairs = pair_triangles(vertices, faces, evidence=evidence)
     assert res.quality["quads"] == len(pairs) > 0

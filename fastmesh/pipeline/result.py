@@ -163,17 +163,14 @@ def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, support_poi
     ``CLOSED_MARGIN`` farther): what comes back is never farther from a mesh input than its decimation to the same
     count that a user could use instead.  With a ``target_faces`` the result is weighed once brought to it
     (:func:`held`)."""
-    shape, frame, seed = req.shape, req.frame, req.params.seed
+    shape, frame = req.shape, req.frame
     if shape.faces is None:
         return None, {}
     with stage("filtering", req.timings):
         rival = asset_decimation(frame.unit, shape.faces, len(faces), req.pieces_in, req.close, COUNT_SLACK)
         if rival is None:
             return None, {}
-        reference = frame.surface(support_points, seed)
-        fits = {"model": surface_fit(frame.norm.apply(vertices), faces, reference, seed),
-                "decimated": surface_fit(*rival, reference, seed)}
-    fits = {k: round(v, 6) for k, v in fits.items()}
+        fits = _fits(req, support_points, model=(frame.norm.apply(vertices), faces), decimated=rival)
     # A result that must be closed and is open is not the asset the decimation is (closed by asset_decimation).
     margin = CLOSED_MARGIN if req.close and (edge_face_counts(faces) == 1).any() else 1.0
     return (frame.norm.invert(rival[0]), rival[1]) if fits["decimated"] < margin * fits["model"] else None, fits
@@ -193,10 +190,9 @@ def redistributed(req: Request, vertices: np.ndarray, faces: np.ndarray, factor:
         rival = spread(vertices, faces, *req.count_samples, factor=factor)
         if rival is None:
             return None, {}
-        norm, reference, seed = req.frame.norm, req.frame.surface(support_points, req.params.seed), req.params.seed
-        fits = {"model": surface_fit(norm.apply(vertices), faces, reference, seed),
-                "redistributed": surface_fit(norm.apply(rival[0]), rival[1], reference, seed)}
-    fits = {k: round(v, 6) for k, v in fits.items()}
+        norm = req.frame.norm
+        fits = _fits(req, support_points, model=(norm.apply(vertices), faces),
+                     redistributed=(norm.apply(rival[0]), rival[1]))
     return (rival if fits["redistributed"] < fits["model"] else None), fits
 
 
@@ -208,11 +204,20 @@ def spread(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, normals:
     be worse: an edge of three faces where there was none, or open where it was closed."""
     v, f = unsplit(vertices, faces)
     rival = redistribute(v, f, points, normals, factor=factor)
-    now, before = edge_face_counts(rival[1]), edge_face_counts(f)
-    if len(rival[1]) == 0 or ((now > 2).any() and not (before > 2).any()) or ((now == 1).any()
-                                                                            and not (before == 1).any()):
+    if len(rival[1]) == 0:
         return None
-    return split_pinches(*rival)
+    now, before = edge_face_counts(rival[1]), edge_face_counts(f)
+    fin = (now > 2).any() and not (before > 2).any()
+    opened = (now == 1).any() and not (before == 1).any()
+    return None if fin or opened else split_pinches(*rival)
+
+
+def _fits(req: Request, support_points: int, **meshes: tuple[np.ndarray, np.ndarray]) -> dict[str, float]:
+    """``support.surface_fit`` of each named mesh (unit-cube vertices, faces) against the candidates' sample of
+    ``support_points`` of the input at the request's seed, to 6 places: the measure a rival is weighed by."""
+    seed = req.params.seed
+    reference = req.frame.surface(support_points, seed)
+    return {name: round(surface_fit(v, f, reference, seed), 6) for name, (v, f) in meshes.items()}
 
 
 def held(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:

@@ -13,10 +13,13 @@ target, artist meshes, posed primitives: made from seeds, nothing to download) a
   medians of ``--pairs`` alternated runs of each, the job's time their median too);
 - ``closure``: closing the loops hole filling leaves (``closure.close_loops``);
 - ``whole``: making the result whole (``pipeline.result.whole``: pinches, strays, far vertices, a low-poly input);
+- ``fit``: fitting the result to the input (``pipeline.result``'s ``redistributed``, ``swapped`` and
+  ``decimated``: a point cloud's faces spread over it, edges turned, a mesh input's decimation weighed);
 - ``holes``: the face stage's hole filling (``holes.fill_holes``), reported beside them.
 
 Prints one JSON line: the sums over the jobs, the share of the jobs' time that step 8 (decide, frame,
-second_frame, closure, whole) takes, and that share with the hole filling added.  ``--root`` runs another
+second_frame, closure, whole, fit) takes, that share with the hole filling added, and the share of closing and
+fitting alone (decide, closure, whole, fit) over the rest of the job.  ``--root`` runs another
 checkout's ``fastmesh`` (a ``git worktree`` of another commit): alternate the runs, the machine's load drifts.
 """
 
@@ -29,7 +32,8 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-STEP8 = ("decide", "frame", "second_frame", "closure", "whole")
+STEP8 = ("decide", "frame", "second_frame", "closure", "whole", "fit")
+CLOSE_AND_FIT = ("decide", "closure", "whole", "fit")
 
 
 def _timed(fn, name: str, spent: dict):
@@ -50,6 +54,8 @@ def _wrap_parts(pipeline, surface_triangles, Pipeline, spent: dict) -> dict:
         setattr(pipeline, name, _timed(getattr(pipeline, name), "frame", spent))
     Pipeline._nearest_frame = _timed(Pipeline._nearest_frame, "frame", spent)
     pipeline.step8.whole = _timed(pipeline.step8.whole, "whole", spent)
+    for name in ("redistributed", "swapped", "decimated"):
+        setattr(pipeline.step8, name, _timed(getattr(pipeline.step8, name), "fit", spent))
     surface_triangles.close_loops = _timed(surface_triangles.close_loops, "closure", spent)
     surface_triangles.fill_holes = _timed(surface_triangles.fill_holes, "holes", spent)
     frames = {"n": 0}
@@ -133,11 +139,13 @@ def main() -> int:
             spent["second_frame"] += jobs[name] - alone
     total = sum(jobs.values())
     step8 = sum(spent[k] for k in STEP8)
+    close_fit = sum(spent[k] for k in CLOSE_AND_FIT)
     print(json.dumps({"root": args.root, "jobs": len(jobs), "seconds": round(total, 3),
                       "median": round(float(np.median(list(jobs.values()))), 3),
                       "parts": {k: round(spent[k], 3) for k in (*STEP8, "holes")},
                       "step8_share": round(step8 / total, 4),
                       "step8_share_of_the_rest": round(step8 / (total - step8), 4),
+                      "close_and_fit_share_of_the_rest": round(close_fit / (total - close_fit), 4),
                       "with_holes_share_of_the_rest": round((step8 + spent["holes"]) / (total - step8 - spent["holes"]),
                                                             4),
                       "runs": {k: round(v, 3) for k, v in jobs.items()}}))

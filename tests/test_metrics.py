@@ -178,7 +178,7 @@ def test_distance_to_triangles_matches_dense_sampling():
     assert (exact <= approx + 1e-6).all()
     assert np.abs(exact - approx).max() < 0.02
     # Brute force over every triangle agrees with the pruned search.
-    from fastmesh.faces.meshops import _point_triangle
+    from fastmesh.faces.meshops import point_triangle_distance
 
-    brute = _point_triangle(np.repeat(pts, len(f), 0), np.tile(v[f], (len(pts), 1, 1))).reshape(len(pts), -1)
+    brute = point_triangle_distance(np.repeat(pts, len(f), 0), np.tile(v[f], (len(pts), 1, 1))).reshape(len(pts), -1)
     assert np.allclose(exact, brute.min(1), atol=1e-12)

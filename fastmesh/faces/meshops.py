@@ -163,12 +163,12 @@ def distance_to_triangles(points: np.ndarray, vertices: np.ndarray, faces: np.nd
         gap = np.maximum(np.maximum(lo[None] - q[:, None], q[:, None] - hi[None]), 0.0)
         pi, fi = np.nonzero((gap ** 2).sum(-1) < best[s:s + rows, None] ** 2)
         if len(pi):
-            d = _point_triangle(q[pi], tri[fi])
+            d = point_triangle_distance(q[pi], tri[fi])
             np.minimum.at(best, s + pi, d)
     return best
 
 
-def _point_triangle(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """(K, 3) points and (K, 3, 3) triangles -> (K,) distances, pair by pair.
 
     Inside the triangle's prism the distance is the one to its plane; outside it (and for a

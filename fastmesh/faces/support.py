@@ -27,13 +27,13 @@ GRID = 6  # face samples per edge of the barycentric grid: 21 points inside each
 BOUND_PAD = 1e-6  # relative margin of a bounded search (``support_distance``'s ``bound``) over its bound
 
 
-def _barycentric_grid(n: int) -> np.ndarray:
+def barycentric_grid(n: int) -> np.ndarray:
     """(K, 3) barycentric coordinates of a triangular grid strictly inside the triangle."""
     ij = [(i, j) for i in range(n) for j in range(n - i)]
     return np.array([[(i + 1 / 3) / n, (j + 1 / 3) / n, (n - i - j - 2 / 3) / n] for i, j in ij])
 
 
-_BARY = _barycentric_grid(GRID)
+_BARY = barycentric_grid(GRID)
 
 
 def face_samples(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -86,6 +86,10 @@ class TriangleConfig:
         The pipeline, last: a point cloud's result is split to this many times its faces and simplified back
         (:func:`fastmesh.faces.redistribute.redistribute`), and comes back so where that lies nearer the input
         (``pipeline.result.redistributed``).  None: not tried.
+    swap_edges : bool
+        The pipeline, last: a generated result's edges turned where the other diagonal of their two triangles
+        lies nearer the input (:func:`fastmesh.faces.swap.swap_edges`), after its redistribution is weighed and
+        before a mesh input's decimation is.
     """
 
     selection: str = "surface"
@@ -107,6 +111,7 @@ class TriangleConfig:
     flat_tol: float | None = 0.5 * CELL
     weigh_decimation: bool = True
     redistribute: float | None = 2.0
+    swap_edges: bool = True
 
     def __post_init__(self):
         if self.selection not in ("cliques", "surface"):

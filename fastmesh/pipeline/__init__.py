@@ -149,8 +149,9 @@ class Pipeline(FrameSteps):
         The face stage is the shipped one (:class:`TriangleConfig`'s defaults) but for its support limit:
         a random decoder's vertices lie anywhere in the unit cube, so a candidate triangle may stray from
         the input by the input's size (``surface_tol`` 1.0); and a mesh input's decimation is not weighed
-        (``weigh_decimation``: it would replace every such mesh), nor a point cloud's result redistributed
-        (``redistribute``: its meshes mean nothing, and tests would pay for it).  Keep ``max_vertices`` small with it.
+        (``weigh_decimation``: it would replace every such mesh), nor a point cloud's result redistributed, nor
+        edges turned (``redistribute``, ``swap_edges``: its meshes mean nothing, and tests would pay for it).  Keep
+        ``max_vertices`` small with it.
         """
         from ..models.enhancer import Enhancer, EnhancerConfig
         from ..models.face import FaceModel, FaceModelConfig
@@ -168,7 +169,8 @@ class Pipeline(FrameSteps):
             face.edge_out.bias.fill_(8.0)
         return cls(vertex, enhancer, face, device=auto_device(device), source=f"random:{size}:{seed}",
                    threads=threads, triangle_config=TriangleConfig(surface_tol=RANDOM_SURFACE_TOL,
-                                                                 weigh_decimation=False, redistribute=None))
+                                                                 weigh_decimation=False, redistribute=None,
+                                                                 swap_edges=False))
 
     def save(self, directory: str | os.PathLike) -> None:
         """Write the networks and ``pipeline.json`` (every setting of the face stage and the fit, whole) so
@@ -274,10 +276,11 @@ class Pipeline(FrameSteps):
               ) -> tuple[np.ndarray, np.ndarray, str, str | None]:
         """The result (``result_from`` "model", or "input": a low-poly input given back) brought to a
         ``target_faces`` (``step8.held``), then, where generated, a point cloud's result weighed against its faces
-        spread over the input (``step8.redistributed``, with ``TriangleConfig.redistribute``) and a mesh input's
-        against its decimation to its face count (``step8.decimated``, with ``TriangleConfig.weigh_decimation``;
-        both fits go into ``info``): vertices, faces, where they come from ("model", "input" or "decimated") and
-        the count step."""
+        spread over the input (``step8.redistributed``, with ``TriangleConfig.redistribute``), its edges turned
+        where the input lies along the other diagonal (``step8.swapped``, with ``TriangleConfig.swap_edges``;
+        ``info["edges_turned"]``), and a mesh input's weighed against its decimation to its face count
+        (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go into ``info``): vertices,
+        faces, where they come from ("model", "input" or "decimated") and the count step."""
         step = None
         if req.count.hold:
             info["faces_before_count"] = int(len(faces))
@@ -289,6 +292,8 @@ class Pipeline(FrameSteps):
                 info["redistribution_fits"] = fits
             if rival is not None:
                 vertices, faces = rival
+        if result_from == "model" and self.triangle_config.swap_edges:
+            vertices, faces, info["edges_turned"] = step8.swapped(req, vertices, faces)
         if result_from != "model" or not self.triangle_config.weigh_decimation:
             return vertices, faces, result_from, step
         rival, fits = step8.decimated(req, vertices, faces, self.triangle_config.support_points)

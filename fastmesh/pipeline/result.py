@@ -23,6 +23,7 @@ from ..faces.meshops import edge_face_counts, remove_unreferenced, triangle_area
 from ..faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
 from ..faces.redistribute import redistribute
 from ..faces.support import surface_fit
+from ..faces.swap import swap_edges
 from ..models.generate import GenerationError
 from ..request import PLANAR_SAMPLES, Request
 from ..shapes.open_planar import open_polyhedron
@@ -210,6 +211,16 @@ def spread(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, normals:
     fin = (now > 2).any() and not (before > 2).any()
     opened = (now == 1).any() and not (before == 1).any()
     return None if fin or opened else split_pinches(*rival)
+
+
+def swapped(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """The result's edges turned where the other diagonal of their two triangles lies nearer the input
+    (``swap.swap_edges`` against the input's samples), pinched copies made one first and split again after; and
+    the number turned (the result as it was where none)."""
+    with stage("filtering", req.timings):
+        v, f = unsplit(vertices, faces)
+        f, turned = swap_edges(v, f, *req.count_samples)
+        return (*split_pinches(v, f), turned) if turned else (vertices, faces, 0)
 
 
 def _fits(req: Request, support_points: int, **meshes: tuple[np.ndarray, np.ndarray]) -> dict[str, float]:

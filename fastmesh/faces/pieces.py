@@ -148,8 +148,13 @@ def _covered(vertices: np.ndarray, faces: np.ndarray, mine: np.ndarray, surface:
     """Whether the input samples ``surface`` (M, 3) nearer to the faces ``faces[mine]`` than to the others lie
     within ``tol`` of the others: the result without those faces is at most ``tol`` farther from the input."""
     d_mine = distance_to_triangles(surface, vertices, faces[mine])
-    d_rest = distance_to_triangles(surface, vertices, faces[~mine])
-    served = d_mine < d_rest
+    rest = faces[~mine]
+    # The nearest vertex of the others bounds their distance from above: a sample at least that far from these
+    # faces is not theirs, and only the others' exact distance to the rest decides (most samples, measured once).
+    bound = cKDTree(vertices[np.unique(rest)]).query(surface)[0]
+    maybe = np.flatnonzero(d_mine < bound)
+    d_rest = distance_to_triangles(surface[maybe], vertices, rest) if len(maybe) else np.zeros(0)
+    served = d_mine[maybe] < d_rest
     return bool(not served.any() or d_rest[served].max() <= tol)
 
 

@@ -150,7 +150,7 @@ def _covered(vertices: np.ndarray, faces: np.ndarray, mine: np.ndarray, surface:
     d_mine = distance_to_triangles(surface, vertices, faces[mine])
     rest = faces[~mine]
     # The nearest vertex of the others bounds their distance from above: a sample at least that far from these
-    # faces is not theirs, and only the others' exact distance to the rest decides (most samples, measured once).
+    # faces is not theirs, so only the samples nearer to them than that are measured exactly against the others.
     bound = cKDTree(vertices[np.unique(rest)]).query(surface)[0]
     maybe = np.flatnonzero(d_mine < bound)
     d_rest = distance_to_triangles(surface[maybe], vertices, rest) if len(maybe) else np.zeros(0)

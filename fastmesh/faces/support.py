@@ -36,10 +36,10 @@ def barycentric_grid(n: int) -> np.ndarray:
 _BARY = barycentric_grid(GRID)
 
 
-def face_samples(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(F, K, 3) points on a barycentric grid inside each face."""
+def face_samples(vertices: np.ndarray, faces: np.ndarray, bary: np.ndarray = _BARY) -> np.ndarray:
+    """(F, K, 3) points on a barycentric grid inside each face: ``bary`` (K, 3), :func:`barycentric_grid`'s."""
     tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64).reshape(-1, 3)]
-    return np.einsum("kj,fjd->fkd", _BARY, tri)
+    return np.einsum("kj,fjd->fkd", bary, tri)
 
 
 def support_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,

@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .meshops import point_triangle_distance, triangle_areas
-from .support import barycentric_grid
+from .support import barycentric_grid, face_samples
 
 ROUNDS = 6  # rounds of turns; each sees the turns of the one before (most pairs settle in two or three)
 # A pair turns only where its misfit falls by more than this share of it: two ways of cutting one flat quad fit
@@ -114,14 +114,9 @@ def pairs_before_after(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return old, new
 
 
-def _samples(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(F, K, 3) points on a barycentric grid inside each face."""
-    return np.einsum("kj,fjd->fkd", _BARY, vertices[faces])
-
-
 def _nearest_face(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(P,) the face each input point lies nearest (by the nearest of its face samples)."""
-    samples = _samples(vertices, faces)  # (F, K, 3)
+    samples = face_samples(vertices, faces, _BARY)  # (F, K, 3)
     _, idx = cKDTree(samples.reshape(-1, 3)).query(points)
     return idx // samples.shape[1]
 
@@ -149,7 +144,7 @@ def _misfit(vertices: np.ndarray, tris: np.ndarray, surface: _Surface, nearest: 
     the input points nearest its two faces ``owners`` (E, 2) in the mesh as it is, their distance to the pair's
     triangles ``tris`` (E, 2, 3) x ``per_point``."""
     flat, points = tris.reshape(-1, 3), surface.points
-    samples = _samples(vertices, flat)
+    samples = face_samples(vertices, flat, _BARY)
     dist = surface.distance(samples.reshape(-1, 3)).reshape(len(flat), -1).mean(1)
     stray = (dist * triangle_areas(vertices, flat)).reshape(-1, 2).sum(1)
     order = np.argsort(nearest, kind="stable")

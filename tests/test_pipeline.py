@@ -133,7 +133,7 @@ def test_what_ships_is_what_the_defaults_build(tmp_path):
     random = Pipeline.random(seed=0)
     assert random.filter_config == FilterConfig() and random.fit_config == FitConfig()
     assert random.triangle_config == TriangleConfig(surface_tol=RANDOM_SURFACE_TOL, weigh_decimation=False,
-                                                     redistribute=None, swap_edges=False)
+                                                     redistribute=None, swap_edges=False, add_missed=None)
     written = tmp_path / "pipeline.json"
     write_settings(written, **defaults)
     assert json.loads(written.read_text()) == json.loads((default_weights_dir() / "pipeline.json").read_text())
@@ -194,7 +194,8 @@ def test_vertices_are_fitted_to_the_input_planes_unless_off(pipe):
 
 def test_vertices_fitted_onto_one_point_become_one(monkeypatch):
     """With the shipped weights the fit puts several decoded vertices of the L block on one corner; with
-    ``FitConfig.merge`` the face stage gets one of each such cluster, with None all of them."""
+    ``FitConfig.merge`` the face stage gets one of each such cluster, with None all of them; and the input
+    points added to a mesh's vertices (step 7, ``TriangleConfig.add_missed``) never land on one either."""
     from dataclasses import replace
 
     from scipy.spatial import cKDTree
@@ -214,9 +215,10 @@ def test_vertices_fitted_onto_one_point_become_one(monkeypatch):
     params = GenerateParams(seed=0, candidates=1, closed="false")  # not rebuilt from its planes
     pipe.fit_config = replace(pipe.fit_config, merge=None)
     kept = pipe.generate(cloud, params)
+    runs = len(seen)
     pipe.fit_config = replace(pipe.fit_config, merge=0.1)
     merged = pipe.generate(cloud, params)
-    assert seen[0] > 0 and seen[1] == 0
+    assert seen[0] > 0 and seen[runs:] == [0] * (len(seen) - runs)
     assert merged.info["generated_vertices"] == kept.info["generated_vertices"]  # the decoder's count
 
 

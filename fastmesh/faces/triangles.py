@@ -90,6 +90,14 @@ class TriangleConfig:
         The pipeline, last: a generated result's edges turned where the other diagonal of their two triangles
         lies nearer the input (:func:`fastmesh.faces.swap.swap_edges`), after its redistribution is weighed and
         before a mesh input's decimation is.
+    add_missed : float or None
+        The pipeline, once a frame's candidates are weighed: the input points farther than ``missed_tol`` from
+        the chosen mesh, at most this many times its vertices (:func:`fastmesh.faces.missed.missed_points`), are
+        added to its vertices and the face stage runs again; that mesh comes back where it lies nearer the input
+        (``pipeline.candidate``).  None: not tried.
+    missed_tol : float
+        Relative to the unit cube the result is made in: the distance from the mesh at which an input point is
+        missed, and the least spacing of the points added.
     """
 
     selection: str = "surface"
@@ -112,6 +120,8 @@ class TriangleConfig:
     weigh_decimation: bool = True
     redistribute: float | None = 2.0
     swap_edges: bool = True
+    add_missed: float | None = 0.5
+    missed_tol: float = 0.01
 
     def __post_init__(self):
         if self.selection not in ("cliques", "surface"):

@@ -150,7 +150,8 @@ class Pipeline(FrameSteps):
         a random decoder's vertices lie anywhere in the unit cube, so a candidate triangle may stray from
         the input by the input's size (``surface_tol`` 1.0); and a mesh input's decimation is not weighed
         (``weigh_decimation``: it would replace every such mesh), nor a point cloud's result redistributed, nor
-        edges turned (``redistribute``, ``swap_edges``: its meshes mean nothing, and tests would pay for it).  Keep
+        edges turned, nor input points added to its vertices (``redistribute``, ``swap_edges``, ``add_missed``: its
+        meshes mean nothing, and tests would pay for it).  Keep
         ``max_vertices`` small with it.
         """
         from ..models.enhancer import Enhancer, EnhancerConfig
@@ -170,7 +171,7 @@ class Pipeline(FrameSteps):
         return cls(vertex, enhancer, face, device=auto_device(device), source=f"random:{size}:{seed}",
                    threads=threads, triangle_config=TriangleConfig(surface_tol=RANDOM_SURFACE_TOL,
                                                                  weigh_decimation=False, redistribute=None,
-                                                                 swap_edges=False))
+                                                                 swap_edges=False, add_missed=None))
 
     def save(self, directory: str | os.PathLike) -> None:
         """Write the networks and ``pipeline.json`` (every setting of the face stage and the fit, whole) so

@@ -114,12 +114,15 @@ class FrameSteps(CandidateSteps):
                 fit = surface_fit(cand["vertices"], cand["faces"], frame.reference, seed) if n_cand > 1 else 0.0
             fits.append(round(float(fit), 6))
             if best is None or fit < best["fit"]:
-                best = {**cand, "fit": fit, "seed": seed + k}
+                best = {**cand, "fit": fit, "seed": seed + k, "k": k}
         if best is None:
             raise errors[0]
+        best = self._with_missed(req, frame, best["k"], best)
         evidence = best["evidence"].moved(frame.norm.invert(best["evidence"].points) @ frame.rotation)
         info = {"generated_vertices": best["generated_vertices"], "edges": best["edges"], "candidates": n_cand,
-                "chosen_seed": best["seed"]}
+                "chosen_seed": best["seed"], "added_vertices": best["added_vertices"]}
+        if "missed_fits" in best:
+            info["missed_fits"] = best["missed_fits"]
         if n_cand > 1:
             info["fits"] = fits  # per candidate: its surface_fit in the unit cube, None if it made no mesh
         return {"vertices": frame.norm.invert(best["vertices"]) @ frame.rotation, "faces": best["faces"],

@@ -126,7 +126,8 @@ def test_the_face_stages_evidence_reaches_the_pairing(monkeypatch, redistribute,
     points, index = trimesh.sample.sample_surface(m, 4096, seed=0)
     shape = Shape(vertices=np.asarray(points), faces=None, normals=np.asarray(m.face_normals[index]))
     pipe = Pipeline.from_pretrained(device="cpu")
-    pipe.triangle_config = replace(pipe.triangle_config, redistribute=redistribute, swap_edges=swap)
+    # Without step 7's added vertices: its new mesh on this cloud leaves step 8 nothing to redistribute.
+    pipe.triangle_config = replace(pipe.triangle_config, redistribute=redistribute, swap_edges=swap, add_missed=None)
     res = pipe.generate(shape, GenerateParams(topology="quad", seed=0))
     assert res.info["result_from"] == "model" and len(seen) == 1
     vertices, faces, evidence = seen[0]

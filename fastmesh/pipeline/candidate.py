@@ -231,15 +231,16 @@ class CandidateSteps:
         positions = dequantize(cells)
         return cells, positions if self.fit_config.radius is None else self._fit(frame, positions, seed)
 
-    def _with_missed(self, req: Request, frame: Frame, k: int, best: dict) -> dict:
-        """Candidate ``k``'s mesh ``best`` made again with the input points it leaves out among its vertices
+    def _with_missed(self, req: Request, frame: Frame, best: dict) -> dict:
+        """The frame's chosen mesh ``best`` (candidate ``best["k"]``, its ``fit`` against ``frame.reference`` where
+        there are several) made again with the input points it leaves out among its vertices
         (``missed.missed_points``: at most ``TriangleConfig.add_missed`` x its vertices, each farther than
         ``missed_tol`` from it; ``_missed_cells``), where that mesh lies nearer the input by ``MISSED_MARGIN``
         (``support.surface_fit``).  The mesh kept, with ``added_vertices`` (how many of its vertices came from
         the input) and, where weighed, ``missed_fits`` (both fits); ``best`` where none is missed or the request
         tells the decoder a face count (the count it aimed for).  The vertices stay within the request's
         ``max_vertices``."""
-        tc = self.triangle_config
+        tc, k = self.triangle_config, best["k"]
         q, positions, _ = frame.positions[k]
         budget = req.params.sampling(self.max_vertices).max_vertices  # the request's, the face stage's memory
         room = 0 if tc.add_missed is None else min(int(tc.add_missed * len(q)), budget - len(q))
@@ -261,8 +262,10 @@ class CandidateSteps:
         if made is None or isinstance(made, GenerationError):
             return {**best, "added_vertices": 0}
         with stage("filtering", req.timings):
-            fits = {name: round(surface_fit(m["vertices"], m["faces"], reference, seed), 6)
-                    for name, m in (("model", best), ("with_missed", made))}
+            # The candidates were weighed against this same draw at this seed: the chosen one's fit is known.
+            known = best["fit"] if frame.reference is not None else None
+            fits = {name: round(surface_fit(m["vertices"], m["faces"], reference, seed) if fit is None else fit, 6)
+                    for name, m, fit in (("model", best, known), ("with_missed", made, None))}
         if fits["with_missed"] >= MISSED_MARGIN * fits["model"]:
             return {**best, "added_vertices": 0, "missed_fits": fits}
         return {**best, **made, "added_vertices": int(len(extra)), "missed_fits": fits}

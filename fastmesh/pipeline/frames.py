@@ -117,7 +117,7 @@ class FrameSteps(CandidateSteps):
                 best = {**cand, "fit": fit, "seed": seed + k, "k": k}
         if best is None:
             raise errors[0]
-        best = self._with_missed(req, frame, best["k"], best)
+        best = self._with_missed(req, frame, best)
         evidence = best["evidence"].moved(frame.norm.invert(best["evidence"].points) @ frame.rotation)
         info = {"generated_vertices": best["generated_vertices"], "edges": best["edges"], "candidates": n_cand,
                 "chosen_seed": best["seed"], "added_vertices": best["added_vertices"]}

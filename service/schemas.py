@@ -21,6 +21,7 @@ JOB_EXAMPLE = {
                "formats": ["glb"]},
     "input": {"filename": "chair.ply", "kind": "points", "points": 20000, "vertices": None, "faces": None},
     "result": {"vertices": 412, "faces": 806, "tokens": 412, "formats": ["glb"], "seed": 1, "result_from": "model",
+               "vertices_from": "decoder",
                "quality": {"cd": 2.61, "hd": 11.4, "boundary_edges": 0, "non_manifold_edges": 0,
                            "non_manifold_vertices": 0, "components": 1, "pieces": 1, "input_pieces": 1,
                            "watertight": True, "closed_decision": "closed", "faces": 806, "target_faces": None,
@@ -110,6 +111,9 @@ class ResultInfo(BaseModel):
                           "planes, the input mesh simplified within its flat faces, the input mesh's quadric "
                           "decimation to the same face count (nearer the input than the generated mesh), or the "
                           "input itself (already low-poly).")
+    vertices_from: Literal["decoder", "quadrics", "planes", "simplified", "decimated", "input"] | None = Field(
+        None, description="Where a generated mesh's vertices come from: the vertex decoder, or a mesh input's quadric "
+                          "decimation (its corners and creases), connected by the face model; else as result_from.")
     quality: Quality | None = None
     placement: Placement | None = None
     notes: list[str] = Field(default_factory=list, description="What a format leaves out, for people: GLB holds "

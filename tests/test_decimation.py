@@ -10,12 +10,15 @@ import trimesh
 from fastmesh.evaluation.quality import topology
 from fastmesh.faces import decimation
 from fastmesh.faces.meshops import edge_face_counts, piece_labels, weld
+from fastmesh.faces.triangles import TriangleConfig
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import result as step8
 from fastmesh.request import Request
 from fastmesh.shapes.io import sample_surface
-from fastmesh.shapes.shape import Shape
+from fastmesh.shapes.shape import Normalization, Shape
 from service.schemas import Quality
+
+SUPPORT = TriangleConfig(support_points=4096)  # the face stage the decimation is weighed (and repaired) by
 
 
 def _ellipsoid(rng: np.random.Generator, subdivisions: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -128,10 +131,10 @@ def test_the_nearer_of_a_result_and_the_inputs_decimation_to_its_count_is_return
     fine = trimesh.creation.icosphere(4)
     req = Request.start(Shape(vertices=np.asarray(fine.vertices), faces=np.asarray(fine.faces)), GenerateParams())
     finer = trimesh.creation.icosphere(3)
-    rival, fits = step8.decimated(req, np.asarray(finer.vertices), np.asarray(finer.faces), 4096)
+    rival, fits = step8.decimated(req, np.asarray(finer.vertices), np.asarray(finer.faces), SUPPORT)
     assert rival is None and fits["model"] < fits["decimated"]
     coarse = trimesh.creation.icosphere(2)
-    rival, fits = step8.decimated(req, np.asarray(coarse.vertices), np.asarray(coarse.faces), 4096)
+    rival, fits = step8.decimated(req, np.asarray(coarse.vertices), np.asarray(coarse.faces), SUPPORT)
     assert rival is not None and fits["decimated"] < fits["model"]
     assert abs(len(rival[1]) - 320) <= 0.02 * 320 and topology(rival[1])["watertight"]
 
@@ -148,12 +151,12 @@ def test_a_result_open_where_it_must_be_closed_gives_way_to_a_closed_decimation_
     for scale in np.linspace(1.0, 1.2, 21):
         unit = req.frame.norm.apply(np.asarray(coarse.vertices) * scale)
         monkeypatch.setattr(step8, "asset_decimation", lambda *args, v=unit: (v, np.asarray(coarse.faces)))
-        rival, fits = step8.decimated(req, np.asarray(coarse.vertices), holed, 4096)
+        rival, fits = step8.decimated(req, np.asarray(coarse.vertices), holed, SUPPORT)
         assert (rival is not None) == (fits["decimated"] < step8.CLOSED_MARGIN * fits["model"])
         seen.append((fits["model"] < fits["decimated"], rival is not None))
     assert (True, True) in seen and (True, False) in seen  # farther but within the margin; beyond it
     req.close = False  # an open result of an open input is not weighed so: the nearer one only
-    rival, fits = step8.decimated(req, np.asarray(coarse.vertices), holed, 4096)
+    rival, fits = step8.decimated(req, np.asarray(coarse.vertices), holed, SUPPORT)
     assert fits["model"] < fits["decimated"] and rival is None
 
 
@@ -207,3 +210,72 @@ def test_the_decimation_does_not_depend_on_the_units_and_beats_the_one_in_a_unit
     ours = ((small_v - 5.0) * 1e3 - v.min(0)) / np.ptp(v, axis=0).max()
     samples = sample_surface(Shape(vertices=unit, faces=f), 8192, seed=0, vertices=unit)[0]
     assert surface_fit(ours, small_f, samples) < 0.97 * surface_fit(plain_v, plain_f, samples)  # 0.0134 vs 0.0140
+
+
+def _broken(simplify):
+    """fast-simplification as it leaves a character's or a vehicle's decimation, on every side: a fin (a face doubled
+    the other way round: its edges in three faces), a face wound against its neighbours, and a crack (two faces
+    gone)."""
+    def broken(points, faces, **kwargs):
+        out_v, out_f = simplify(points, faces, **kwargs)
+        out_f = np.asarray(out_f).copy()
+        out_f[3] = out_f[3, ::-1]
+        return out_v, np.concatenate([np.delete(out_f, [7, 8], axis=0), out_f[:1, ::-1]])
+    return broken
+
+
+def test_a_decimation_that_is_no_asset_is_repaired_by_the_face_stages_rules(monkeypatch):
+    """Ellipsoids of random proportions, sizes and poses whose decimation on every side has a fin, a flipped face
+    and a crack: no plain decimation is an asset; given the input's samples, the repaired one is (edge-manifold,
+    wound alike, closed where asked, whole, at the count) and stays on the surface.  Open where not asked closed."""
+    monkeypatch.setattr(decimation.fast_simplification, "simplify", _broken(decimation.fast_simplification.simplify))
+    rng = np.random.default_rng(8)
+    for _ in range(4):
+        v, f, back = _ellipsoid(rng)
+        target = int(rng.integers(150, 500))
+        assert decimation.asset_decimation(v, f, target, pieces=1, closed=True, tolerance=0.02) is None
+        unit = Normalization.fit(v)
+        points = sample_surface(Shape(vertices=v, faces=f), 8192, seed=0)[0]
+        out = decimation.repaired_decimation(unit.apply(v), f, target, pieces=1, closed=True, tolerance=0.02,
+                                             points=unit.apply(points))
+        assert out is not None
+        out_v, out_f = out
+        top = topology(out_f)
+        assert top["watertight"] and abs(len(out_f) - target) <= 0.02 * target and piece_labels(out_f).max() == 0
+        assert decimation._wound_alike(out_f) and trimesh.Trimesh(out_v, out_f, process=False).volume > 0
+        assert np.abs(np.linalg.norm(back(unit.invert(out_v)), axis=1) - 1.0).max() < 0.05
+
+
+def test_an_input_with_an_edge_of_three_faces_has_a_repaired_decimation_only():
+    """A sphere with a fin of its own: collapses keep it, so there is no plain decimation to weigh; the repaired
+    one drops it (the face stage keeps two faces on an edge)."""
+    sphere = trimesh.creation.icosphere(4)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    a, b = f[0][:2]
+    finned = np.concatenate([f, [[a, b, f[len(f) // 2][2]]]])
+    assert decimation.asset_decimation(v, finned, 300, pieces=1, closed=True, tolerance=0.02) is None
+    points = sample_surface(Shape(vertices=v, faces=f), 8192, seed=0)[0]
+    out = decimation.repaired_decimation(v, finned, 300, pieces=1, closed=True, tolerance=0.02, points=points)
+    assert out is not None and topology(out[1])["watertight"] and edge_face_counts(out[1]).max() == 2
+    assert np.abs(np.linalg.norm(out[0], axis=1) - 1.0).max() < 0.05
+
+
+def test_the_pipeline_weighs_a_repaired_decimation_only_where_the_plain_one_lies_nearer(monkeypatch):
+    """Every side's decimation broken (:func:`_broken`): against an icosphere of 320 faces (its chords cut inside the
+    sphere) the broken decimation lies nearer, is repaired and comes back closed at the count; against one of 1,280
+    it does not, and is not repaired."""
+    monkeypatch.setattr(decimation.fast_simplification, "simplify", _broken(decimation.fast_simplification.simplify))
+    repairs = []
+    repair = step8.repaired_decimation
+    monkeypatch.setattr(step8, "repaired_decimation", lambda *args, **kw: repairs.append(1) or repair(*args, **kw))
+    fine = trimesh.creation.icosphere(4)
+    req = Request.start(Shape(vertices=np.asarray(fine.vertices), faces=np.asarray(fine.faces)), GenerateParams())
+    req.close = True
+    coarse = trimesh.creation.icosphere(2)
+    rival, fits = step8.decimated(req, np.asarray(coarse.vertices), np.asarray(coarse.faces), SUPPORT)
+    assert repairs == [1] and rival is not None and fits["decimated"] < fits["model"]
+    assert topology(rival[1])["watertight"] and abs(len(rival[1]) - 320) <= 0.02 * 320
+    assert trimesh.Trimesh(*rival, process=False).is_winding_consistent
+    finer = trimesh.creation.icosphere(3)
+    rival, fits = step8.decimated(req, np.asarray(finer.vertices), np.asarray(finer.faces), SUPPORT)
+    assert repairs == [1] and rival is None and fits == {}

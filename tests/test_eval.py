@@ -86,6 +86,7 @@ def test_mesh_inputs_are_set_beside_their_decimation_per_package(tmp_path):
     # Where each result comes from, counted (the tiny networks' pipeline does not weigh the decimation).
     assert report["summary"]["fastmesh"]["result_from"] == {"model": 2} and "result_from" not in report["summary"][
         "decimation"]
+    assert report["summary"]["fastmesh"]["vertices_from"] == {"decoder": 2}
 
 
 def test_artist_vertices_merge_per_cell_in_the_reference_frame(box_set):

@@ -124,3 +124,4 @@ def test_cli_submit_and_the_python_client(served, tmp_path, capsys):
         job = client.wait(client.submit(src, topology="quad", origin="center", uv=False, formats="ply")["id"])
     assert job["result"]["quality"]["quad_share"] == 1.0 and job["result"]["placement"]["offset"] == [0, 0, 0]
     assert job["result"]["result_from"] == "input"  # a box of 12 faces comes back as it is
+    assert job["result"]["vertices_from"] == "input"

@@ -487,9 +487,10 @@ def test_cli_generate_file_json(tmp_path, weights):
     out = tmp_path / "out.glb"
     r = _cli("generate", str(src), "-o", str(out), "--weights", weights, "--max-vertices", "20", "--json")
     rec = json.loads(r.stdout.strip().splitlines()[-1])
-    assert set(rec) == {"input", "output", "vertices", "faces", "tokens", "timings", "result_from", "quality",
-                        "placement", "notes"}
+    assert set(rec) == {"input", "output", "vertices", "faces", "tokens", "timings", "result_from", "vertices_from",
+                        "quality", "placement", "notes"}
     assert rec["result_from"] == "model"  # the tiny networks' weights do not weigh the decimation
+    assert rec["vertices_from"] == "decoder"  # nor the quadrics' vertices
     assert set(rec["quality"]) == {"cd", "hd", "boundary_edges", "non_manifold_edges", "non_manifold_vertices",
                                    "components", "pieces", "input_pieces", "watertight", "closed_decision", "faces",
                                    "target_faces", "target_met", "count_step", "quads", "quad_share"}

@@ -1,5 +1,5 @@
 """The shipped pipeline gives the meshes it gave when ``tests/data/same_meshes.npz`` was written: the same
-tokens and faces (exactly: the same oriented triangles in the same order) and vertices (to ``ROUNDING``) on
+tokens and faces (exactly: the same oriented triangles) and vertices (to ``ROUNDING``) on
 fixed seeds, over varied inputs (``gpu_inputs.varied``: point clouds with and without a face-count target,
 artist meshes, a posed primitive; and a turned 64-sided cylinder, which is generated in two frames and kept in
 the turned one).  A change meant to make the pipeline
@@ -56,6 +56,15 @@ def _from_least(faces: np.ndarray) -> np.ndarray:
     return np.take_along_axis(faces, (shift + np.arange(3)) % 3, axis=1)
 
 
+def _oriented_set(faces: np.ndarray) -> np.ndarray:
+    """(F, 3) the faces turned to start at their least vertex id (:func:`_from_least`), sorted by rows: the order
+    of the faces may differ between installs of the same code (seen: the torus's, the same triangles in another
+    order, on a fresh install of the commit that wrote the file), where a change of the method changes the
+    triangles themselves."""
+    turned = _from_least(faces)
+    return turned[np.lexsort(turned.T[::-1])]
+
+
 @pytest.fixture(scope="module")
 def pipe():
     return Pipeline.from_pretrained(threads=1)
@@ -76,8 +85,8 @@ def test_same_mesh_as_stored(pipe, stored, case):
         assert value.shape == want.shape, f"{name} {key}: {value.shape} now, {want.shape} stored"
         if key == "vertices":
             same = np.allclose(value, want, rtol=0, atol=ROUNDING * np.ptp(want, axis=0).max())
-        elif key == "faces":  # the same oriented triangles in the same order, each from any of its corners
-            same = np.array_equal(_from_least(value), _from_least(want))
+        elif key == "faces":  # the same oriented triangles, each from any of its corners, in any order
+            same = np.array_equal(_oriented_set(value), _oriented_set(want))
         else:
             same = np.array_equal(value, want)
         assert same, f"{name} {key} differs; largest difference {np.abs(value - want).max()}"

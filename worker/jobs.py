@@ -310,7 +310,8 @@ def conclude(store: Store, job: Job, outcome) -> None:
     timings.update({k: float(v) for k, v in result.timings.items()})
     info = {"vertices": int(len(result.vertices)), "faces": int(len(result.faces)), "tokens": int(result.tokens),
             "formats": list(job.formats), "seed": result.info.get("chosen_seed"),
-            "result_from": result.info.get("result_from"), "quality": result.quality,
+            "result_from": result.info.get("result_from"), "vertices_from": result.info.get("vertices_from"),
+            "quality": result.quality,
             "placement": result.info.get("placement"), "notes": result.info.get("notes") or []}
     if not store.finish(job_id, attempt, "succeeded", result=info, timings=timings):
         # Cancelled (or taken over) during export: drop what we wrote unless another attempt owns it now.

@@ -97,7 +97,8 @@ def _run(args) -> int:
         rec = {"input": str(src), "output": str(dst), "vertices": int(len(res.vertices)),
                "faces": int(len(res.faces)), "tokens": res.tokens,
                "timings": {k: round(timings.get(k, 0.0), 4) for k in TIMING_KEYS},
-               "result_from": res.info["result_from"], "quality": res.quality,
+               "result_from": res.info["result_from"], "vertices_from": res.info["vertices_from"],
+               "quality": res.quality,
                "placement": res.info.get("placement"), "notes": res.info.get("notes") or []}
         if args.json:
             print(json.dumps(rec), flush=True)

@@ -124,7 +124,8 @@ def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("
                 out = {**_score(mesh, ref, artist), **_topology_row(*mesh)}
                 if system == "fastmesh":
                     out.update(tokens=res.tokens, timings={k: round(v, 4) for k, v in res.timings.items()},
-                               result_from=res.info["result_from"])
+                               result_from=res.info["result_from"],
+                               vertices_from=res.info.get("vertices_from", res.info["result_from"]))
                 _save(save, system, inp.stem, *mesh)
                 out["seconds"] = round(time.perf_counter() - t, 4)
             except (GenerationError, ShapeError, RuntimeError) as e:
@@ -191,8 +192,9 @@ def summarise(rows: list[dict], system: str) -> dict:
             out["mean_timings"] = {k: float(np.mean([r[system]["timings"][k] for r in ok]))
                                    for k in ok[0][system]["timings"]}
             out["mean_tokens"] = float(np.mean([r[system]["tokens"] for r in ok]))
-        if "result_from" in ok[0][system]:  # generated, or the input, its planes, its simplification, its decimation
-            out["result_from"] = dict(sorted(Counter(r[system]["result_from"] for r in ok).items()))
+        for source in ("result_from", "vertices_from"):  # generated, or the input, its planes, its decimation ...
+            if source in ok[0][system]:
+                out[source] = dict(sorted(Counter(r[system][source] for r in ok).items()))
     return out
 
 

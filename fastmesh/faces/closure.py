@@ -235,7 +235,7 @@ def close_loops(vertices: np.ndarray, faces: np.ndarray, book, points: np.ndarra
             return None
         return faces
 
-    out = [tuple(t) for t in _orientable(vertices, faces, book).tolist()]
+    out = [tuple(t) for t in orientable(vertices, faces, book).tolist()]
     for relax in RELAX:
         for loop in hole_loops(vertices, np.asarray(out, dtype=np.int64)):
             if len(loop) <= max_loop:
@@ -304,7 +304,7 @@ def _farthest(vertices: np.ndarray, faces: list, tree: cKDTree) -> float:
     return float(tree.query(face_samples(vertices, np.asarray(faces, dtype=np.int64)).reshape(-1, 3))[0].max())
 
 
-def _orientable(vertices: np.ndarray, faces: np.ndarray, book, rounds: int = 8) -> np.ndarray:
+def orientable(vertices: np.ndarray, faces: np.ndarray, book, rounds: int = 8) -> np.ndarray:
     """``faces`` wound consistently, less the faces that keep them from it (also taken out of ``book``).
 
     A selection can hold a twisted strip (a thin part whose faces join its two sides): no winding then

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .closure import close_loops
+from .closure import close_loops, orientable
 from .holes import fill_holes
 from .orient import orient_faces
 from .selection import Selection
@@ -223,11 +223,49 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
     if logits is not None and len(f):
         lp = edge_log_prob(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [0, 2]]]), logits, edges)
         score = score + cfg.model_weight * lp.reshape(3, -1).mean(0)
+    return _kept_surface(v, f, score, pts, tree, limit, cfg)
+
+
+def surface_from_faces(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
+                       config: TriangleConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Given faces kept a surface by the rules the face stage keeps its own by, its holes closed as it closes
+    them: a mesh that is not an asset (an edge in three faces, windings that disagree, open where the input is
+    closed; a quadric decimation can be all of these) made one.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float
+    faces : (F, 3) int
+    points : (P, 3) float, samples of the input surface in the frame of ``vertices``
+    config : TriangleConfig
+        ``surface_tol``, ``fold_angle``, ``fill_max_loop``, ``close``, ``close_everywhere``.
+
+    Returns
+    -------
+    vertices : (N + k, 3) float64, ``vertices`` and the k vertices the closure added (``config.close``)
+    faces : (F', 3) int64, oriented, each edge in at most two faces: of ``faces``, those on the input surface,
+        the nearest first where some break the rules together; then the faces that fill and close holes
+    """
+    cfg = config or TriangleConfig()
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    pts = np.asarray(points, dtype=np.float64)
+    tree = cKDTree(pts)
+    f, d, limit = on_surface(v, np.asarray(faces, dtype=np.int64).reshape(-1, 3), pts, cfg.surface_tol or 0.0, tree)
+    # Not the face stage's own triangles: a decimation's may twist (a thin part's two sides joined), so the faces
+    # that keep the windings from agreeing go before the holes are filled, closed or not.
+    return _kept_surface(v, f, -d / limit, pts, tree, limit, cfg, twisted=True)
+
+
+def _kept_surface(v: np.ndarray, f: np.ndarray, score: np.ndarray, pts: np.ndarray, tree: cKDTree, limit: float,
+                  cfg: TriangleConfig, twisted: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Faces ``f`` best ``score`` first while they stay a surface (:func:`select_faces`), oriented (``twisted``:
+    less the faces that keep them from it, ``closure.orientable``), holes filled and (``cfg.close``) closed within
+    the support ``limit``: (vertices, faces)."""
     f, book = select_faces(v, f, score, vertex_frames(v, pts, tree), cfg.fold_angle)
-    f = orient_faces(v, f)  # boundary loops follow the windings
+    f = orientable(v, f, book) if twisted else orient_faces(v, f)  # boundary loops follow the windings
     if cfg.fill_max_loop:
         f = orient_faces(v, fill_holes(v, f, book, pts, limit, tree, cfg.fill_max_loop))
     if cfg.close:
         v, f = close_loops(v, f, book, pts, limit, tree, bounded=not cfg.close_everywhere)
         f = orient_faces(v, f)
-    return v, f
+    return v, orientable(v, f, book) if twisted else f

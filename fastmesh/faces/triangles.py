@@ -98,6 +98,10 @@ class TriangleConfig:
     missed_tol : float
         Relative to the unit cube the result is made in: the distance from the mesh at which an input point is
         missed, and the least spacing of the points added.
+    quadric_vertices : bool
+        The pipeline, once a frame's candidates are weighed and before ``add_missed``: a mesh input's chosen mesh
+        is weighed against the face stage's mesh on the vertices of the input's quadric decimation to the same
+        face count, and the one nearer the input is kept (``pipeline.candidate``).
     """
 
     selection: str = "surface"
@@ -122,6 +126,7 @@ class TriangleConfig:
     swap_edges: bool = True
     add_missed: float | None = 0.5
     missed_tol: float = 0.01
+    quadric_vertices: bool = True
 
     def __post_init__(self):
         if self.selection not in ("cliques", "surface"):

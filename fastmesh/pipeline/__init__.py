@@ -148,11 +148,11 @@ class Pipeline(FrameSteps):
         (meaningless) mesh on every input, so the service can be tested end to end.
         The face stage is the shipped one (:class:`TriangleConfig`'s defaults) but for its support limit:
         a random decoder's vertices lie anywhere in the unit cube, so a candidate triangle may stray from
-        the input by the input's size (``surface_tol`` 1.0); and a mesh input's decimation is not weighed
-        (``weigh_decimation``: it would replace every such mesh), nor a point cloud's result redistributed, nor
-        edges turned, nor input points added to its vertices (``redistribute``, ``swap_edges``, ``add_missed``: its
-        meshes mean nothing, and tests would pay for it).  Keep
-        ``max_vertices`` small with it.
+        the input by the input's size (``surface_tol`` 1.0); and a mesh input's decimation and the vertices of its
+        quadrics are not weighed (``weigh_decimation``, ``quadric_vertices``: they would replace every such mesh),
+        nor a point cloud's result redistributed, nor edges turned, nor input points added to its vertices
+        (``redistribute``, ``swap_edges``, ``add_missed``: its meshes mean nothing, and tests would pay for it).
+        Keep ``max_vertices`` small with it.
         """
         from ..models.enhancer import Enhancer, EnhancerConfig
         from ..models.face import FaceModel, FaceModelConfig
@@ -171,7 +171,8 @@ class Pipeline(FrameSteps):
         return cls(vertex, enhancer, face, device=auto_device(device), source=f"random:{size}:{seed}",
                    threads=threads, triangle_config=TriangleConfig(surface_tol=RANDOM_SURFACE_TOL,
                                                                  weigh_decimation=False, redistribute=None,
-                                                                 swap_edges=False, add_missed=None))
+                                                                 swap_edges=False, add_missed=None,
+                                                                 quadric_vertices=False))
 
     def save(self, directory: str | os.PathLike) -> None:
         """Write the networks and ``pipeline.json`` (every setting of the face stage and the fit, whole) so
@@ -266,7 +267,7 @@ class Pipeline(FrameSteps):
         surface split or simplified is nearer it than anything generated.  A cancel asked while it was made
         stops it here (the flat simplification can take seconds)."""
         req.check()
-        info, step = {"turned_degrees": 0.0, "result_from": source}, None
+        info, step = {"turned_degrees": 0.0, "result_from": source, "vertices_from": source}, None
         if req.count.hold:
             info["faces_before_count"] = int(len(faces))
             vertices, faces, step = step8.held(req, vertices, faces)
@@ -297,7 +298,7 @@ class Pipeline(FrameSteps):
             vertices, faces, info["edges_turned"] = step8.swapped(req, vertices, faces)
         if result_from != "model" or not self.triangle_config.weigh_decimation:
             return vertices, faces, result_from, step
-        rival, fits = step8.decimated(req, vertices, faces, self.triangle_config.support_points)
+        rival, fits = step8.decimated(req, vertices, faces, self.triangle_config)
         if fits:
             info["decimation_fits"] = fits
         if rival is None:
@@ -350,6 +351,8 @@ class Pipeline(FrameSteps):
         vertices, faces, result_from, pulled = step8.whole(req, best["vertices"], best["faces"])
         info = {**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3), "pulled_in": pulled}
         vertices, faces, result_from, step = self._last(req, vertices, faces, info, result_from)
+        if result_from != "model":  # the decimation's, or a low-poly input's own
+            info["vertices_from"] = result_from
         result = step8.finished(req, vertices, faces, tokens=best["tokens"], info={**info, "result_from": result_from},
                                 evidence=best["evidence"] if result_from == "model" else None, count_step=step)
         req.report.done()

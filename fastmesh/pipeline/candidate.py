@@ -14,6 +14,7 @@ import torch
 from ..batch import DecodeRequest
 from ..export.quads import EdgeEvidence
 from ..faces import mesh_from_adjacency
+from ..faces.decimation import quadric_decimation
 from ..faces.facecount import CountRule, count_rule
 from ..faces.filtering import predict_edges
 from ..faces.meshops import weld
@@ -27,7 +28,7 @@ from ..request import Frame, Request
 from ..shapes.corners import mesh_corners
 from ..tokenizer import dequantize
 from ..tokenizer import vertex as vt
-from ..tokenizer.grid import CELL, quantize
+from ..tokenizer.grid import CELL, quantize, sort_key
 from .runtime import stage, timed_passes
 
 CELL_SEED = 0  # of the input sample the cell evidence reads
@@ -241,7 +242,7 @@ class CandidateSteps:
         tells the decoder a face count (the count it aimed for).  The vertices stay within the request's
         ``max_vertices``."""
         tc, k = self.triangle_config, best["k"]
-        q, positions, _ = frame.positions[k]
+        q, positions = best["cells"], best["positions"]
         budget = req.params.sampling(self.max_vertices).max_vertices  # the request's, the face stage's memory
         room = 0 if tc.add_missed is None else min(int(tc.add_missed * len(q)), budget - len(q))
         if room <= 0 or req.count.told:
@@ -262,11 +263,46 @@ class CandidateSteps:
         if made is None or isinstance(made, GenerationError):
             return {**best, "added_vertices": 0}
         with stage("filtering", req.timings):
-            # The candidates were weighed against this same draw at this seed: the chosen one's fit is known.
-            known = best["fit"] if frame.reference is not None else None
-            fits = {name: round(surface_fit(m["vertices"], m["faces"], reference, seed) if fit is None else fit, 6)
-                    for name, m, fit in (("model", best, known), ("with_missed", made, None))}
+            fits = self._weighed(frame, seed, best, made, ("model", "with_missed"))
         if fits["with_missed"] >= MISSED_MARGIN * fits["model"]:
             return {**best, "added_vertices": 0, "missed_fits": fits}
-        return {**best, **made, "added_vertices": int(len(extra)), "missed_fits": fits}
+        return {**best, **made, "fit": fits["with_missed"], "cells": np.concatenate([q, cells]),
+                "positions": np.concatenate([positions, extra]), "added_vertices": int(len(extra)), "missed_fits": fits}
 
+    def _with_quadrics(self, req: Request, frame: Frame, best: dict) -> dict:
+        """A mesh input's chosen mesh ``best`` (candidate ``best["k"]``, its ``fit`` against ``frame.reference``
+        where there are several) against the mesh the face stage makes on the vertices of the input's quadric
+        decimation to ``best``'s face count (``decimation.quadric_decimation``): the one nearer the input
+        (``support.surface_fit``), with ``vertices_from`` ("decoder" or "quadrics") and, where weighed,
+        ``quadric_fits`` (both fits).  A dense mesh's quadrics put its vertices on its corners and creases,
+        where an artist's lie; the face stage still makes the mesh an asset (closed, one piece, manifold).
+        Before ``_with_missed``, which adds to whichever is kept."""
+        best = {**best, "vertices_from": "decoder"}
+        if not self.triangle_config.quadric_vertices or frame.shape.faces is None:
+            return best
+        budget = req.params.sampling(self.max_vertices).max_vertices
+        with stage("filtering", req.timings):
+            v, _ = quadric_decimation(frame.unit, frame.shape.faces, len(best["faces"]))
+            cells = quantize(v)
+            _, first = np.unique(sort_key(cells), return_index=True)  # the decoder's order, a vertex per cell
+        if not 3 <= len(first) <= budget:
+            return best
+        made = self._connect(req, frame, best["k"], cells[first], v[first], None)
+        if isinstance(made, GenerationError):
+            return best
+        with stage("filtering", req.timings):
+            fits = self._weighed(frame, req.params.seed, best, made, ("decoder", "quadrics"))
+        if fits["quadrics"] >= fits["decoder"]:
+            return {**best, "quadric_fits": fits}
+        return {**best, **made, "fit": fits["quadrics"], "cells": cells[first], "positions": v[first],
+                "vertices_from": "quadrics", "quadric_fits": fits}
+
+    def _weighed(self, frame: Frame, seed: int, best: dict, made: dict, names: tuple[str, str]) -> dict[str, float]:
+        """``support.surface_fit`` of the frame's chosen mesh ``best`` and of its rival ``made`` against the input's
+        sample of ``TriangleConfig.support_points`` at ``seed``, under ``names``, to 6 places.  The candidates were
+        weighed against this same draw (``frame.reference``, where there are several): the chosen one's fit is
+        known."""
+        reference = frame.surface(self.triangle_config.support_points, seed)
+        known = best["fit"] if frame.reference is not None else None
+        return {name: round(surface_fit(m["vertices"], m["faces"], reference, seed) if fit is None else fit, 6)
+                for name, m, fit in zip(names, (best, made), (known, None), strict=True)}

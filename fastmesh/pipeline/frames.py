@@ -114,15 +114,16 @@ class FrameSteps(CandidateSteps):
                 fit = surface_fit(cand["vertices"], cand["faces"], frame.reference, seed) if n_cand > 1 else 0.0
             fits.append(round(float(fit), 6))
             if best is None or fit < best["fit"]:
-                best = {**cand, "fit": fit, "seed": seed + k, "k": k}
+                cells, positions, _ = frame.positions[k]
+                best = {**cand, "fit": fit, "seed": seed + k, "k": k, "cells": cells, "positions": positions}
         if best is None:
             raise errors[0]
-        best = self._with_missed(req, frame, best)
+        best = self._with_missed(req, frame, self._with_quadrics(req, frame, best))
         evidence = best["evidence"].moved(frame.norm.invert(best["evidence"].points) @ frame.rotation)
         info = {"generated_vertices": best["generated_vertices"], "edges": best["edges"], "candidates": n_cand,
-                "chosen_seed": best["seed"], "added_vertices": best["added_vertices"]}
-        if "missed_fits" in best:
-            info["missed_fits"] = best["missed_fits"]
+                "chosen_seed": best["seed"], "added_vertices": best["added_vertices"],
+                "vertices_from": best["vertices_from"]}
+        info.update({name: best[name] for name in ("missed_fits", "quadric_fits") if name in best})
         if n_cand > 1:
             info["fits"] = fits  # per candidate: its surface_fit in the unit cube, None if it made no mesh
         return {"vertices": frame.norm.invert(best["vertices"]) @ frame.rotation, "faces": best["faces"],

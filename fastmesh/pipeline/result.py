@@ -8,14 +8,14 @@ made of flat faces within its own surface; :func:`finished` makes the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..evaluation.quality import mesh_quality
 from ..export.output import MeshOut, finish
 from ..export.quads import EdgeEvidence
-from ..faces.decimation import COUNT_SLACK, asset_decimation
+from ..faces.decimation import COUNT_SLACK, asset_decimation, quadric_decimation, repaired_decimation
 from ..faces.facecount import TOLERANCE as COUNT_TOLERANCE
 from ..faces.facecount import hold_count
 from ..faces.flat import simplify_flat
@@ -24,6 +24,7 @@ from ..faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_
 from ..faces.redistribute import redistribute
 from ..faces.support import surface_fit
 from ..faces.swap import swap_edges
+from ..faces.triangles import TriangleConfig
 from ..models.generate import GenerationError
 from ..request import PLANAR_SAMPLES, Request
 from ..shapes.open_planar import open_polyhedron
@@ -154,12 +155,13 @@ def flat_faced(req: Request) -> tuple[np.ndarray, np.ndarray, str] | None:
     return None if found is None else (req.frame.norm.invert(found[0]), found[1], "simplified")
 
 
-def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, support_points: int
+def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, config: TriangleConfig
               ) -> tuple[tuple[np.ndarray, np.ndarray] | None, dict]:
     """A mesh input decimated to the result's face count (``decimation.asset_decimation``: as much an asset as
-    the result, its count within ``decimation.COUNT_SLACK``) where it lies nearer the input surface than the
-    result, in the input's frame; and both fits (``support.surface_fit`` against the candidates' sample of
-    ``support_points`` at the request's seed; empty where not weighed).  None where the input is a point cloud,
+    the result, its count within ``decimation.COUNT_SLACK``, made one by ``config``'s face stage where plain
+    decimation is not) where it lies nearer the input surface than the result, in the input's frame; and both
+    fits (``support.surface_fit`` against the candidates' sample of ``config.support_points`` at the request's
+    seed; empty where not weighed).  None where the input is a point cloud,
     the decimation is not an asset, or the result is nearer (or, open where it must be closed, not
     ``CLOSED_MARGIN`` farther): what comes back is never farther from a mesh input than its decimation to the same
     count that a user could use instead.  With a ``target_faces`` the result is weighed once brought to it
@@ -167,14 +169,33 @@ def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, support_poi
     shape, frame = req.shape, req.frame
     if shape.faces is None:
         return None, {}
+    # A result that must be closed and is open is not the asset the decimation is (closed by asset_decimation).
+    margin = CLOSED_MARGIN if req.close and (edge_face_counts(faces) == 1).any() else 1.0
+    model = (frame.norm.apply(vertices), faces)
     with stage("filtering", req.timings):
         rival = asset_decimation(frame.unit, shape.faces, len(faces), req.pieces_in, req.close, COUNT_SLACK)
         if rival is None:
+            rival = _repaired(req, model, margin, config)
+        if rival is None:
             return None, {}
-        fits = _fits(req, support_points, model=(frame.norm.apply(vertices), faces), decimated=rival)
-    # A result that must be closed and is open is not the asset the decimation is (closed by asset_decimation).
-    margin = CLOSED_MARGIN if req.close and (edge_face_counts(faces) == 1).any() else 1.0
+        fits = _fits(req, config.support_points, model=model, decimated=rival)
     return (frame.norm.invert(rival[0]), rival[1]) if fits["decimated"] < margin * fits["model"] else None, fits
+
+
+def _repaired(req: Request, model: tuple[np.ndarray, np.ndarray], margin: float, config: TriangleConfig
+              ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The mesh input's decimation to the count of ``model`` (unit-cube vertices, faces) made an asset
+    (``decimation.repaired_decimation``) where, as it comes, it lies nearer the input than ``model`` by ``margin``:
+    the repair takes faces away and caps holes, so one that is not nearer before it is not after (and the
+    selection it runs costs a second or more on a character)."""
+    frame = req.frame
+    plain = quadric_decimation(frame.unit, req.shape.faces, len(model[1]))
+    fits = _fits(req, config.support_points, model=model, plain=plain)
+    if fits["plain"] >= margin * fits["model"]:
+        return None
+    reference = frame.surface(config.support_points, req.params.seed)
+    return repaired_decimation(frame.unit, req.shape.faces, len(model[1]), req.pieces_in, req.close, COUNT_SLACK,
+                               reference, replace(config, close_everywhere=req.sealed))
 
 
 def redistributed(req: Request, vertices: np.ndarray, faces: np.ndarray, factor: float, support_points: int

@@ -228,9 +228,9 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
 
 def surface_from_faces(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
                        config: TriangleConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Given faces kept a surface by the rules the face stage keeps its own by, its holes closed as it closes
-    them: a mesh that is not an asset (an edge in three faces, windings that disagree, open where the input is
-    closed; a quadric decimation can be all of these) made one.
+    """Given faces made a surface by the rules the face stage applies to its own, and their holes closed as it
+    closes its own: a mesh that is not an asset (an edge in three faces, windings that disagree, open where the
+    input is closed; a quadric decimation can be all of these) made one.
 
     Parameters
     ----------

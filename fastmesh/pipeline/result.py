@@ -158,11 +158,11 @@ def flat_faced(req: Request) -> tuple[np.ndarray, np.ndarray, str] | None:
 def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, config: TriangleConfig
               ) -> tuple[tuple[np.ndarray, np.ndarray] | None, dict]:
     """A mesh input decimated to the result's face count (``decimation.asset_decimation``: as much an asset as
-    the result, its count within ``decimation.COUNT_SLACK``, made one by ``config``'s face stage where plain
-    decimation is not) where it lies nearer the input surface than the result, in the input's frame; and both
-    fits (``support.surface_fit`` against the candidates' sample of ``config.support_points`` at the request's
-    seed; empty where not weighed).  None where the input is a point cloud,
-    the decimation is not an asset, or the result is nearer (or, open where it must be closed, not
+    the result, its count within ``decimation.COUNT_SLACK``; where the plain decimation is none but lies nearer,
+    it repaired by ``config``'s face stage, :func:`_repaired`) where it lies nearer the input surface than the
+    result, in the input's frame; and both fits (``support.surface_fit`` against the candidates' sample of
+    ``config.support_points`` at the request's seed; empty where not weighed).  None where the input is a point
+    cloud, the decimation is not an asset, or the result is nearer (or, open where it must be closed, not
     ``CLOSED_MARGIN`` farther): what comes back is never farther from a mesh input than its decimation to the same
     count that a user could use instead.  With a ``target_faces`` the result is weighed once brought to it
     (:func:`held`)."""

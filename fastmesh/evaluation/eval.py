@@ -125,7 +125,7 @@ def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("
                 if system == "fastmesh":
                     out.update(tokens=res.tokens, timings={k: round(v, 4) for k, v in res.timings.items()},
                                result_from=res.info["result_from"],
-                               vertices_from=res.info.get("vertices_from", res.info["result_from"]))
+                               vertices_from=res.info["vertices_from"])
                 _save(save, system, inp.stem, *mesh)
                 out["seconds"] = round(time.perf_counter() - t, 4)
             except (GenerationError, ShapeError, RuntimeError) as e:

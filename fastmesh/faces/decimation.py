@@ -114,8 +114,8 @@ def asset_decimation(vertices: np.ndarray, faces: np.ndarray, target: int, piece
 
 
 def repaired_decimation(vertices: np.ndarray, faces: np.ndarray, target: int, pieces: int, closed: bool,
-                        tolerance: float, points: np.ndarray, config: TriangleConfig | None = None
-                        ) -> tuple[np.ndarray, np.ndarray] | None:
+                        tolerance: float, points: np.ndarray, config: TriangleConfig | None = None,
+                        first: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """:func:`quadric_decimation` made an asset as the face stage makes its own faces one
     (``surface_triangles.surface_from_faces``: an edge in at most two faces, windings that agree, holes filled and,
     where ``closed``, closed; islands it cut off dropped); decimated again to more or fewer faces where that
@@ -123,7 +123,7 @@ def repaired_decimation(vertices: np.ndarray, faces: np.ndarray, target: int, pi
 
     Parameters as :func:`asset_decimation`'s, and ``points`` (P, 3) samples of the input surface in the frame of
     ``vertices``; ``config`` the face stage's settings the repair follows (``close_everywhere``: a closed input's
-    loops all close).
+    loops all close); ``first`` the :func:`quadric_decimation` to ``target`` where the caller has made it already.
 
     A dense mesh's quadrics place its vertices on its corners and creases; fast-simplification's collapses leave
     a character's or a vehicle's decimation with fins, flipped faces and open cracks (on the held-out mesh inputs,
@@ -133,13 +133,14 @@ def repaired_decimation(vertices: np.ndarray, faces: np.ndarray, target: int, pi
     if len(faces) <= target:
         return None
     cfg = replace(config or TriangleConfig(), close=closed)
-    aim = target
+    aim, made = target, first
     for _ in range(REPAIR_ROUNDS):
-        rv, rf = split_pinches(*surface_from_faces(*_decimated(vertices, faces, aim, tolerance), points, cfg))
+        made = made or _decimated(vertices, faces, aim, tolerance)
+        rv, rf = split_pinches(*surface_from_faces(*made, points, cfg))
         rf = drop_strays(rv, rf, pieces, points)  # islands the selection cut off or pinched
         if abs(len(rf) - target) <= tolerance * target or not len(rf):
             break
-        aim = max(4, round(aim * target / len(rf)))
+        aim, made = max(4, round(aim * target / len(rf))), None
     return _as_asset(rv, rf, target, pieces, closed, tolerance)
 
 

@@ -195,7 +195,7 @@ def _repaired(req: Request, model: tuple[np.ndarray, np.ndarray], margin: float,
         return None
     reference = frame.surface(config.support_points, req.params.seed)
     return repaired_decimation(frame.unit, req.shape.faces, len(model[1]), req.pieces_in, req.close, COUNT_SLACK,
-                               reference, replace(config, close_everywhere=req.sealed))
+                               reference, replace(config, close_everywhere=req.sealed), first=plain)
 
 
 def redistributed(req: Request, vertices: np.ndarray, faces: np.ndarray, factor: float, support_points: int

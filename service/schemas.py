@@ -24,8 +24,9 @@ JOB_EXAMPLE = {
                "vertices_from": "decoder",
                "quality": {"cd": 2.61, "hd": 11.4, "boundary_edges": 0, "non_manifold_edges": 0,
                            "non_manifold_vertices": 0, "components": 1, "pieces": 1, "input_pieces": 1,
-                           "watertight": True, "closed_decision": "closed", "faces": 806, "target_faces": None,
-                           "target_met": None, "count_step": None, "quads": 0, "quad_share": 0.0},
+                           "watertight": True, "box_gap": 0.0, "closed_decision": "closed", "faces": 806,
+                           "target_faces": None, "target_met": None, "count_step": None, "quads": 0,
+                           "quad_share": 0.0},
                "placement": {"scale": 1.0, "offset": [0.0, 0.0, 0.0], "up": "y"}, "notes": []},
     "timings": {"queue": 0.21, "load": 0.05, "encode": 0.12, "vertices": 3.1, "enhancer": 0.2, "faces": 0.9,
                 "filtering": 0.05, "export": 0.02, "total": 4.87},
@@ -75,6 +76,9 @@ class Quality(BaseModel):
     input_pieces: int | None = Field(None, description="The input's pieces: a mesh's (vertices welded), or a point "
                                                        "cloud's groups of nearby points.")
     watertight: bool = Field(description="Every edge in exactly two faces.")
+    box_gap: float | None = Field(None, description="The largest distance between a side of the result's "
+                                                    "axis-aligned box and the same side of the input's, % of the "
+                                                    "input's longest side.")
     closed_decision: str | None = Field(None, description="closed or open (closed=auto, decided from the input: a "
                                                           "closed mesh, or oriented points enclosing a volume), or "
                                                           "asked (closed=true/false).")

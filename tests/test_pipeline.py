@@ -493,8 +493,8 @@ def test_cli_generate_file_json(tmp_path, weights):
     assert rec["result_from"] == "model"  # the tiny networks' weights do not weigh the decimation
     assert rec["vertices_from"] == "decoder"  # nor the quadrics' vertices
     assert set(rec["quality"]) == {"cd", "hd", "boundary_edges", "non_manifold_edges", "non_manifold_vertices",
-                                   "components", "pieces", "input_pieces", "watertight", "closed_decision", "faces",
-                                   "target_faces", "target_met", "count_step", "quads", "quad_share"}
+                                   "components", "pieces", "input_pieces", "watertight", "box_gap", "closed_decision",
+                                   "faces", "target_faces", "target_met", "count_step", "quads", "quad_share"}
     assert rec["quality"]["quad_share"] == 0.0 and rec["notes"] == []  # triangles, in the input's frame
     assert rec["placement"] == {"scale": 1.0, "offset": [0.0, 0.0, 0.0], "up": "y"}
     assert set(rec["timings"]) == {"load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total"}

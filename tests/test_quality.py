@@ -14,7 +14,7 @@ from fastmesh.shapes.io import sample_surface
 from fastmesh.shapes.shape import Shape
 
 KEYS = {"cd", "hd", "boundary_edges", "non_manifold_edges", "non_manifold_vertices", "components", "pieces",
-        "watertight", "input_pieces"}
+        "watertight", "input_pieces", "box_gap"}
 
 
 def _fans(faces: np.ndarray, v: int) -> int:
@@ -108,19 +108,21 @@ def test_distance_is_zero_for_the_input_itself_and_measured_in_the_inputs_frame(
     box = _box((10.0, -4.0, 2.0), 3.0)
     shape = Shape(vertices=np.asarray(box.vertices), faces=np.asarray(box.faces))
     q = mesh_quality(box.vertices, box.faces, shape)
-    assert set(q) == KEYS and q["cd"] == 0.0 and q["hd"] == 0.0 and q["watertight"] is True
+    assert set(q) == KEYS and q["cd"] == 0.0 and q["hd"] == 0.0 and q["watertight"] is True and q["box_gap"] == 0.0
 
     # 10 % larger about its centre: every point of either surface is at least 5 % of the size from the
     # other, a corner sqrt(3) * 5 % = 8.7 %.  Sampling only adds to the distance to the nearest sample.
     big = _box((10.0, -4.0, 2.0), 3.3)
     q = mesh_quality(big.vertices, big.faces, shape)
     assert 5.0 <= q["cd"] < 6.5 and 8.0 < q["hd"] < 11.0
+    assert q["box_gap"] == pytest.approx(5.0, abs=1e-3)  # each side 0.15 out of 3.0
 
     # Shifted by 10 % of the size: each shape in its own frame would hide it, the input's frame does not.
     moved = _box((10.3, -4.0, 2.0), 3.0)
     own = surface_distance((moved.vertices, moved.faces), (box.vertices, box.faces))
     q = mesh_quality(moved.vertices, moved.faces, shape)
     assert own.cd == 0.0 and q["cd"] > 3.0 and q["hd"] >= 10.0 - 1e-6
+    assert q["box_gap"] == pytest.approx(10.0, abs=1e-3)
 
 
 def test_point_cloud_input():

@@ -15,9 +15,10 @@ from test_quads import read_obj
 from trimesh.visual import TextureVisuals
 from trimesh.visual.material import PBRMaterial
 
-from fastmesh.export.bake import closest_on_triangles, sample
+from fastmesh.export.bake import sample
 from fastmesh.export.layout import overlap_share, rasterize, uv_layout
 from fastmesh.export.output import MeshOut
+from fastmesh.faces.meshops import closest_on_triangles
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.shapes.io import load_shape

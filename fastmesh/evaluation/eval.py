@@ -37,7 +37,7 @@ from ..shapes.io import input_surface, load_shape, sample_surface, write_mesh
 from ..shapes.shape import SUPPORTED_FORMATS, Normalization, Shape, ShapeError
 from ..tokenizer import dequantize, quantize_mesh
 from .baselines import convex_hull, decimation, dense_remesh, poisson
-from .metrics import edge_metrics, mesh_topology, surface_distance, vertex_metrics
+from .metrics import box_gap, edge_metrics, mesh_topology, surface_distance, vertex_metrics
 from .quality import topology
 
 MESH_EXTS = ("ply", "obj", "glb", "gltf", "stl", "off")
@@ -84,10 +84,14 @@ def artist_vertices(ref: Shape, shape: Shape) -> dict:
 
 
 def _score(result: tuple[np.ndarray, np.ndarray], ref: Shape, artist: dict) -> dict:
+    """CD and HD as the protocol measures them (each shape in its own box), ``cd_shared`` (both in the
+    reference's: the surface alone, whatever either box), ``box_gap`` (``metrics.box_gap``), counts and the
+    vertex metrics."""
     d = surface_distance(result, (ref.vertices, ref.faces))
+    shared = surface_distance(result, (ref.vertices, ref.faces), frame=artist["norm"])
     vm = vertex_metrics(artist["norm"].apply(result[0]), artist["reference"], *artist["surface"])
-    return {"cd": d.cd, "hd": d.hd, "vertices": int(len(result[0])), "faces": int(len(result[1])),
-            "vertex_metrics": vm}
+    return {"cd": d.cd, "hd": d.hd, "cd_shared": shared.cd, "box_gap": box_gap(result[0], ref.vertices),
+            "vertices": int(len(result[0])), "faces": int(len(result[1])), "vertex_metrics": vm}
 
 
 def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("fastmesh",),
@@ -172,8 +176,9 @@ def summarise(rows: list[dict], system: str) -> dict:
     out = {"meshes": len(rows), "failures": len(rows) - len(ok),
            "failure_rate": (len(rows) - len(ok)) / max(1, len(rows))}
     if ok:
-        for k in ("cd", "hd", "vertices", "faces", "seconds"):
-            out[f"mean_{k}"] = float(np.mean([r[system][k] for r in ok]))
+        for k in ("cd", "hd", "cd_shared", "box_gap", "vertices", "faces", "seconds"):
+            if k in ok[0][system]:  # reports written before a measure was added lack it
+                out[f"mean_{k}"] = float(np.mean([r[system][k] for r in ok]))
         ratio = [r[system]["faces"] / max(1, r["reference"]["faces"]) for r in ok]
         out["mean_face_ratio"] = float(np.mean(ratio))
         out["over_1_5x_faces"] = int(sum(x > 1.5 for x in ratio))

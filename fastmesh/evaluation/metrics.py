@@ -106,6 +106,16 @@ def surface_distance(a: tuple[np.ndarray, np.ndarray | None], b: tuple[np.ndarra
                            mean_ba=float(100.0 * d_ba.mean()))
 
 
+def box_gap(vertices: np.ndarray, reference: np.ndarray) -> float:
+    """The largest distance between a side of the axis-aligned box of ``vertices`` (N, 3) and the same side of
+    the box of ``reference`` (M, 3), in % of the reference box's longest side: how far a result's extent (its
+    height, where it stands) is off its input's.  Each shape's own normalisation above scales by its own box,
+    so a gap of g % moves a result's far side by about g % against its reference's."""
+    v, r = np.asarray(vertices, dtype=np.float64), np.asarray(reference, dtype=np.float64)
+    gaps = np.abs(np.concatenate([v.min(axis=0) - r.min(axis=0), v.max(axis=0) - r.max(axis=0)]))
+    return float(100.0 * gaps.max() / max(float(np.ptp(r, axis=0).max()), 1e-300))
+
+
 def chamfer(a: tuple[np.ndarray, np.ndarray | None], b: tuple[np.ndarray, np.ndarray | None],
             n: int = N_SAMPLES, seed: int = SEED) -> float:
     """Chamfer distance (% of the longest side) between ``(vertices, faces)`` pairs."""

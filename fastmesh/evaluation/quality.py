@@ -14,6 +14,8 @@ The report of every generated mesh (``GenerateResult.quality``, the job's ``resu
     input_pieces         the input's pieces: a mesh's (vertices welded), or a point cloud's groups of points
                          within a few spacings of each other (groups of under 1 % of the points ignored)
     watertight           every edge in exactly two faces
+    box_gap              the largest distance between a side of the result's axis-aligned box and the same
+                         side of the input's, in % of the input's longest side
 
 The samples are drawn with a fixed seed: the same mesh against the same input always gets the same figures.
 
@@ -30,7 +32,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ..faces.meshops import corner_fans, edge_face_counts, piece_labels, weld
 from ..shapes.shape import Normalization, Shape
-from .metrics import N_SAMPLES, SEED, surface_distance
+from .metrics import N_SAMPLES, SEED, box_gap, surface_distance
 
 
 def count_components(faces: np.ndarray) -> int:
@@ -139,10 +141,11 @@ def mesh_quality(vertices: np.ndarray, faces: np.ndarray, shape: Shape, seed: in
 
     Returns
     -------
-    dict : cd, hd (float, % of the input's longest side, rounded to 0.001), then :func:`topology`'s keys and
-    input_pieces (:func:`input_pieces`).
+    dict : cd, hd (float, % of the input's longest side, rounded to 0.001), then :func:`topology`'s keys,
+    input_pieces (:func:`input_pieces`) and box_gap (``metrics.box_gap``, rounded to 0.001).
     """
     frame = Normalization.fit(np.asarray(shape.vertices, dtype=np.float64))
     d = surface_distance((vertices, faces), (shape.vertices, shape.faces), n=N_SAMPLES, seed=seed, frame=frame)
     return {"cd": round(d.cd, 3), "hd": round(d.hd, 3), **topology(faces),
-            "input_pieces": input_pieces(shape) if pieces_in is None else int(pieces_in)}
+            "input_pieces": input_pieces(shape) if pieces_in is None else int(pieces_in),
+            "box_gap": round(box_gap(vertices, shape.vertices), 3)}

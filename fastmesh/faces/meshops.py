@@ -1,7 +1,7 @@
 """Small operations on triangle meshes that the face stage, the measures and the tokenizers' tests share: a
 mesh's sides and edges, the faces on each edge, areas, welding, unused vertices, the fans around each vertex,
-the pieces joined edge to edge and the distance from points to a mesh.  Faces are (F, 3) int arrays, vertices
-(N, 3) float arrays."""
+the pieces joined edge to edge, the distance from points to a mesh and the nearest point of a triangle.  Faces
+are (F, 3) int arrays, vertices (N, 3) float arrays."""
 
 from __future__ import annotations
 
@@ -187,3 +187,35 @@ def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
         t = np.clip(((p - x) * e).sum(-1) / np.maximum((e * e).sum(-1), 1e-300), 0.0, 1.0)
         edge = np.minimum(edge, np.linalg.norm(p - (x + t[:, None] * e), axis=-1))
     return np.where(inside, plane, edge)
+
+
+def closest_on_triangles(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """(N, 3) barycentric coordinates of the point of each triangle ``tri`` (N, 3, 3) nearest ``points``
+    (N, 3): the projection onto its plane where that lies inside, else the nearest point of its edges."""
+    e1, e2, w = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], points - tri[:, 0]
+
+    def dot(x, y):
+        return np.einsum("nd,nd->n", x, y)
+
+    d00, d01, d11, d20, d21 = dot(e1, e1), dot(e1, e2), dot(e2, e2), dot(w, e1), dot(w, e2)
+    denom = d00 * d11 - d01 * d01
+    denom = np.where(denom > 0, denom, 1e-300)
+    b1, b2 = (d11 * d20 - d01 * d21) / denom, (d00 * d21 - d01 * d20) / denom
+    bary = np.stack([1.0 - b1 - b2, b1, b2], axis=1)  # of the projection onto the plane
+    out = np.flatnonzero(np.any(bary < 0, axis=1))
+    if len(out):
+        p, best, best_d = points[out], None, None
+        for k in range(3):  # the edge from corner k to corner k + 1
+            s, e = tri[out, k], tri[out, (k + 1) % 3]
+            d = e - s
+            t = np.clip(np.sum((p - s) * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-300), 0.0, 1.0)
+            dist = np.sum((s + t[:, None] * d - p) ** 2, axis=1)
+            cand = np.zeros((len(out), 3))
+            cand[:, k], cand[:, (k + 1) % 3] = 1.0 - t, t
+            if best is None:
+                best, best_d = cand, dist
+            else:
+                closer = dist < best_d
+                best[closer], best_d[closer] = cand[closer], dist[closer]
+        bary[out] = best
+    return bary

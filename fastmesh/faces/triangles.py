@@ -102,6 +102,9 @@ class TriangleConfig:
         The pipeline, once a frame's candidates are weighed and before ``add_missed``: a mesh input's chosen mesh
         is weighed against the face stage's mesh on the vertices of the input's quadric decimation to the same
         face count, and the one nearer the input is kept (``pipeline.candidate``).
+    reach_extent : bool
+        The pipeline, last: the box of a result that is not the input itself brought to the input's, where it
+        falls short of a side by more than a quarter cell (:func:`fastmesh.faces.extent.reach_extent`).
     """
 
     selection: str = "surface"
@@ -127,6 +130,7 @@ class TriangleConfig:
     add_missed: float | None = 0.5
     missed_tol: float = 0.01
     quadric_vertices: bool = True
+    reach_extent: bool = True
 
     def __post_init__(self):
         if self.selection not in ("cliques", "surface"):

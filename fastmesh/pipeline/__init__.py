@@ -280,9 +280,11 @@ class Pipeline(FrameSteps):
         ``target_faces`` (``step8.held``), then, where generated, a point cloud's result weighed against its faces
         spread over the input (``step8.redistributed``, with ``TriangleConfig.redistribute``), its edges turned
         where the input lies along the other diagonal (``step8.swapped``, with ``TriangleConfig.swap_edges``;
-        ``info["edges_turned"]``), and a mesh input's weighed against its decimation to its face count
-        (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go into ``info``): vertices,
-        faces, where they come from ("model", "input" or "decimated") and the count step."""
+        ``info["edges_turned"]``), a mesh input's weighed against its decimation to its face count
+        (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go into ``info``), and last its
+        box brought to the input's (``step8.extended``, with ``TriangleConfig.reach_extent``;
+        ``info["extent_sides"]``): vertices, faces, where they come from ("model", "input" or "decimated") and the
+        count step."""
         step = None
         if req.count.hold:
             info["faces_before_count"] = int(len(faces))
@@ -296,14 +298,15 @@ class Pipeline(FrameSteps):
                 vertices, faces = rival
         if result_from == "model" and self.triangle_config.swap_edges:
             vertices, faces, info["edges_turned"] = step8.swapped(req, vertices, faces)
-        if result_from != "model" or not self.triangle_config.weigh_decimation:
-            return vertices, faces, result_from, step
-        rival, fits = step8.decimated(req, vertices, faces, self.triangle_config)
-        if fits:
-            info["decimation_fits"] = fits
-        if rival is None:
-            return vertices, faces, "model", step
-        return *rival, "decimated", None if step is None else "decimated"
+        if result_from == "model" and self.triangle_config.weigh_decimation:
+            rival, fits = step8.decimated(req, vertices, faces, self.triangle_config)
+            if fits:
+                info["decimation_fits"] = fits
+            if rival is not None:
+                vertices, faces, result_from, step = *rival, "decimated", None if step is None else "decimated"
+        if result_from != "input" and self.triangle_config.reach_extent:
+            vertices, faces, info["extent_sides"] = step8.extended(req, vertices, faces)
+        return vertices, faces, result_from, step
 
     def steps(self, shape: Shape, params: GenerateParams | None = None,
               progress: Callable[[str, float], None] | None = None, should_cancel: Callable[[], bool] | None = None

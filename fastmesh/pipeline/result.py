@@ -16,6 +16,7 @@ from ..evaluation.quality import mesh_quality
 from ..export.output import MeshOut, finish
 from ..export.quads import EdgeEvidence
 from ..faces.decimation import COUNT_SLACK, asset_decimation, quadric_decimation, repaired_decimation
+from ..faces.extent import MAX_ADDED, reach_extent
 from ..faces.facecount import TOLERANCE as COUNT_TOLERANCE
 from ..faces.facecount import hold_count
 from ..faces.flat import simplify_flat
@@ -232,6 +233,23 @@ def spread(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, normals:
     fin = (now > 2).any() and not (before > 2).any()
     opened = (now == 1).any() and not (before == 1).any()
     return None if fin or opened else split_pinches(*rival)
+
+
+def extended(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """The result's box brought to the input's (``extent.reach_extent``, in the input's own axes: the ones its
+    engine places it by): a point cloud's outermost points, a mesh's outermost vertices.  No vertex is added
+    where a face count is held, nor where that would give a result more faces than a low-poly mesh input
+    (:func:`low_poly`).  Returns vertices, faces and the sides reached."""
+    shape, norm = req.shape, req.frame.norm
+    add = not req.count.hold and low_poly(shape, len(faces) + 2 * MAX_ADDED) is None
+    with stage("filtering", req.timings):
+        points = req.frame.unit if shape.faces is None else req.frame.unit[np.unique(shape.faces)]
+        v, f = unsplit(vertices, faces)
+        unit = norm.apply(v)
+        out_v, out_f, reached = reach_extent(unit, f, points, supported=shape.faces is None, add=add)
+        if len(out_v) == len(unit) and np.array_equal(out_v, unit):
+            return vertices, faces, 0
+        return (*split_pinches(norm.invert(out_v), out_f), reached)
 
 
 def swapped(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:

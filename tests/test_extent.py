@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
 from fastmesh.evaluation.metrics import box_gap
 from fastmesh.evaluation.primitives import point_cloud
@@ -32,6 +33,15 @@ def _placed(subdivisions: int, radii, turn, scale, shift) -> tuple[np.ndarray, n
     return (np.asarray(sphere.vertices) * radii) @ turn.T * scale + shift, np.asarray(sphere.faces)
 
 
+def _case(seed: int, size: float, subdivisions: int = 2, points: int = 8192
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``points`` samples of a random ellipsoid (:func:`_ellipsoid`) and a coarser mesh of it ``size`` times as
+    big."""
+    dense, dense_f, (radii, turn, scale, shift) = _ellipsoid(np.random.default_rng(seed), 4)
+    pts = point_cloud(Shape(vertices=dense, faces=dense_f), points, seed=seed).vertices
+    return (pts, *_placed(subdivisions, radii * size, turn, scale, shift))
+
+
 def _volume(v: np.ndarray, f: np.ndarray) -> float:
     c = v.mean(axis=0)
     a, b, d = v[f[:, 0]] - c, v[f[:, 1]] - c, v[f[:, 2]] - c
@@ -46,11 +56,7 @@ def _a_surface(v: np.ndarray, f: np.ndarray) -> bool:
 
 @pytest.mark.parametrize("seed", range(8))
 def test_a_coarse_mesh_comes_to_span_the_inputs_box(seed):
-    rng = np.random.default_rng(seed)
-    dense, dense_f, pose = _ellipsoid(rng, 4)
-    pts = point_cloud(Shape(vertices=dense, faces=dense_f), 8192, seed=seed).vertices
-    radii, turn, scale, shift = pose
-    v, f = _placed(2, radii * 0.99, turn, scale, shift)  # 320 faces, a shade small: short on every side
+    pts, v, f = _case(seed, 0.99)  # 320 faces, a shade small: short on every side
     assert box_gap(v, pts) > 2 * 100 * SHORT
     out_v, out_f, reached = reach_extent(v, f, pts)
 
@@ -65,10 +71,7 @@ def test_a_coarse_mesh_comes_to_span_the_inputs_box(seed):
 
 
 def test_vertices_beyond_the_box_come_back_onto_it():
-    rng = np.random.default_rng(11)
-    dense, dense_f, (radii, turn, scale, shift) = _ellipsoid(rng, 4)
-    pts = point_cloud(Shape(vertices=dense, faces=dense_f), 8192, seed=0).vertices
-    v, f = _placed(2, radii * 1.05, turn, scale, shift)
+    pts, v, f = _case(11, 1.05)
     out_v, out_f, _ = reach_extent(v, f, pts, add=False)
     assert np.array_equal(out_f, f)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
@@ -76,15 +79,15 @@ def test_vertices_beyond_the_box_come_back_onto_it():
 
 
 def test_a_stray_point_is_no_tip():
-    rng = np.random.default_rng(3)
-    dense, dense_f, (radii, turn, scale, shift) = _ellipsoid(rng, 4)
-    pts = point_cloud(Shape(vertices=dense, faces=dense_f), 8192, seed=0).vertices
-    stray = pts[np.argmax(pts[:, 0])] + np.array([0.1, 0.0, 0.0]) * np.ptp(pts, axis=0).max()
-    v, f = _placed(2, radii * 0.99, turn, scale, shift)
-    out_v, _, _ = reach_extent(v, f, np.concatenate([pts, stray[None]]))
-    assert out_v[:, 0].max() <= pts[:, 0].max() + 1e-9  # the side reaches the surface's points, not the stray
-    # Without the check the stray is the side's outermost point, and nothing goes to it (it lies beyond REACH).
-    assert np.linalg.norm(stray - np.clip(stray, v.min(axis=0), v.max(axis=0))) > REACH * np.ptp(pts, axis=0).max()
+    """A stray sample 4 median spacings beyond the surface's outermost point on +x, within ``REACH`` of the
+    mesh: the side reaches the surface's point, not the stray."""
+    pts, v, f = _case(3, 0.99, points=32768)
+    length = np.ptp(pts, axis=0).max()
+    spacing = np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])
+    stray = pts[np.argmax(pts[:, 0])] + np.array([4 * spacing, 0.0, 0.0])
+    assert np.linalg.norm(stray - np.clip(stray, v.min(axis=0), v.max(axis=0))) < REACH * length
+    out_v, _, reached = reach_extent(v, f, np.concatenate([pts, stray[None]]))
+    assert reached >= 1 and abs(out_v[:, 0].max() - pts[:, 0].max()) <= SHORT * length
 
 
 def test_a_part_the_mesh_lacks_gets_no_spike():
@@ -104,10 +107,7 @@ def test_a_part_the_mesh_lacks_gets_no_spike():
 
 
 def test_nothing_is_added_where_the_count_is_held_and_a_spanning_mesh_stays_as_it_is():
-    rng = np.random.default_rng(5)
-    dense, dense_f, (radii, turn, scale, shift) = _ellipsoid(rng, 4)
-    pts = point_cloud(Shape(vertices=dense, faces=dense_f), 8192, seed=0).vertices
-    v, f = _placed(2, radii * 0.99, turn, scale, shift)
+    pts, v, f = _case(5, 0.99)
     out_v, out_f, _ = reach_extent(v, f, pts, add=False)
     assert len(out_v) == len(v) and np.array_equal(out_f, f)
     box = trimesh.creation.box(extents=(3.0, 1.0, 0.2))

@@ -150,8 +150,9 @@ class Pipeline(FrameSteps):
         a random decoder's vertices lie anywhere in the unit cube, so a candidate triangle may stray from
         the input by the input's size (``surface_tol`` 1.0); and a mesh input's decimation and the vertices of its
         quadrics are not weighed (``weigh_decimation``, ``quadric_vertices``: they would replace every such mesh),
-        nor a point cloud's result redistributed, nor edges turned, nor input points added to its vertices
-        (``redistribute``, ``swap_edges``, ``add_missed``: its meshes mean nothing, and tests would pay for it).
+        nor a point cloud's result redistributed, nor edges turned, nor input points added to its vertices, nor
+        its box brought to the input's (``redistribute``, ``swap_edges``, ``add_missed``, ``reach_extent``: its
+        meshes mean nothing, tests would pay for it, and a result stays its chosen candidate's mesh).
         Keep ``max_vertices`` small with it.
         """
         from ..models.enhancer import Enhancer, EnhancerConfig
@@ -172,7 +173,7 @@ class Pipeline(FrameSteps):
                    threads=threads, triangle_config=TriangleConfig(surface_tol=RANDOM_SURFACE_TOL,
                                                                  weigh_decimation=False, redistribute=None,
                                                                  swap_edges=False, add_missed=None,
-                                                                 quadric_vertices=False))
+                                                                 quadric_vertices=False, reach_extent=False))
 
     def save(self, directory: str | os.PathLike) -> None:
         """Write the networks and ``pipeline.json`` (every setting of the face stage and the fit, whole) so

@@ -132,3 +132,20 @@ def test_the_pipelines_results_span_their_inputs_box(shipped, seed):
     assert res.quality["box_gap"] <= 100 * SHORT + 1e-3
     assert res.quality["box_gap"] == pytest.approx(box_gap(res.vertices, cloud.vertices), abs=1e-3)
     assert "extent_sides" in res.info
+
+
+def test_a_fin_beyond_the_box_is_not_flattened_onto_it():
+    """A thin fin standing out of a cube's top, its faces upright: clamping its tip onto the box's top would
+    turn its faces over, so it keeps its tip; the rest comes onto the box."""
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    v, f = np.asarray(box.vertices, dtype=np.float64), np.asarray(box.faces)
+    tip = np.array([[0.0, 0.0, 0.8]])  # above the top (z = 0.5); the points stop at 0.5
+    fin_v = np.concatenate([v, tip])
+    top = int(np.flatnonzero((v[:, 2] > 0.4) & (v[:, 0] > 0.4) & (v[:, 1] > 0.4))[0])
+    other = int(np.flatnonzero((v[:, 2] > 0.4) & (v[:, 0] < -0.4) & (v[:, 1] < -0.4))[0])
+    fin_f = np.concatenate([f, [[top, other, len(v)], [other, top, len(v)]]])
+    out_v, out_f, _ = reach_extent(fin_v, fin_f, v, supported=False, add=False)
+    assert np.array_equal(out_v[len(v)], tip[0]) and np.array_equal(out_v[:len(v)], v)
+    wide = v * 1.1  # every vertex beyond the box: all come onto it, no face turns
+    out_v, _, _ = reach_extent(wide, f, v, supported=False, add=False)
+    assert np.allclose(out_v, v)

@@ -67,10 +67,7 @@ def reach_extent(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, su
     length = float(np.ptp(pts, axis=0).max())
     tree = cKDTree(pts) if supported else None
     spacing = float(np.median(tree.query(pts, k=2)[0][:, 1])) if supported else 0.0
-    # Vertices beyond the points' box come onto it.  A thin tip's samples may stop short of a vertex that lies
-    # right; on the held-out clouds the vertices beyond are mostly a rim or a cap that overshoots, and the mean
-    # CD gains more from the box than it loses there (docs/results.md).
-    v = np.clip(v, pts.min(axis=0), pts.max(axis=0))
+    v = _clamped(v, f, pts.min(axis=0), pts.max(axis=0))
     outer = _outermost(pts, tree, spacing)  # (3, 2) point index per axis and side, -1: none
     reached = 0
     for axis in range(3):
@@ -85,6 +82,23 @@ def reach_extent(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, su
                 v, f = moved
                 reached += 1
     return v, f, reached
+
+
+def _clamped(v: np.ndarray, f: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Vertices beyond the box ``lo`` .. ``hi`` moved onto it, but not those of a face that would turn over or lose
+    its area (a thin fin or a corner flattened onto the box).
+
+    A thin tip's samples may stop short of a vertex that lies right; on the held-out clouds the vertices beyond are
+    mostly a rim or a cap that overshoots, and the mean CD gains more from the box than it loses there
+    (docs/results.md)."""
+    out = np.clip(v, lo, hi)
+    before = _normals(v, f)
+    while True:  # a vertex put back may turn a face of its own over: until none moved is on one
+        bad = np.unique(f[np.einsum("ij,ij->i", before, _normals(out, f)) <= 0])
+        bad = bad[(out[bad] != v[bad]).any(axis=1)]
+        if not len(bad):
+            return out
+        out[bad] = v[bad]
 
 
 def _outermost(points: np.ndarray, tree, spacing: float) -> np.ndarray:

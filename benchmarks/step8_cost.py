@@ -13,8 +13,9 @@ target, artist meshes, posed primitives: made from seeds, nothing to download) a
   medians of ``--pairs`` alternated runs of each, the job's time their median too);
 - ``closure``: closing the loops hole filling leaves (``closure.close_loops``);
 - ``whole``: making the result whole (``pipeline.result.whole``: pinches, strays, far vertices, a low-poly input);
-- ``fit``: fitting the result to the input (``pipeline.result``'s ``redistributed``, ``swapped`` and
-  ``decimated``: a point cloud's faces spread over it, edges turned, a mesh input's decimation weighed);
+- ``fit``: fitting the result to the input (``pipeline.result``'s ``redistributed``, ``swapped``, ``decimated``
+  and ``extended``: a point cloud's faces spread over it, edges turned, a mesh input's decimation weighed, the
+  box brought to the input's; a ``--root`` without one of them times the others);
 - ``holes``: the face stage's hole filling (``holes.fill_holes``), reported beside them.
 
 Prints one JSON line: the sums over the jobs, the share of the jobs' time that step 8 (decide, frame,
@@ -54,8 +55,9 @@ def _wrap_parts(pipeline, surface_triangles, Pipeline, spent: dict) -> dict:
         setattr(pipeline, name, _timed(getattr(pipeline, name), "frame", spent))
     Pipeline._nearest_frame = _timed(Pipeline._nearest_frame, "frame", spent)
     pipeline.step8.whole = _timed(pipeline.step8.whole, "whole", spent)
-    for name in ("redistributed", "swapped", "decimated"):
-        setattr(pipeline.step8, name, _timed(getattr(pipeline.step8, name), "fit", spent))
+    for name in ("redistributed", "swapped", "decimated", "extended"):
+        if hasattr(pipeline.step8, name):
+            setattr(pipeline.step8, name, _timed(getattr(pipeline.step8, name), "fit", spent))
     surface_triangles.close_loops = _timed(surface_triangles.close_loops, "closure", spent)
     surface_triangles.fill_holes = _timed(surface_triangles.fill_holes, "holes", spent)
     frames = {"n": 0}

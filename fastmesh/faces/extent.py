@@ -92,9 +92,8 @@ def _clamped(v: np.ndarray, f: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np
     mostly a rim or a cap that overshoots, and the mean CD gains more from the box than it loses there
     (docs/results.md)."""
     out = np.clip(v, lo, hi)
-    before = _normals(v, f)
     while True:  # a vertex put back may turn a face of its own over: until none moved is on one
-        bad = np.unique(f[np.einsum("ij,ij->i", before, _normals(out, f)) <= 0])
+        bad = np.unique(f[_turned(v, f, out, f)])
         bad = bad[(out[bad] != v[bad]).any(axis=1)]
         if not len(bad):
             return out
@@ -124,6 +123,12 @@ def _normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
 
 
+def _turned(v: np.ndarray, f: np.ndarray, new_v: np.ndarray, new_f: np.ndarray) -> np.ndarray:
+    """(K,) bool: which faces ``new_f`` (K, 3) of ``new_v`` turn over or lose their area against the faces ``f``
+    (K, 3) of ``v`` they stand for, pair by pair."""
+    return np.einsum("ij,ij->i", _normals(v, f), _normals(new_v, new_f)) <= 0
+
+
 def _move_nearest(v: np.ndarray, f: np.ndarray, point: np.ndarray, near: float
                   ) -> tuple[np.ndarray, np.ndarray] | None:
     """The vertex nearest ``point`` moved onto it where it lies within ``near`` and none of its faces turns over
@@ -138,9 +143,7 @@ def _move_nearest(v: np.ndarray, f: np.ndarray, point: np.ndarray, near: float
     around = f[(f == i).any(axis=1)]
     moved = v.copy()
     moved[i] = point
-    if (np.einsum("ij,ij->i", _normals(v, around), _normals(moved, around)) <= 0).any():
-        return None
-    return moved, f
+    return None if _turned(v, around, moved, around).any() else (moved, f)
 
 
 def _add_vertex(v: np.ndarray, f: np.ndarray, point: np.ndarray, reach: float
@@ -171,7 +174,7 @@ def _add_vertex(v: np.ndarray, f: np.ndarray, point: np.ndarray, reach: float
         old, new = [j, j, j], [(a, b, m), (b, c, m), (c, a, m)]
     out_v = np.concatenate([v, point[None]])
     new = np.array(new, dtype=np.int64)
-    if (np.einsum("ij,ij->i", _normals(v, f[old]), _normals(out_v, new)) <= 0).any():
+    if _turned(v, f[old], out_v, new).any():
         return None
     keep = np.ones(len(f), dtype=bool)
     keep[old] = False

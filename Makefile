@@ -2,9 +2,11 @@
 PY ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed
+# One stamp per install set: running (the package and its dependencies) and testing (that plus the `dev` extra).
+RUN_STAMP := $(VENV)/.installed-run
+TEST_STAMP := $(VENV)/.installed-test
 
-.PHONY: run test lint install bench-tokens web chromium assimp blender blender-addon gpu-check
+.PHONY: run test lint install install-test bench-tokens web chromium assimp blender blender-addon gpu-check
 
 # torch: PyPI's default Linux wheel is the CUDA build (about 2.7 GB with its nvidia-* packages).  On Linux
 # without an NVIDIA GPU we install the CPU build (about 200 MB) from PyTorch's CPU index instead; its own
@@ -18,14 +20,22 @@ else
 TORCH ?= torch==$(TORCH_VERSION)
 endif
 
-$(STAMP): pyproject.toml
+# What running needs: torch, then this package and its dependencies (the service, the worker, the CLI).
+$(RUN_STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q --no-deps $(TORCH)
-	$(BIN)/pip install -q -e '.[dev]'
-	touch $(STAMP)
+	$(BIN)/pip install -q -e .
+	touch $(RUN_STAMP)
 
-install: $(STAMP)
+# What testing adds: pyproject's `dev` extra (pytest, ruff, hypothesis, schemathesis, playwright, pyyaml).
+$(TEST_STAMP): $(RUN_STAMP)
+	$(BIN)/pip install -q -e '.[dev]'
+	touch $(TEST_STAMP)
+
+install: $(RUN_STAMP)
+
+install-test: $(TEST_STAMP)
 
 # The page's three.js (npm, pinned by service/web/package-lock.json) and, for the browser tests, Debian's chromium.
 WEB_STAMP := service/web/node_modules/.package-lock.json
@@ -50,17 +60,17 @@ BLENDER_ZIP ?= build/fastmesh_blender.zip
 blender-addon:
 	$(PY) scripts/blender_addon.py $(BLENDER_ZIP)
 
-run: $(STAMP) web
+run: $(RUN_STAMP) web
 	$(BIN)/python -m service.run
 
-test: $(STAMP) web chromium assimp blender
+test: $(TEST_STAMP) web chromium assimp blender
 	$(BIN)/ruff check fastmesh fastmesh_jobs service worker tests benchmarks clients
 	$(BIN)/python -m pytest -q tests
 
-lint: $(STAMP)
+lint: $(TEST_STAMP)
 	$(BIN)/ruff check fastmesh fastmesh_jobs service worker tests benchmarks clients
 
-bench-tokens: $(STAMP)
+bench-tokens: $(RUN_STAMP)
 	$(BIN)/python benchmarks/tokens.py ../shared/corpus
 
 # The device check: on a machine with one CUDA GPU and PyTorch (nothing else of ours), given this repository and,

@@ -9,14 +9,13 @@ alone), then runs each job on, on its own, to its next request or its end.  A jo
 the next one: continuous batching at the granularity of a decode round (a worker adds a job whenever one ends).
 
 What each job sees is what it sees alone: its progress (its own rows' vertex counts), its cancellation (its rows
-stop, the others' go on), its timings (its decode round's seconds in ``vertices``, its own work elsewhere).  A
+stop, the others' go on), its timings (``vertices`` from its request to its rows, the round's wait included).  A
 request whose batched decoding raises is decoded again alone, so one job's error stays that job's; an error
 ``fatal`` says leaves the process unusable (a CUDA error) stops the batch instead (:attr:`Batch.failed`).
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Generator, Hashable
 from dataclasses import dataclass, replace
 
@@ -40,7 +39,6 @@ class DecodeRequest:
     seeds : n generator seeds, one per candidate
     progress : called with the most vertices any of the job's rows has decoded so far
     should_cancel : polled while decoding; True stops the job's rows
-    timings : the job's stage timings: ``vertices`` gets the seconds of the decoding
     solo : decode these rows in no batch but their own (a job that met a device error before)
     """
 
@@ -50,7 +48,6 @@ class DecodeRequest:
     seeds: list[int]
     progress: Callable[[int], None]
     should_cancel: Callable[[], bool] | None
-    timings: dict[str, float]
     solo: bool = False
 
     @property
@@ -114,14 +111,8 @@ def _decode_group(decoder, requests: list[DecodeRequest], progress_every: int) -
             flags += [j in cancelled] * (hi - lo)
         return flags
 
-    t = time.perf_counter()
-    try:
-        seqs = generate(decoder, torch.cat([r.prefix for r in requests]), requests[0].sampling, evidence=ev,
-                        seeds=[s for r in requests for s in r.seeds], rows=control, progress_every=progress_every)
-    finally:
-        seconds = time.perf_counter() - t
-        for r in requests:
-            r.timings["vertices"] += seconds
+    seqs = generate(decoder, torch.cat([r.prefix for r in requests]), requests[0].sampling, evidence=ev,
+                    seeds=[s for r in requests for s in r.seeds], rows=control, progress_every=progress_every)
     return [Cancelled("generation cancelled") if j in cancelled else seqs[lo:hi]
             for j, (lo, hi) in enumerate(spans)]
 

@@ -27,7 +27,8 @@ CLOSED_CHOICES = ("auto", "true", "false")
 TOPOLOGY_CHOICES = ("triangle", "quad")
 # ``origin``: the input's own frame, or the pivot at the result's bounding-box centre or bottom centre.
 ORIGIN_CHOICES = ("input", "center", "bottom")
-# ``up``: the up axis of the OBJ and PLY files (the input's Y is taken as up, glTF's convention; a GLB is Y-up).
+# ``up``: the up axis of the OBJ and PLY files (the result is Y-up, glTF's convention; a GLB is Y-up);
+# ``input_up``: the input's up axis (Y, as glTF and most exporters write it, or Z, as CAD and some engines do).
 UP_CHOICES = ("y", "z")
 
 
@@ -95,7 +96,8 @@ BOUNDS = {
     "height": Bound(1e-4, 1e5, integer=False),
 }
 # The string parameters and the values each takes.
-CHOICES = {"closed": CLOSED_CHOICES, "topology": TOPOLOGY_CHOICES, "origin": ORIGIN_CHOICES, "up": UP_CHOICES}
+CHOICES = {"closed": CLOSED_CHOICES, "topology": TOPOLOGY_CHOICES, "origin": ORIGIN_CHOICES, "up": UP_CHOICES,
+           "input_up": UP_CHOICES}
 
 
 def _param(default, help: str, **presented):
@@ -151,6 +153,9 @@ class GenerateParams:
                                   unset="the input's size", output=True, metavar="METRES", example=1.8)
     up: str = _param("y", "up axis of the OBJ and PLY files; GLB is always Y-up, as glTF requires", output=True,
                      example="z")
+    # Read before anything else (``request.Request.start``): the result, its origin and height are Y-up.
+    input_up: str = _param("y", "up axis of the input: z turns a Z-up input Y-up ((x, y, z) -> (x, z, -y)) before "
+                                "it is generated, placed and measured", example="z")
 
     def validate(self, limit: int = LARGEST_VERTEX_LIMIT) -> None:
         """Raise ValueError naming the first bad field; ``limit`` is the vertex decoder's ``max_vertices``."""
@@ -161,7 +166,7 @@ class GenerateParams:
             bound.check(name, value, hi=min(bound.hi, limit) if name == "max_vertices" else None)
         for name, choices in CHOICES.items():
             if getattr(self, name) not in choices:
-                raise ValueError(f"{name} must be one of {', '.join(choices)}")
+                raise ValueError(f"{name} must be one of {', '.join(choices)}, got {getattr(self, name)!r}")
         if self.bake and not self.uv:
             raise ValueError("bake needs uv=true: the texture is baked onto the result's UV layout")
 

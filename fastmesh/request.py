@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
 
 from .evaluation.quality import input_pieces
+from .export.placement import read_up
 from .faces.facecount import CountRule, count_rule, input_samples
 from .models.generate import Cancelled
 from .params import LARGEST_VERTEX_LIMIT, GenerateParams
@@ -30,6 +31,42 @@ from .shapes.orientation import oriented
 from .shapes.shape import Normalization, Shape
 
 PLANAR_SAMPLES = 8192  # surface samples of a mesh input read by ``planar.polyhedron`` and the whole step
+
+
+# The stages a request's seconds are counted in: the progress's (``progress.STAGES``), and the weighing of rivals
+# (the candidates, the frames, the meshes with missed points or on quadric vertices, the input's decimation, the
+# redistributed and edge-turned meshes, the box reached), which the progress shows as part of the face stage.
+TIMED_STAGES = (*(name for name, _, _ in STAGES), "weighing")
+
+
+class StageTimes(dict):
+    """Seconds per stage (``TIMED_STAGES``) of one request, counted by a clock that is always in exactly one stage:
+    every second from its start to :meth:`stop` lands in one, none twice.  :func:`stage` moves it for a block;
+    :meth:`enter` moves it until the next move.  It runs on while the request waits for its batched vertex decoding
+    (:mod:`fastmesh.batch`): that wait is the job's ``vertices`` too."""
+
+    def __init__(self, first: str):
+        super().__init__({name: 0.0 for name in TIMED_STAGES})
+        self.current, self.since, self.running = first, time.perf_counter(), True
+
+    def _lap(self) -> None:
+        now = time.perf_counter()
+        if self.running:
+            self[self.current] += now - self.since
+        self.since = now
+
+    def enter(self, name: str) -> str:
+        """Count from now in stage ``name``; returns the stage counted until now."""
+        if name not in self:
+            raise KeyError(f"unknown stage {name!r} (stages: {', '.join(TIMED_STAGES)})")
+        self._lap()
+        before, self.current = self.current, name
+        return before
+
+    def stop(self) -> None:
+        """Stop counting (the request is done); idempotent."""
+        self._lap()
+        self.running = False
 
 
 @dataclass
@@ -90,13 +127,14 @@ class Request:
 
     Attributes
     ----------
-    shape : Shape, the input in its own frame (a point cloud's normals outward: ``Request.start``)
+    shape : Shape, the input in its own frame, turned Y-up where ``params.input_up`` is z (a point cloud's normals
+        outward: ``Request.start``)
     params : GenerateParams, validated
     count : CountRule, what the face-count target changes (``facecount.count_rule``); told to the decoder once the
         input's cells are read where it lies far under their count (``FrameSteps._frame``)
     report : Progress
     should_cancel : callable or None
-    timings : dict, seconds per stage (``progress.STAGES``)
+    timings : StageTimes, seconds per stage (``TIMED_STAGES``), every second of the request in one
     frame : Frame, the input's own (identity rotation)
     close : bool, whether the result is closed (``closure.decide_closed``); ``reason`` says why: one of
         ``decide_closed``'s, or "open_planes" (an open surface rebuilt from its planes, ``open_planar``)
@@ -111,7 +149,7 @@ class Request:
     count: CountRule
     report: Progress
     should_cancel: Callable[[], bool] | None
-    timings: dict[str, float]
+    timings: StageTimes
     frame: Frame
     close: bool = True
     reason: str = "closed_points"
@@ -121,12 +159,14 @@ class Request:
     @classmethod
     def start(cls, shape: Shape, params: GenerateParams, progress: Callable[[str, float], None] | None = None,
               should_cancel: Callable[[], bool] | None = None) -> Request:
-        """The request of ``shape``: a point cloud's normals turned outward where they point in
-        (``orientation.oriented``), timed with the encoding."""
-        timings = {name: 0.0 for name, _, _ in STAGES}
-        t = time.perf_counter()
+        """The request of ``shape``: turned Y-up where ``params.input_up`` says it is Z-up
+        (``placement.read_up``: every stage, the placement and the quality read it so), a point cloud's normals
+        turned outward where they point in (``orientation.oriented``), timed with the encoding."""
+        timings = StageTimes("encode")  # reading the input counts with its encoding
+        if params.input_up != "y":
+            shape = replace(shape, vertices=read_up(shape.vertices, params.input_up),
+                            normals=None if shape.normals is None else read_up(shape.normals, params.input_up))
         shape = oriented(shape)
-        timings["encode"] += time.perf_counter() - t
         told = params.sampling(LARGEST_VERTEX_LIMIT).read_count
         return cls(shape=shape, params=params, count=count_rule(params.target_faces, told),
                    report=Progress(progress, params.filtering), should_cancel=should_cancel,

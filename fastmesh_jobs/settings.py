@@ -56,8 +56,9 @@ class Settings(BaseSettings):
     header_timeout_seconds: float = Field(10.0, gt=0, description="A request line and headers not complete this "
                                           "long after their first byte are answered 408 (with "
                                           "`--http service.http:Protocol`, as `make run` and the image serve).")
-    max_concurrent_parses: int = Field(2, ge=1, description="Uploads read and parsed at once by one API process; "
-                                       "further ones wait up to parse_wait_seconds, then get 429 (busy).")
+    max_concurrent_parses: int = Field(3, ge=1, description="Uploads read and parsed at once by one API process, "
+                                       "one key at most all but one; further ones wait up to parse_wait_seconds, "
+                                       "then get 429 (busy).")
     parse_wait_seconds: float = Field(1.0, ge=0, description="Longest wait of an upload for a parsing slot.")
     upload_deadline_seconds: float = Field(300.0, gt=0, description="A request body not complete this long after "
                                            "the request began is answered 408, however steadily it trickles.")

@@ -30,7 +30,8 @@ from .telemetry import Telemetry
 
 STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")
 FINAL = ("succeeded", "failed", "cancelled")
-TIMING_KEYS = ("queue", "load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total")
+# ``total``: the job's seconds outside the queue, each in one of the stages before it (``queue`` apart).
+TIMING_KEYS = ("queue", "load", "encode", "vertices", "enhancer", "faces", "filtering", "weighing", "export", "total")
 TASK = "worker.jobs.run_job"  # by name: the API never imports the worker (or torch)
 RQ_GRACE = 30  # RQ's hard timeout backs up our cooperative one by this many seconds
 _PLAIN = ("owner", "status", "worker", "rq_id")  # fields stored as strings; every other one is JSON
@@ -269,8 +270,12 @@ class JobStates(Blobs, Telemetry, Limits):
             return False
         now = time.time()
         t = dict(job.get("timings") or {})
+        parsed = float(t.get("load") or 0.0)  # the upload's parse, before the job was created
         t.update(timings or {})
-        t["total"] = now - job["created_at"]
+        # The queue apart: its parse, then from the start of its last attempt (what the worker counts in stages).
+        started = job.get("started_at")
+        t["queue"] = t.get("queue", (started or now) - job["created_at"])
+        t["total"] = parsed + (now - started if started else 0.0)
         fields = {"status": status, "finished_at": now, "timings": t, "error": error,
                   "stage": "done" if status == "succeeded" else status,
                   "fraction": 1.0 if status == "succeeded" else job.get("fraction", 0.0)}

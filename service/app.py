@@ -15,15 +15,17 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
+from fastmesh_jobs.memory import tune_malloc
 from fastmesh_jobs.reaper import reap_loop
 from fastmesh_jobs.settings import Settings
 from fastmesh_jobs.store import Store
 
 from . import errors, preview
-from .children import CappedPool, tune_malloc
+from .children import CappedPool
 from .deps import ApiKeys
 from .forms import generation_defaults
 from .middleware import ApiKeyGate, BodyLimit, JsonCORS, RequestMetrics
+from .parse_slots import FairSlots
 from .preview import DEFAULT_PREVIEW, Previews
 from .render_pool import RenderPool
 from .routes import batches, jobs, ops
@@ -89,7 +91,7 @@ def create_app(settings: Settings | None = None, store: Store | None = None) -> 
     # of ``parses`` and ``renders``, and the render counts of ``previews``.
     app.state.settings, app.state.store, app.state.metrics, app.state.keys = settings, store, metrics, keys
     app.state.parses, app.state.renders, app.state.previews = parses, renders, Previews(renders)
-    app.state.parse_slots = threading.BoundedSemaphore(settings.max_concurrent_parses)  # uploads read at once
+    app.state.parse_slots = FairSlots(settings.max_concurrent_parses)  # uploads read at once, fair between keys
     errors.install(app)
 
     for router in (jobs.router, batches.router, ops.router, preview.router):

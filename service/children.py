@@ -23,6 +23,8 @@ import threading
 import time
 from collections.abc import Callable
 
+from fastmesh_jobs.memory import tune_malloc
+
 ORPHAN_CHECK_SECONDS = 1.0  # how often a child checks that the API process still exists
 STOP_WAIT_SECONDS = 2.0  # a recycled child gets this long to exit before it is killed
 # Imported by a child before its memory is capped, so the cap is spent on the work, not on imports.
@@ -31,8 +33,6 @@ PRELOAD = ("numpy", "scipy.spatial", "trimesh", "fastmesh.shapes.io", "fastmesh.
            "service.parsing", "service.render_pool")
 # One thread per library: every thread reserves address space (stacks, malloc arenas) inside the cap.
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
-M_ARENA_MAX, M_MMAP_THRESHOLD = -8, -3  # glibc's mallopt parameters
-MMAP_THRESHOLD = 256 * 1024  # bytes; larger blocks get pages of their own, returned to the system when freed
 RETIRE_SHARE = 0.6  # a child whose address space ends a task above this share of its cap is replaced
 
 
@@ -57,21 +57,6 @@ def _cap_memory(memory_bytes: int) -> None:
     import resource
 
     resource.setrlimit(resource.RLIMIT_AS, (memory_bytes, memory_bytes))
-
-
-def tune_malloc(arenas: int | None = 1) -> None:
-    """glibc malloc for a process that must give memory back: large blocks always in pages of their own (by
-    default the threshold grows to 32 MB after the first large free, and blocks below it stay in the heap,
-    fragmented, after they are freed), and ``arenas`` malloc arenas (each reserves 64 MB of address space)."""
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)
-        if arenas:
-            libc.mallopt(M_ARENA_MAX, arenas)
-    except (OSError, AttributeError):  # not glibc: nothing to tune
-        pass
 
 
 def _address_space() -> int:

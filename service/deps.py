@@ -11,7 +11,6 @@ from __future__ import annotations
 import hashlib
 import hmac
 import re
-import threading
 from typing import Annotated
 
 from fastapi import Depends, Path, Request
@@ -22,6 +21,7 @@ from fastmesh_jobs.store import Store
 
 from .children import CappedPool
 from .errors import ApiError
+from .parse_slots import FairSlots
 from .telemetry import Metrics
 
 ID_RE = re.compile(r"[0-9a-f]{32}")
@@ -64,7 +64,7 @@ def get_parses(request: Request) -> CappedPool:
     return request.app.state.parses
 
 
-def get_parse_slots(request: Request) -> threading.BoundedSemaphore:
+def get_parse_slots(request: Request) -> FairSlots:
     return request.app.state.parse_slots
 
 
@@ -74,7 +74,7 @@ MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 # Uploads are parsed in these capped child processes (``settings.max_concurrent_parses`` of them) ...
 Parses = Annotated[CappedPool, Depends(get_parses)]
 # ... while holding one of these slots (service.submission.parse_slot), shared by POST /v1/jobs and /v1/batches.
-ParseSlots = Annotated[threading.BoundedSemaphore, Depends(get_parse_slots)]
+ParseSlots = Annotated[FairSlots, Depends(get_parse_slots)]
 
 
 def get_owner(request: Request, settings: SettingsDep, store: StoreDep,

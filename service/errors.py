@@ -49,6 +49,13 @@ def _field(loc) -> str:
     return ".".join(parts) or "request"
 
 
+def _given(error: dict) -> str:
+    """", got 'x'" for a value outside a field's choices (a string field's, up to 30 characters), else ""."""
+    if error.get("type") != "literal_error" or not isinstance(error.get("input"), str):
+        return ""
+    return f", got {error['input'][:30]!r}"
+
+
 def install(app: FastAPI) -> None:
     @app.exception_handler(ApiError)
     async def _api(request: Request, exc: ApiError):
@@ -67,7 +74,7 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
         errs = exc.errors()
-        message = "; ".join(f"{_field(e.get('loc', ()))}: {e.get('msg', 'invalid')}" for e in errs[:5])
+        message = "; ".join(f"{_field(e.get('loc', ()))}: {e.get('msg', 'invalid')}{_given(e)}" for e in errs[:5])
         return error_response(422, "invalid_parameter", message or "invalid request")
 
     @app.exception_handler(redis.RedisError)

@@ -32,8 +32,10 @@ IDEMPOTENCY_WAIT = 5.0  # seconds a retry waits for the job of a request holding
 class Idempotency:
     """One submission's ``Idempotency-Key`` (or none) for ``who``, and what it is a key to."""
 
-    def __init__(self, store: Store, who: str, key: str | None, data: bytes, params: dict):
-        self.store, self.who, self.key = store, who, key or None
+    def __init__(self, store: Store, who: str, key: str | None, data: bytes, params: dict,
+                 conflict: str = "this Idempotency-Key was used for a different file or parameters"):
+        """``conflict`` is the message of the 409 when the key names another request."""
+        self.store, self.who, self.key, self.conflict = store, who, key or None, conflict
         self.fingerprint = "" if self.key is None else \
             hashlib.sha256(data + json.dumps(params, sort_keys=True).encode()).hexdigest()[:32]
         self._claim: str | None = None
@@ -59,8 +61,7 @@ class Idempotency:
                 self.release()  # its job was deleted or expired: the key is free again
                 return None
             if fp != self.fingerprint:
-                raise ApiError(409, "idempotency_conflict",
-                               "this Idempotency-Key was used for a different file or parameters")
+                raise ApiError(409, "idempotency_conflict", self.conflict)
             if mine:
                 return job
             if time.monotonic() >= deadline:

@@ -132,17 +132,27 @@ def worker_command() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "worker.main"]
 
 
+def env_value(value) -> str:
+    """How a setting's value is written as the ``FASTMESH_*`` variable that reads back the same: a secret (any
+    pydantic secret type: ``SecretStr``, ``SecretBytes``, ``Secret[...]``) as its real value, since ``str()`` of
+    one is its mask; a list joined with commas (the ``CommaList`` fields)."""
+    if hasattr(value, "get_secret_value"):
+        value = value.get_secret_value()
+        return value.decode() if isinstance(value, bytes) else str(value)
+    if isinstance(value, list | tuple):
+        return ",".join(env_value(v) for v in value)
+    return str(value)
+
+
 def settings_env(settings: Settings, **extra: str) -> dict[str, str]:
-    """The environment that makes a subprocess read the same settings."""
+    """The environment that makes a subprocess read the same settings, secrets included (:func:`env_value`)."""
     env = dict(os.environ)
     for name, value in settings.model_dump().items():
         key = f"FASTMESH_{name.upper()}"
         if value is None:
             env.pop(key, None)
-        elif isinstance(value, list):
-            env[key] = ",".join(value)
         else:
-            env[key] = str(value)
+            env[key] = env_value(value)
     env.setdefault("OMP_NUM_THREADS", "1")
     env.update(extra)
     return env

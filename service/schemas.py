@@ -18,7 +18,7 @@ JOB_EXAMPLE = {
     "params": {"seed": 0, "temperature": 0.3, "top_k": 10, "top_p": 0.95, "max_vertices": 1000,
                "enhancer": True, "filtering": False, "candidates": 2, "target_faces": None, "closed": "auto",
                "topology": "triangle", "uv": False, "bake": False, "origin": "input", "height": None, "up": "y",
-               "formats": ["glb"]},
+               "input_up": "y", "formats": ["glb"]},
     "input": {"filename": "chair.ply", "kind": "points", "points": 20000, "vertices": None, "faces": None},
     "result": {"vertices": 412, "faces": 806, "tokens": 412, "formats": ["glb"], "seed": 1, "result_from": "model",
                "vertices_from": "decoder",
@@ -26,10 +26,11 @@ JOB_EXAMPLE = {
                            "non_manifold_vertices": 0, "components": 1, "pieces": 1, "input_pieces": 1,
                            "watertight": True, "box_gap": 0.0, "closed_decision": "closed", "faces": 806,
                            "target_faces": None, "target_met": None, "count_step": None, "quads": 0,
-                           "quad_share": 0.0},
+                           "quad_share": 0.0, "back_face_share": 0.0, "misoriented_edges": 0,
+                           "misoriented_area": 0.0, "self_intersections": 0, "unwelded_vertices": 0},
                "placement": {"scale": 1.0, "offset": [0.0, 0.0, 0.0], "up": "y"}, "notes": []},
     "timings": {"queue": 0.21, "load": 0.05, "encode": 0.12, "vertices": 3.1, "enhancer": 0.2, "faces": 0.9,
-                "filtering": 0.05, "export": 0.02, "total": 4.87},
+                "filtering": 0.0, "weighing": 0.25, "export": 0.02, "total": 4.64},
     "error": None,
     "expires_at": "2025-05-02T12:00:04.870000Z",
     "webhook": {"url": "https://example.com/fastmesh-hook", "state": "delivered", "attempts": 1, "last_status": 200,
@@ -65,8 +66,10 @@ class InputInfo(BaseModel):
 class Quality(BaseModel):
     """How far the result lies from the input and what its topology is (fastmesh.evaluation.quality)."""
 
-    cd: float = Field(description="Chamfer distance between result and input, % of the input's longest side.")
-    hd: float = Field(description="Hausdorff distance between result and input, % of the input's longest side.")
+    cd: float = Field(description="Chamfer distance between result and input, % of the input's longest side, "
+                                  "from samples of each to the other's surface (an exact result reads about 0).")
+    hd: float = Field(description="Hausdorff distance between result and input, % of the input's longest side, "
+                                  "measured as cd is.")
     boundary_edges: int = Field(description="Edges with one face: the rims of holes and open borders.")
     non_manifold_edges: int = Field(description="Edges with three or more faces.")
     non_manifold_vertices: int | None = Field(None, description="Vertices whose faces form more than one fan "
@@ -81,7 +84,9 @@ class Quality(BaseModel):
                                                     "input's longest side.")
     closed_decision: str | None = Field(None, description="closed or open (closed=auto, decided from the input: a "
                                                           "closed mesh, or oriented points enclosing a volume), or "
-                                                          "asked (closed=true/false).")
+                                                          "asked (closed=true/false); not_closed where the result "
+                                                          "was to be closed and keeps open edges or edges of three "
+                                                          "or more faces (notes say which).")
     faces: int | None = Field(None, description="Faces of the result.")
     target_faces: int | None = Field(None, description="Faces asked for (null: the model chose).")
     target_met: bool | None = Field(None, description="faces within 20 % of target_faces (null without a target).")
@@ -89,14 +94,25 @@ class Quality(BaseModel):
         None, description="How the count was held: kept (the mesh was within 10 % already), simplified (edges "
                           "collapsed), split (edges split, the new vertices on the input surface) or decimated (the "
                           "input mesh's own decimation to the count came back); null without a target.")
+    back_face_share: float | None = Field(None, description="Of what 14 views around the result show, the share "
+                                                            "that is the back of a face, 0..1.")
+    misoriented_edges: int | None = Field(None, description="Interior edges whose two faces run them the same way "
+                                                            "(faces wound against their neighbours).")
+    misoriented_area: float | None = Field(None, description="The area wound against the rest of its piece, share "
+                                                             "of the result's area, 0..0.5.")
+    self_intersections: int | None = Field(None, description="Pairs of faces sharing no vertex that cross each "
+                                                             "other.")
+    unwelded_vertices: int | None = Field(None, description="Vertices coinciding with another vertex of a "
+                                                            "different index.")
     quads: int | None = Field(None, description="Quads in the OBJ and PLY files (topology=quad).")
     quad_share: float | None = Field(None, description="The quads' share of the polygons of the OBJ and PLY files, "
                                                        "0..1 (0 with topology=triangle).")
 
 
 class Placement(BaseModel):
-    """How the result was placed (origin, height, up): a point ``v`` of the input's frame is written at
-    ``v * scale + offset`` (Y-up), then turned (x, y, z) -> (x, -z, y) in the OBJ and PLY files for up=z."""
+    """How the result was placed (origin, height, up): a point ``v`` of the input's frame (turned (x, y, z) ->
+    (x, z, -y) first for input_up=z) is written at ``v * scale + offset`` (Y-up), then turned (x, y, z) ->
+    (x, -z, y) in the OBJ and PLY files for up=z."""
 
     scale: float
     offset: list[float]
@@ -126,8 +142,12 @@ class ResultInfo(BaseModel):
 
 
 class Timings(BaseModel):
-    """Seconds.  ``queue``: created -> started; ``load``: parsing the upload; then the pipeline's stages;
-    ``export``: writing the formats; ``total``: created -> finished.  Null until known."""
+    """Seconds.  ``queue``: created -> started (its last attempt); ``total``: the rest of the job, every second of
+    it in one of the stages between: ``load`` (parsing the upload, and the worker reading it), the pipeline's
+    (``encode``: reading the input and encoding it; ``vertices``; ``enhancer``; ``faces``: the face model, the
+    triangles, rebuilds and the result finished and measured; ``filtering``: the masked re-predictions, 0 without
+    filtering=true; ``weighing``: choosing among the candidates and the rival meshes), ``export`` (writing and
+    storing the formats).  Null until known."""
 
     queue: float | None = None
     load: float | None = None
@@ -136,6 +156,7 @@ class Timings(BaseModel):
     enhancer: float | None = None
     faces: float | None = None
     filtering: float | None = None
+    weighing: float | None = None
     export: float | None = None
     total: float | None = None
 

@@ -7,7 +7,6 @@ submit rate limit, vet the ``callback_url``, then per file take a parsing slot, 
 from __future__ import annotations
 
 import contextlib
-import threading
 
 from fastapi import UploadFile
 
@@ -15,6 +14,7 @@ from fastmesh_jobs.settings import Settings
 from fastmesh_jobs.store import Store
 
 from .errors import ApiError
+from .parse_slots import FairSlots
 from .webhooks import UnsafeUrl, new_webhook, vet_at_submit
 
 
@@ -55,23 +55,26 @@ def webhook_of(settings: Settings, callback_url: str | None) -> dict | None:
 
 
 @contextlib.contextmanager
-def parse_slot(slots: threading.BoundedSemaphore, settings: Settings):
-    """Hold one of the app's upload-reading slots.  Reading and parsing hold up to a few times the upload in
-    memory: a fixed number at once keeps the API's peak a known multiple of the limits; beyond it the client
-    is told to come back.
+def parse_slot(slots: FairSlots, settings: Settings, owner: str):
+    """Hold one of the app's upload-reading slots for ``owner`` (the key's rate-limit bucket).  Reading and parsing
+    hold up to a few times the upload in memory: a fixed number at once keeps the API's peak a known multiple of
+    the limits; beyond it the client is told to come back.  One key never holds them all
+    (:class:`service.parse_slots.FairSlots`).
 
     Raises
     ------
     ApiError
-        429 ``busy`` when no slot frees within ``parse_wait_seconds``.
+        429 ``busy`` when no slot frees within ``parse_wait_seconds``, or the key's share is in use that long.
     """
-    if not slots.acquire(timeout=settings.parse_wait_seconds):
-        raise ApiError(429, "busy", f"{settings.max_concurrent_parses} uploads are being read; retry shortly",
-                       {"Retry-After": "2"})
+    if not slots.acquire(owner, timeout=settings.parse_wait_seconds):
+        mine = slots.held(owner)
+        why = (f"this key's uploads hold {mine} of the {slots.capacity} upload-reading slots, the most one key may"
+               if mine >= slots.per_owner else f"{settings.max_concurrent_parses} uploads are being read")
+        raise ApiError(429, "busy", f"{why}; retry shortly", {"Retry-After": "2"})
     try:
         yield
     finally:
-        slots.release()
+        slots.release(owner)
 
 
 def read_upload(file: UploadFile, settings: Settings) -> bytes:

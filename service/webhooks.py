@@ -2,8 +2,9 @@
 
 The job's final transition queues the delivery in Redis (``P:webhooks``, job id -> when due) in the same
 step as the status change (:meth:`fastmesh_jobs.store.Store.finish`), so no delivery is lost with a process.
-A dispatcher thread in each API process (:func:`dispatch_loop`) claims due entries and delivers them from a
-few threads of its own: workers never wait on a receiver.  A claim is a lease: a dispatcher that dies
+A dispatcher thread in each API process (:func:`dispatch_loop`) claims due entries and delivers them from
+threads of its own, fairly between API keys (:class:`Dispatcher`): workers never wait on a receiver, and one
+key's hanging receivers do not hold up another key's deliveries.  A claim is a lease: a dispatcher that dies
 mid-delivery leaves the entry due again :data:`LEASE_SECONDS` later, so delivery is at least once.
 
 The body is the job JSON as ``GET /v1/jobs/{id}`` shows it, signed ``X-FastMesh-Signature:
@@ -27,6 +28,7 @@ import logging
 import socket
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
@@ -44,11 +46,15 @@ log = logging.getLogger("fastmesh.webhooks")
 MAX_URL_LENGTH = 2000
 RESOLVE_SECONDS = 5.0  # longest wait for DNS at submission; a slower name is refused
 DISPATCH_INTERVAL = 0.25  # seconds between two looks for due deliveries
-DELIVERY_THREADS = 4  # deliveries under way at once per API process
+DELIVERY_THREADS = 16  # deliveries under way at once per API process
+DELIVERIES_PER_KEY = 4  # of which one API key's: what a key whose receivers all hang can hold
+SCAN = 200  # due entries looked at per dispatch
+DEFER_SECONDS = 1.0  # how long a due entry of a key at its limit is put off when more are due than looked at
 LEASE_SECONDS = 120  # a claimed delivery whose dispatcher died is due again after this long
 SIGNATURE_HEADER = "X-FastMesh-Signature"
 
-# KEYS: webhooks zset.  ARGV: job id, now, lease end.  Claim a due entry: push its due time past the lease.
+# KEYS: webhooks zset.  ARGV: job id, now, new due time.  Push a due entry to the new time, if it is still due:
+# a claim (past the lease) or, for a key at its limit, a deferral (Dispatcher.tick).
 _CLAIM = """
 local due = redis.call('ZSCORE', KEYS[1], ARGV[1])
 if not due or tonumber(due) > tonumber(ARGV[2]) then return 0 end
@@ -69,11 +75,28 @@ def resolve(host: str, port: int) -> list[str]:
     return list(dict.fromkeys(info[4][0] for info in infos))
 
 
+# IPv6 addresses that stand for the IPv4 address in their low 32 bits (a NAT64 gateway, RFC 6052's well-known
+# prefix, or a SIIT translator, RFC 2765, delivers there): as public as that IPv4 address.
+_TRANSLATED = tuple(ipaddress.ip_network(n) for n in ("64:ff9b::/96", "::ffff:0:0:0/96"))
+# IPv6 ranges never called, whatever they hold: IPv4-compatible addresses (deprecated, RFC 4291), local-use NAT64
+# (RFC 8215: its IPv4 address lies where the operator chose), the 6to4 (deprecated, RFC 7526) and Teredo tunnels
+# (to the IPv4 address they hold), site-local (deprecated, RFC 3879).
+_NEVER_PUBLIC = tuple(ipaddress.ip_network(n) for n in ("::/96", "64:ff9b:1::/48", "2002::/16", "2001::/32",
+                                                         "fec0::/10"))
+
+
 def is_public(address: str) -> bool:
-    """Whether ``address`` is a globally routable unicast address (an IPv4-mapped IPv6 one is judged as its IPv4)."""
+    """Whether ``address`` is a globally routable unicast address.  An IPv6 address that carries an IPv4 one
+    (IPv4-mapped, NAT64, SIIT) is judged by that IPv4 address; the other forms that carry one are refused
+    (:data:`_NEVER_PUBLIC`)."""
     ip = ipaddress.ip_address(address.split("%", 1)[0])
-    if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
-        ip = ip.ipv4_mapped
+    if isinstance(ip, ipaddress.IPv6Address):
+        if any(ip in net for net in _NEVER_PUBLIC):
+            return False
+        if ip.ipv4_mapped is not None:
+            return is_public(str(ip.ipv4_mapped))
+        if any(ip in net for net in _TRANSLATED):
+            return is_public(str(ipaddress.IPv4Address(int(ip) & 0xFFFFFFFF)))
     return ip.is_global and not ip.is_multicast
 
 
@@ -88,11 +111,16 @@ def vet(url: str, allow_private: bool, resolver: Resolver = resolve) -> tuple[st
     Raises
     ------
     UnsafeUrl
-        The URL is malformed, not https (plain http only with ``allow_private``), carries credentials, or
-        its host does not resolve or resolves to any non-public address (unless ``allow_private``).
+        The URL holds a character outside printable ASCII (a space, CR, LF), is malformed, not https (plain
+        http only with ``allow_private``), carries credentials, or its host does not resolve or resolves to any
+        non-public address (:func:`is_public`; unless ``allow_private``).
     """
     if len(url) > MAX_URL_LENGTH:
         raise UnsafeUrl(f"longer than {MAX_URL_LENGTH} characters")
+    bad = next((i for i, c in enumerate(url) if not "!" <= c <= "~"), None)
+    if bad is not None:  # HTTP cannot send it in a request line or Host; Python's urlsplit drops CR, LF, tab
+        raise UnsafeUrl(f"character {bad + 1} is {url[bad]!r}: a URL holds printable ASCII only (no spaces, "
+                        "CR, LF or other control characters); percent-encode it")
     try:
         parts = urlsplit(url)
         port = parts.port
@@ -248,42 +276,98 @@ def attempt(store: Store, job_id: str, resolver: Resolver = resolve) -> str:
     return outcome
 
 
-def dispatch_once(store: Store, pool: ThreadPoolExecutor, busy: set[str], lock: threading.Lock,
-                  resolver: Resolver = resolve) -> int:
-    """Claim due deliveries (as many as there are free threads) and start them in ``pool``; how many."""
-    free = DELIVERY_THREADS - len(busy)
-    if free <= 0:
-        return 0
-    now = time.time()
-    started = 0
-    for raw in store.redis.zrangebyscore(store.k_webhooks, "-inf", now, start=0, num=free):
-        job_id = raw.decode()
-        if job_id in busy or not store.redis.eval(_CLAIM, 1, store.k_webhooks, job_id, now, now + LEASE_SECONDS):
-            continue
-        with lock:
-            busy.add(job_id)
+def fair_order(due: list[tuple[str, str]], under_way: Counter) -> list[tuple[int, str, str]]:
+    """``(rank, job id, owner)`` of the ``due`` deliveries (``(job id, owner)``, earliest due first), taken
+    round-robin between owners: an entry's rank is how many of its owner's deliveries would be under way before
+    it (``under_way[owner]`` plus its place among the owner's due entries); lowest rank first, then due time."""
+    seen: Counter = Counter()
+    ranked = []
+    for place, (job_id, owner) in enumerate(due):
+        ranked.append((under_way[owner] + seen[owner], place, job_id, owner))
+        seen[owner] += 1
+    return [(rank, job_id, owner) for rank, _, job_id, owner in sorted(ranked)]
 
-        def run(job_id=job_id):
+
+class Dispatcher:
+    """Starts due deliveries in a pool of :data:`DELIVERY_THREADS` threads, fairly between API keys.
+
+    A key has at most :data:`DELIVERIES_PER_KEY` deliveries under way, and keys take turns
+    (:func:`fair_order`): a key whose receivers hang until the timeout holds that many threads, never the
+    others' turns.  The due entries are looked at :data:`SCAN` at a time; when that many are due, those of keys
+    at their limit are put off :data:`DEFER_SECONDS`, so the entries of other keys behind them come up.
+    """
+
+    def __init__(self, store: Store, pool: ThreadPoolExecutor, resolver: Resolver = resolve,
+                 done: threading.Event | None = None):
+        """``done`` is set whenever a delivery ends (a thread is free again)."""
+        self.store, self.pool, self.resolver = store, pool, resolver
+        self.done = done or threading.Event()
+        self.lock = threading.Lock()
+        self.busy: dict[str, str] = {}  # job id -> owner: the deliveries under way
+
+    def due(self, now: float) -> tuple[list[tuple[str, str]], bool]:
+        """``([(job id, owner)], more)``: up to :data:`SCAN` due entries not under way, earliest first (owner ""
+        for a job that is gone), and whether the look was cut at :data:`SCAN`."""
+        store = self.store
+        ids = [raw.decode() for raw in store.redis.zrangebyscore(store.k_webhooks, "-inf", now, start=0, num=SCAN)]
+        with store.redis.pipeline(transaction=False) as pipe:
+            for job_id in ids:
+                pipe.hget(store.k_job(job_id), "owner")
+            owners = pipe.execute()
+        with self.lock:
+            due = [(j, (o or b"").decode()) for j, o in zip(ids, owners, strict=True) if j not in self.busy]
+        return due, len(ids) == SCAN
+
+    def tick(self) -> int:
+        """Claim due deliveries for the free threads and start them; how many were started."""
+        with self.lock:
+            free = DELIVERY_THREADS - len(self.busy)
+            under_way = Counter(self.busy.values())
+        if free <= 0:
+            return 0
+        now = time.time()
+        due, more = self.due(now)
+        started = 0
+        for rank, job_id, owner in fair_order(due, under_way):
+            if rank >= DELIVERIES_PER_KEY or started >= free:
+                if more and rank >= DELIVERIES_PER_KEY:  # out of the way of the entries past the look
+                    self.store.redis.eval(_CLAIM, 1, self.store.k_webhooks, job_id, now, now + DEFER_SECONDS)
+                continue
+            if self.store.redis.eval(_CLAIM, 1, self.store.k_webhooks, job_id, now, now + LEASE_SECONDS):
+                self.start(job_id, owner)
+                started += 1
+        return started
+
+    def start(self, job_id: str, owner: str) -> None:
+        """Deliver the claimed ``job_id`` in the pool."""
+        with self.lock:
+            self.busy[job_id] = owner
+
+        def run():
             try:
-                outcome = attempt(store, job_id, resolver)
+                outcome = attempt(self.store, job_id, self.resolver)
                 log.info("webhook of job %s: %s", job_id, outcome)
             except Exception as e:  # Redis down: the lease brings the entry back
                 log.warning("webhook of job %s: %s", job_id, e)
             finally:
-                with lock:
-                    busy.discard(job_id)
-        pool.submit(run)
-        started += 1
-    return started
+                with self.lock:
+                    self.busy.pop(job_id, None)
+                self.done.set()
+        self.pool.submit(run)
 
 
 def dispatch_loop(store: Store, stop: threading.Event, resolver: Resolver = resolve) -> None:
-    """Deliver due webhooks every :data:`DISPATCH_INTERVAL` seconds until ``stop`` is set."""
-    busy: set[str] = set()
-    lock = threading.Lock()
+    """Deliver due webhooks until ``stop`` is set: a look every :data:`DISPATCH_INTERVAL` seconds, and at once
+    when a delivery ends (a key's next delivery need not wait for the tick)."""
+    done = threading.Event()
     with ThreadPoolExecutor(max_workers=DELIVERY_THREADS, thread_name_prefix="fastmesh-webhook") as pool:
-        while not stop.wait(DISPATCH_INTERVAL):
+        dispatcher = Dispatcher(store, pool, resolver, done)
+        while not stop.is_set():
+            done.wait(DISPATCH_INTERVAL)
+            done.clear()
+            if stop.is_set():
+                break
             try:
-                dispatch_once(store, pool, busy, lock, resolver)
+                dispatcher.tick()
             except Exception as e:  # Redis down: try again next tick
                 log.warning("webhook dispatcher: %s", e)

@@ -15,6 +15,7 @@ from fastmesh.models.generate import Cancelled, SamplingConfig, StackedEvidence,
 from fastmesh.models.onnx_decode import OrtDecoder
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import STAGES, Pipeline
+from fastmesh.request import TIMED_STAGES
 from fastmesh.shapes.shape import Shape
 from fastmesh.tokenizer import vertex as vt
 
@@ -81,7 +82,7 @@ def test_a_batch_gives_each_job_exactly_what_it_gives_alone(pipe, monkeypatch):
     # Jobs 0, 1, 3 and 4 share their sampling settings: 2 + 2 + 2 (job 3's one candidate in each of its two
     # frames, decoded as one request) + 2 candidates in one decoder batch.
     assert max(spy.batches) == 8
-    assert set(batch[0].timings) == {name for name, _, _ in STAGES} and batch[0].timings["vertices"] > 0
+    assert set(batch[0].timings) == set(TIMED_STAGES) and batch[0].timings["vertices"] > 0
 
 
 def test_jobs_join_the_next_round_and_each_keeps_its_progress_and_timings(pipe):

@@ -51,13 +51,49 @@ def test_a_format_that_contradicts_the_output_file_is_refused(tmp_path, capsys, 
     assert not (tmp_path / output).exists()
 
 
-def test_a_format_that_agrees_or_an_output_without_a_mesh_extension_is_taken(tmp_path):
+def test_a_format_that_agrees_or_an_output_without_an_extension_is_taken(tmp_path):
     src = tmp_path / "box.obj"
     trimesh.creation.box().export(src)
     for output, fmt, made in (("x.obj", "obj", "obj"), ("x.OBJ", "obj", "obj"), ("x.obj", None, "obj"),
-                              ("x.mesh", "ply", "ply"), ("x.mesh", None, "glb")):
+                              ("x", "ply", "ply"), ("x", None, "glb")):
         jobs, skipped = generate_jobs(str(src), str(tmp_path / output), fmt, None)
         assert jobs == [(src, tmp_path / output, made)] and skipped == []
+
+
+@pytest.mark.parametrize("output, fmt", [("x.stl", None), ("x.fbx", None), ("x.STL", None), ("x.gltf", None),
+                                         ("x.mesh", "ply"), ("x.stl", "glb")])
+def test_an_output_named_for_a_format_we_do_not_write_is_refused(tmp_path, output, fmt):
+    """``-o x.stl`` once wrote GLB bytes under that name and exited 0; ``submit`` refused the same name."""
+    src = tmp_path / "box.obj"
+    trimesh.creation.box().export(src)
+    with pytest.raises(ValueError, match=r"must end in \.glb, \.obj or \.ply \(the formats written\)") as e:
+        generate_jobs(str(src), str(tmp_path / output), fmt, None)
+    assert f"not {Path(output).suffix}" in str(e.value)
+
+
+def test_a_folder_as_the_output_of_one_file_is_refused(tmp_path):
+    src = tmp_path / "box.obj"
+    trimesh.creation.box().export(src)
+    (tmp_path / "out.v2").mkdir()
+    for out in (tmp_path, tmp_path / "out.v2"):
+        with pytest.raises(ValueError, match="it is a folder; name the output file"):
+            generate_jobs(str(src), str(out), None, None)
+
+
+@pytest.mark.parametrize("verb", ["generate", "submit"])
+def test_generate_and_submit_refuse_an_stl_output_alike(tmp_path, capsys, verb):
+    """Exit 2 and one line naming the formats written, before any network loads (``--weights`` names no folder)
+    or any request is sent (nothing listens at ``--url``); nothing is written."""
+    src = tmp_path / "box.obj"
+    trimesh.creation.box().export(src)
+    out = tmp_path / "box.stl"
+    extra = ["--weights", str(tmp_path / "no-weights")] if verb == "generate" else ["--url", "http://127.0.0.1:9"]
+    code = main([verb, str(src), "-o", str(out), *extra])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err == (f"fastmesh {verb}: error: cannot write {out}: the output must end in .glb, .obj or .ply (the "
+                   f"formats written), not .stl; name it box.glb\n")
+    assert not out.exists()
 
 
 def test_folder_skips_notes_and_keeps_every_shape(folder, tmp_path):

@@ -51,7 +51,7 @@ def test_generate_returns_mesh_in_input_frame(pipe):
     # Outputs are back in the input's frame: inside its bounding box (plus half a 7-bit cell).
     tol = (hi - lo).max() * CELL
     assert (res.vertices >= lo - tol).all() and (res.vertices <= hi + tol).all()
-    assert set(res.timings) == {"encode", "vertices", "enhancer", "faces", "filtering"}
+    assert set(res.timings) == {"encode", "vertices", "enhancer", "faces", "filtering", "weighing"}
     assert all(v >= 0 for v in res.timings.values())
     # BOS, >= 1 block token, offsets, EOS (the result may hold more: a pinched vertex splits into one per fan)
     assert res.tokens >= 3 + res.info["generated_vertices"]
@@ -494,10 +494,13 @@ def test_cli_generate_file_json(tmp_path, weights):
     assert rec["vertices_from"] == "decoder"  # nor the quadrics' vertices
     assert set(rec["quality"]) == {"cd", "hd", "boundary_edges", "non_manifold_edges", "non_manifold_vertices",
                                    "components", "pieces", "input_pieces", "watertight", "box_gap", "closed_decision",
-                                   "faces", "target_faces", "target_met", "count_step", "quads", "quad_share"}
+                                   "faces", "target_faces", "target_met", "count_step", "quads", "quad_share",
+                                   "back_face_share", "misoriented_edges", "misoriented_area", "self_intersections",
+                                   "unwelded_vertices"}
     assert rec["quality"]["quad_share"] == 0.0 and rec["notes"] == []  # triangles, in the input's frame
     assert rec["placement"] == {"scale": 1.0, "offset": [0.0, 0.0, 0.0], "up": "y"}
-    assert set(rec["timings"]) == {"load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total"}
+    assert set(rec["timings"]) == {"load", "encode", "vertices", "enhancer", "faces", "filtering", "weighing",
+                                   "export", "total"}
     mesh = trimesh.load(out, force="mesh")
     assert len(mesh.faces) == rec["faces"] > 0
 

@@ -9,7 +9,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
 RESULTS = (ROOT / "docs" / "results.md").read_text()
-# What `make install` puts in .venv/bin and nowhere else.
+# What `make run` and `make test` put in .venv/bin and nowhere else.
 VENV_COMMANDS = ("fastmesh", "fastmesh-worker", "python", "pytest")
 
 
@@ -79,3 +79,26 @@ def test_readme_names_precision_and_recall():
     """Two shares of vertices found (46 % and 37 %) once stood side by side without saying which was which."""
     for header in ("| system | CD % | HD % |", "| system (mesh inputs) |"):
         assert "precision / recall" in README[README.index(header):].splitlines()[0], header
+
+
+def _section(text: str, heading: str) -> str:
+    start = text.index(f"\n## {heading}\n")
+    end = text.find("\n## ", start + 1)
+    return text[start:end if end >= 0 else len(text)]
+
+
+def test_readme_explains_every_figure_of_the_quality_report(weights):
+    """Each key of a real result's ``quality`` (quads asked for, so theirs too) has a row in README's Quality
+    report: a pipeline deciding what to keep reads what each figure means there."""
+    import trimesh
+
+    from fastmesh.pipeline import GenerateParams, Pipeline
+    from fastmesh.shapes.io import load_shape
+
+    box = trimesh.creation.box(extents=(1.0, 2.0, 0.5)).export(file_type="obj").encode()
+    result = Pipeline.from_pretrained(weights).generate(load_shape(box, filename="box.obj"),
+                                                        GenerateParams(topology="quad", candidates=1))
+    rows = _table(_section(README, "Quality report"), "| figure |")
+    explained = {name.strip("` ") for row in rows for name in row["figure"].split(",")}
+    assert set(result.quality) - explained == set(), "quality figures README does not explain"
+    assert explained - set(result.quality) == set(), "README explains figures the report does not have"

@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import re
 import socket
+import struct
+import subprocess
+import sys
 import time
+import zlib
 from pathlib import Path
 
 import httpx
@@ -13,6 +17,9 @@ import pytest
 from stack import assert_error, make_settings, post, sphere_points, xyz_bytes
 
 import service.render_pool
+from fastmesh.shapes.io import load_shape
+from fastmesh.shapes.shape import ShapeError
+from fastmesh.shapes.texture import MAX_TEXTURE_SIDE
 from fastmesh_jobs.blobs import mesh_to_bytes
 from fastmesh_jobs.settings import Settings, settings_table
 from fastmesh_jobs.store import Store
@@ -124,6 +131,72 @@ def test_a_utf8_filename_is_kept_and_named_in_the_download(open_api):
     got = httpx.get(f"{open_api.url}/v1/jobs/{job_id}/result?format=obj", timeout=30)
     assert got.status_code == 200
     assert "filename*=UTF-8''r%C3%A9sum%C3%A9%20%F0%9F%98%80.obj" in got.headers["content-disposition"]
+
+
+# ---------------------------------------------------------------------------------------- textures for bake
+
+
+def textured_glb(side: int, mode: str = "RGB") -> bytes:
+    """A cube with a base-colour texture of ``side`` x ``side`` pixels of one colour (a small PNG)."""
+    import trimesh
+    from PIL import Image
+    from trimesh.visual import TextureVisuals
+    from trimesh.visual.material import PBRMaterial
+
+    box = trimesh.creation.box()
+    uv = np.random.default_rng(0).uniform(0, 1, (len(box.vertices), 2))
+    image = Image.new(mode, (side, side), 200)
+    return trimesh.Trimesh(box.vertices, box.faces, visual=TextureVisuals(uv=uv, material=PBRMaterial(
+        baseColorTexture=image)), process=False).export(file_type="glb")
+
+
+def test_a_texture_over_the_limit_is_a_413_naming_its_size_and_the_limit(open_api):
+    side = MAX_TEXTURE_SIDE + 8
+    data = textured_glb(side, "L")
+    err = assert_error(post(open_api.url, "big.glb", data, uv="true", bake="true"), 413, "too_large")
+    assert f"texture is {side} x {side} pixels" in err["message"], err
+    assert f"({MAX_TEXTURE_SIDE} x {MAX_TEXTURE_SIDE})" in err["message"] and "bake" in err["message"], err
+    assert post(open_api.url, "big.glb", data).status_code == 202  # without bake the texture is not read
+
+
+def with_image_size(glb: bytes, side: int) -> bytes:
+    """``glb`` with its PNG's header saying ``side`` x ``side`` pixels (its pixels left as they are)."""
+    start = glb.index(b"\x89PNG\r\n\x1a\n") + 8  # the IHDR chunk: length, type, width, height, ..., CRC
+    ihdr = bytearray(glb[start + 4:start + 21])
+    ihdr[4:12] = struct.pack(">II", side, side)
+    return glb[:start + 4] + bytes(ihdr) + struct.pack(">I", zlib.crc32(ihdr)) + glb[start + 25:]
+
+
+def test_a_texture_too_large_for_the_image_reader_is_named_too():
+    """PIL refuses to open an image of more than ~179 M pixels, which the glTF reader took silently for no texture."""
+    data = with_image_size(textured_glb(4), 20_000)
+    with pytest.raises(ShapeError) as e:
+        load_shape(data, filename="huge.glb", texture=True)
+    assert e.value.code == "too_large" and "20000 x 20000 pixels" in e.value.message
+    assert len(load_shape(data, filename="huge.glb").faces) == 12  # without bake the texture is not read
+
+
+PEAK_OF_LOAD = """
+import sys
+from fastmesh.shapes.io import load_shape
+def peak():  # this process's (not its parent's) largest resident size, in MiB
+    return int(next(line for line in open("/proc/self/status") if line.startswith("VmHWM")).split()[1]) // 1024
+data = sys.stdin.buffer.read()
+before = peak()
+shape = load_shape(data, filename="t.glb", texture=True)
+assert shape.texture is not None and max(shape.texture.images[0].shape[:2]) == 2048
+print(peak() - before)
+"""
+
+
+def test_an_8000_pixel_texture_is_read_for_bake_in_bounded_memory():
+    """Decoded once at full size (192 MB as RGB) and scaled down in place: copies of the full image (the mesh's
+    visuals copied, an RGBA conversion) would take a parse past 1 GB."""
+    data = textured_glb(8000)
+    run = subprocess.run([sys.executable, "-c", PEAK_OF_LOAD], input=data, capture_output=True, timeout=300,
+                         env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
+    assert run.returncode == 0, run.stderr.decode()[-2000:]
+    assert int(run.stdout) < 500, f"loading the texture raised the peak by {int(run.stdout)} MiB"
 
 
 # ---------------------------------------------------------------------------------------- held open, left behind

@@ -251,3 +251,65 @@ def test_the_app_starts_its_parse_and_render_processes_with_it(redis_url):
     with TestClient(app):  # no request: only the app's start
         for pool in pools:
             wait_for(lambda pool=pool: pool.started == pool.workers, 60, what=f"{pool.name} started")
+
+
+# ---------------------------------------------------------------------------------------- the worker's memory
+
+
+def test_a_large_cloud_is_thinned_before_the_pipeline_alike_through_every_interface():
+    """A 200,000-point cloud is read as CLOUD_POINTS of its points, its normals estimated on those: by
+    ``load_shape`` (the CLI, the Python API) and by the worker from the input the API stored whole."""
+    import io
+
+    import numpy as np
+
+    from fastmesh.shapes.io import CLOUD_POINTS, ready_cloud, thinned
+    from fastmesh_jobs.blobs import shape_from_bytes
+    from service.parsing import parse_upload
+
+    p = np.random.default_rng(0).normal(size=(200_000, 3))
+    buf = io.BytesIO()
+    np.save(buf, p / np.linalg.norm(p, axis=1, keepdims=True) * [1.0, 0.7, 0.4])
+    shape = load_shape(buf.getvalue(), filename="cloud.npy")
+    assert shape.vertices.shape == shape.normals.shape == (CLOUD_POINTS, 3)
+    info, blob = parse_upload(buf.getvalue(), "cloud.npy", 500_000, 1_000_000)
+    assert info["points"] == 200_000  # the job reports the upload as it is
+    worker = ready_cloud(shape_from_bytes(blob))
+    assert np.array_equal(worker.vertices, shape.vertices) and np.array_equal(worker.normals, shape.normals)
+    small = shape_from_bytes(blob)
+    small.vertices = small.vertices[:1000]
+    assert thinned(small) is small
+
+
+GIVE_BACK = """
+import gc
+from worker.jobs import give_back_memory
+from fastmesh_jobs.memory import tune_malloc
+
+def rss():
+    return int(open("/proc/self/statm").read().split()[1]) * 4096 // 2**20
+
+tune_malloc(arenas=None)
+gc.disable()  # a job's cycles wait for the collector
+kept, freed = [], []
+for i in range(3000):  # 300 MB in blocks under the mmap threshold, every 50th kept: the heap cannot shrink
+    (kept if i % 50 == 0 else freed).append(bytearray(100_000))
+cycle = [freed]
+cycle.append(cycle)
+del freed, cycle
+before = rss()
+give_back_memory()
+print(before, rss())
+"""
+
+
+def test_the_worker_hands_a_jobs_memory_back():
+    """What a job freed (reference cycles included) goes back to the system between jobs, even where blocks still
+    in use sit above it in the heap."""
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", GIVE_BACK], capture_output=True, timeout=120, text=True)
+    assert run.returncode == 0, run.stderr[-2000:]
+    before, after = map(int, run.stdout.split())
+    assert before > 250 and after < before - 200, (before, after)

@@ -28,7 +28,17 @@ from fastmesh.batch import Batch
 from fastmesh_jobs.runtime import WORKER_EXIT_DEVICE_ERROR, wait_for
 from fastmesh_jobs.store import Store
 
-from .jobs import STATE, Job, _redis_answers, _release, conclude, is_device_error, outcome_recorded, prepare
+from .jobs import (
+    STATE,
+    Job,
+    _redis_answers,
+    _release,
+    conclude,
+    give_back_memory,
+    is_device_error,
+    outcome_recorded,
+    prepare,
+)
 
 log = logging.getLogger("fastmesh.worker")
 POLL_SECONDS = 1  # longest wait on an empty queue while no job runs: a shutdown is seen within it
@@ -144,6 +154,8 @@ class BatchWorker:
     def _ended(job_id: str) -> None:
         STATE.running.pop(job_id, None)
         STATE.jobs += 1
+        if not STATE.running:
+            give_back_memory()
 
     @staticmethod
     def _signals() -> None:

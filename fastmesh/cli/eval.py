@@ -1,4 +1,5 @@
-"""``fastmesh eval --inputs DIR --reference DIR [--json] [--gt-vertices] [--baseline] [--save DIR] [--sampling JSON]``.
+"""``fastmesh eval --inputs DIR --reference DIR [--json] [--gt-vertices] [--baseline] [--save DIR] [--sheets DIR]
+[--sampling JSON]``.
 
 Scores the pipeline (and with ``--baseline`` a convex hull and screened Poisson + quadric
 decimation, to the reference's face count and to ours) on every input that has a reference
@@ -6,7 +7,10 @@ mesh of the same name, as ../shared/EVAL.md defines.  With ``--gt-vertices`` the
 alone runs on each reference's vertices; ``--baseline`` then adds the other face selection and
 the surface-restricted Delaunay anchor on the same vertices and points.  ``--save DIR`` writes
 each result as ``DIR/<input name>.ply`` (the other systems' under ``DIR/<system>/``) in the
-reference's original frame.  Make such folders from a dataset's validation split with
+reference's original frame.  Every result is also scored by what a renderer shows (back faces seen from 14
+views, silhouette overlap and normal angle against the reference, faces wound against their neighbours,
+crossing faces, unwelded vertices, faces per reference face: ``fastmesh.evaluation.seen``); ``--sheets DIR``
+writes a picture per shape beside them.  Make such folders from a dataset's validation split with
 ``fastmesh data eval-set``.
 """
 
@@ -33,6 +37,9 @@ def register(sub) -> None:
                         "inputs quadric decimation of the input to our face count; with --gt-vertices the other "
                         "face selection and the restricted Delaunay anchor")
     p.add_argument("--save", metavar="DIR", help="write every result as DIR/<input name>.ply (reference frame)")
+    p.add_argument("--sheets", metavar="DIR",
+                   help="write DIR/<input name>.png per shape: reference, ours and screened Poisson + decimation to "
+                        "our face count (needs pymeshlab), shaded with back faces red and as wireframes")
     p.add_argument("--limit", type=int, default=0, help="only the first N pairs")
     p.add_argument("--json", action="store_true", help="print the whole report as JSON")
     p.add_argument("--sampling", metavar="JSON", default=None,
@@ -64,15 +71,20 @@ def _run(args) -> int:
                                       save=args.save)
     else:
         systems = ["fastmesh"]
-        if args.baseline:
+        if args.baseline or args.sheets:
             try:
                 import pymeshlab  # noqa: F401
             except ImportError:
-                raise ValueError("--baseline needs pymeshlab: pip install -e '.[bench]'") from None
+                flag = "--baseline" if args.baseline else "--sheets"
+                raise ValueError(f"{flag} needs pymeshlab: pip install -e '.[bench]'") from None
+        if args.baseline:
             systems += ["convex_hull", "poisson", "poisson_ours"]
             if any(inp.suffix.lower() != ".npz" and load_shape(inp).faces is not None for inp, _ in pairs[:1]):
                 systems.append("decimation")  # mesh inputs: decimated to our face count
-        report = evaluate_end_to_end(pipe, pairs, params, systems=systems, log=log, save=args.save)
+        elif args.sheets:
+            systems.append("poisson_ours")  # the sheets' classical anchor
+        report = evaluate_end_to_end(pipe, pairs, params, systems=systems, log=log, save=args.save,
+                                     sheets=args.sheets)
     report["weights"] = pipe.source
     if args.json:
         print(json.dumps(report, indent=2))

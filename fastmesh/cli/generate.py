@@ -15,7 +15,7 @@ from fastmesh.shapes.shape import EXPORT_FORMATS
 
 from .flags import add_param_flags, params_from_args
 
-TIMING_KEYS = ("load", "encode", "vertices", "enhancer", "faces", "filtering", "export", "total")
+TIMING_KEYS = ("load", "encode", "vertices", "enhancer", "faces", "filtering", "weighing", "export", "total")
 
 
 def add_sampling_args(p) -> None:
@@ -50,7 +50,9 @@ def load_pipeline(args):
 def register(sub) -> None:
     p = sub.add_parser("generate", help="generate an artist mesh from a point cloud or mesh (file or folder)")
     p.add_argument("input", metavar="INPUT")
-    p.add_argument("-o", "--output", required=True, metavar="OUTPUT")
+    p.add_argument("-o", "--output", required=True, metavar="OUTPUT",
+                   help=f"a file ending in .{', .'.join(EXPORT_FORMATS)} or with no extension, or a folder when "
+                        "INPUT is one")
     p.add_argument("--format", choices=EXPORT_FORMATS, default=None,
                    help="default: OUTPUT's extension, else glb (a file OUTPUT's extension must match it)")
     p.add_argument("--glob", metavar="PATTERN", default=None,

@@ -21,19 +21,34 @@ def _ext(path: Path) -> str:
 
 
 def output_format(output: Path, fmt: str | None) -> str:
-    """The format of a single OUTPUT file: ``--format``, else its extension, else glb.
+    """The format of a single OUTPUT file: its extension, else ``--format``, else glb.
+
+    ``generate`` and ``submit`` both ask it, so the two refuse the same names.
+
+    Parameters
+    ----------
+    output : Path
+        The file to write.
+    fmt : str or None
+        ``--format`` (``submit`` has none: None).
 
     Raises
     ------
     ValueError
-        ``--format`` names another export format than OUTPUT's extension (glTF bytes in ``x.obj`` open
-        nowhere).
+        OUTPUT is a folder, its extension is not a format we write (``x.stl``, ``x.fbx``: GLB bytes under that
+        name open nowhere), or ``--format`` names another export format than OUTPUT's extension.
     """
+    if output.is_dir():
+        raise ValueError(f"cannot write {output}: it is a folder; name the output file (e.g. {output / 'result.glb'})")
     ext = _ext(output)
-    if fmt and ext in EXPORT_FORMATS and ext != fmt:
+    if ext and ext not in EXPORT_FORMATS:
+        written = ", ".join(f".{f}" for f in EXPORT_FORMATS[:-1]) + f" or .{EXPORT_FORMATS[-1]}"
+        raise ValueError(f"cannot write {output}: the output must end in {written} (the formats written), not "
+                         f"{output.suffix}; name it {output.with_suffix('.' + (fmt or EXPORT_FORMATS[0])).name}")
+    if fmt and ext and ext != fmt:
         raise ValueError(f"--format {fmt} does not match the output file {output} (a .{ext} file); name it "
                          f"{output.with_suffix('.' + fmt).name} or leave --format out")
-    return fmt or (ext if ext in EXPORT_FORMATS else "glb")
+    return ext or fmt or "glb"
 
 
 def first_row_is_a_point(path: Path) -> bool:

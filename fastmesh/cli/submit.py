@@ -15,7 +15,7 @@ def register(sub) -> None:
     p.add_argument("file", help="mesh or point cloud (obj, glb, gltf, ply, stl, off, xyz, txt, npy, npz)")
     p.add_argument("--url", required=True, help="service address, e.g. http://127.0.0.1:8000")
     p.add_argument("-o", "--out", default=None, help="where to write the result (default: FILE's name + .glb); "
-                                                     "the extension picks glb, obj or ply")
+                                                     "the extension picks glb, obj or ply; none: glb")
     p.add_argument("--api-key", default=None, help="bearer key (default: $FASTMESH_API_KEY)")
     add_param_flags(p, defaults=False)
     p.add_argument("--timeout", type=float, default=None, help="give up after this many seconds")
@@ -28,14 +28,13 @@ def _submit(args) -> int:
     from fastmesh.remote.client import Client, ServiceError
 
     from .flags import given_params
+    from .inputs import output_format
 
     src = Path(args.file)
     if not src.is_file():
         raise FileNotFoundError(f"no such file: {src}")
     out = Path(args.out) if args.out else src.with_suffix(".glb")
-    fmt = out.suffix.lstrip(".").lower()
-    if fmt not in ("glb", "obj", "ply"):
-        raise ValueError(f"-o must end in .glb, .obj or .ply, not '{out.suffix}'")
+    fmt = output_format(out, None)  # the names `generate` refuses, refused alike
     t0 = time.monotonic()
 
     def show(job: dict) -> None:

@@ -39,6 +39,7 @@ from ..tokenizer import dequantize, quantize_mesh
 from .baselines import convex_hull, decimation, dense_remesh, poisson
 from .metrics import box_gap, edge_metrics, mesh_topology, surface_distance, vertex_metrics
 from .quality import topology
+from .seen import reference_sight, score_sight, summarise_sight, write_sheet
 
 MESH_EXTS = ("ply", "obj", "glb", "gltf", "stl", "off")
 
@@ -95,54 +96,84 @@ def _score(result: tuple[np.ndarray, np.ndarray], ref: Shape, artist: dict) -> d
 
 
 def evaluate_end_to_end(pipe, pairs: list[tuple[Path, Path]], params, systems=("fastmesh",),
-                        log: Callable[[str], None] | None = None, save: str | Path | None = None) -> dict:
+                        log: Callable[[str], None] | None = None, save: str | Path | None = None,
+                        sheets: str | Path | None = None) -> dict:
     """Score each system on every (input, reference) pair; returns per-mesh rows and summaries.
 
-    With ``save`` every result is written in the input's (= the reference's) frame (see :func:`_save`).
+    Every result is also scored by what a renderer shows (:mod:`.seen`, through cameras fitted to the
+    reference, whose own figures go into the row's ``reference``).  With ``save`` every result is written in
+    the input's (= the reference's) frame (see :func:`_save`); with ``sheets`` a contact sheet per shape,
+    ``sheets/<name>.png`` (:func:`.seen.write_sheet`): rows reference, ours (``fastmesh``) and
+    ``poisson_ours`` (grey where a system failed or did not run).
     """
-    from ..models.generate import GenerationError
-
     rows = []
     for i, (inp, ref_path) in enumerate(pairs, 1):
         ref = load_shape(ref_path)
-        shape = load_shape(inp)
-        ref_top = mesh_topology(ref.vertices, ref.faces)
-        row = {"name": inp.stem, "reference": {"vertices": int(len(ref.vertices)), "faces": int(len(ref.faces)),
-                                               "watertight": ref_top["watertight"], "pieces": ref_top["pieces"]}}
-        artist = artist_vertices(ref, shape)
-        for system in systems:
-            t = time.perf_counter()
-            try:
-                if system == "fastmesh":
-                    res = pipe.generate(shape, params)
-                    mesh = (res.vertices, res.faces)
-                elif system == "convex_hull":
-                    mesh = convex_hull(shape)
-                elif system in ("poisson", "poisson_ours"):
-                    faces = len(ref.faces) if system == "poisson" else _our_faces(row, ref)
-                    mesh = poisson(shape, faces, seed=params.seed)
-                elif system == "decimation":
-                    mesh = decimation(shape, _our_faces(row, ref))
-                else:
-                    raise ValueError(f"unknown system {system!r}")
-                out = {**_score(mesh, ref, artist), **_topology_row(*mesh)}
-                if system == "fastmesh":
-                    out.update(tokens=res.tokens, timings={k: round(v, 4) for k, v in res.timings.items()},
-                               result_from=res.info["result_from"],
-                               vertices_from=res.info["vertices_from"])
-                _save(save, system, inp.stem, *mesh)
-                out["seconds"] = round(time.perf_counter() - t, 4)
-            except (GenerationError, ShapeError, RuntimeError) as e:
-                out = {"failed": True, "error": f"{type(e).__name__}: {e}"[:200],
-                       "seconds": round(time.perf_counter() - t, 4)}
-            row[system] = out
+        row, made = _evaluate_pair(pipe, inp.stem, load_shape(inp), ref, params, systems, save)
         rows.append(row)
+        if sheets is not None:
+            write_sheet(sheets, inp.stem, [(ref.vertices, ref.faces), made.get("fastmesh"), made.get("poisson_ours")])
         if log:
-            log(f"[{i}/{len(pairs)}] {inp.name}: " + ", ".join(f"{s} " + _line(row[s]) for s in systems))
-    packages = sorted({_package(r["name"]) for r in rows})
-    by_package = {p: {s: summarise([r for r in rows if _package(r["name"]) == p], s) for s in systems}
-                  for p in packages}
-    return {"meshes": rows, "summary": {s: summarise(rows, s) for s in systems}, "by_package": by_package}
+            log(f"[{i}/{len(pairs)}] {inp.name}: reference back {row['reference']['back_face_share']:.3f}, "
+                + ", ".join(f"{s} " + _line(row[s]) for s in systems))
+    by_package = {p: {s: _summary([r for r in rows if _package(r["name"]) == p], s) for s in systems}
+                  for p in sorted({_package(r["name"]) for r in rows})}
+    return {"meshes": rows, "summary": {s: _summary(rows, s) for s in systems}, "by_package": by_package}
+
+
+def _evaluate_pair(pipe, name: str, shape: Shape, ref: Shape, params, systems, save) -> tuple[dict, dict]:
+    """One input's row (its reference's counts and sight, then each system's scores, in ``systems``' order) and
+    the meshes the systems made (by system name; a failed one is left out)."""
+    ref_top = mesh_topology(ref.vertices, ref.faces)
+    row = {"name": name, "reference": {"vertices": int(len(ref.vertices)), "faces": int(len(ref.faces)),
+                                       "watertight": ref_top["watertight"], "pieces": ref_top["pieces"]}}
+    artist = artist_vertices(ref, shape)
+    cams, ref_views, ref_seen = reference_sight(ref.vertices, ref.faces)
+    row["reference"].update(ref_seen)
+    made = {}
+    for system in systems:  # in order: ``poisson_ours`` and ``decimation`` read our result's face count from the row
+        row[system] = _run_system(pipe, system, name, shape, ref, row, artist, (cams, ref_views), params, save, made)
+    return row, made
+
+
+def _run_system(pipe, system: str, name: str, shape: Shape, ref: Shape, row: dict, artist: dict, sight: tuple,
+                params, save: str | Path | None, made: dict) -> dict:
+    """One system's scores on one input, timed, its mesh put in ``made``; a failure (no mesh, a bad shape, a runtime
+    error) is a row ``{"failed": True, ...}``, never dropped."""
+    from ..models.generate import GenerationError
+
+    t = time.perf_counter()
+    try:
+        mesh, how = _make(pipe, system, shape, ref, row, params)
+        out = {**_score(mesh, ref, artist), **_topology_row(*mesh), **score_sight(*mesh, *sight, len(ref.faces)),
+               **how}
+        made[system] = mesh
+        _save(save, system, name, *mesh)
+        out["seconds"] = round(time.perf_counter() - t, 4)
+    except (GenerationError, ShapeError, RuntimeError) as e:
+        out = {"failed": True, "error": f"{type(e).__name__}: {e}"[:200],
+               "seconds": round(time.perf_counter() - t, 4)}
+    return out
+
+
+def _make(pipe, system: str, shape: Shape, ref: Shape, row: dict, params) -> tuple[tuple[np.ndarray, np.ndarray], dict]:
+    """The mesh ``system`` makes from ``shape`` and its row's notes on how (the pipeline's tokens, timings, sources)."""
+    if system == "fastmesh":
+        res = pipe.generate(shape, params)
+        how = {"tokens": res.tokens, "timings": {k: round(v, 4) for k, v in res.timings.items()},
+               "result_from": res.info["result_from"], "vertices_from": res.info["vertices_from"]}
+        return (res.vertices, res.faces), how
+    if system == "convex_hull":
+        return convex_hull(shape), {}
+    if system in ("poisson", "poisson_ours"):
+        return poisson(shape, len(ref.faces) if system == "poisson" else _our_faces(row, ref), seed=params.seed), {}
+    if system == "decimation":
+        return decimation(shape, _our_faces(row, ref)), {}
+    raise ValueError(f"unknown system {system!r}")
+
+
+def _summary(rows: list[dict], system: str) -> dict:
+    return {**summarise(rows, system), **summarise_sight(rows, system)}
 
 
 def _our_faces(row: dict, ref: Shape) -> int:
@@ -160,7 +191,11 @@ def _line(out: dict) -> str:
         return "failed"
     vm = out["vertex_metrics"]
     return (f"CD {out['cd']:.2f} HD {out['hd']:.2f} V {vm['generated']}/{vm['reference']} "
-            f"P1 {vm['precision_1']:.2f} R1 {vm['recall_1']:.2f} on-surface {vm.get('on_surface', float('nan')):.2f}")
+            f"P1 {vm['precision_1']:.2f} R1 {vm['recall_1']:.2f} on-surface {vm.get('on_surface', float('nan')):.2f} "
+            f"back {out['back_face_share']:.3f} IoU {out['silhouette_iou']:.3f} angle {out['normal_angle']:.1f} "
+            f"misoriented {out['misoriented_edges']} ({out['misoriented_area']:.3f}) crossing "
+            f"{out['self_intersections']} unwelded {out['unwelded_vertices']} "
+            f"F/ref {out['faces_per_reference_face']:.2f}")
 
 
 def summarise_vertex_metrics(per_mesh: list[dict]) -> dict:

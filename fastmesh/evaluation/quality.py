@@ -4,8 +4,10 @@ The report of every generated mesh (``GenerateResult.quality``, the job's ``resu
 ``fastmesh generate --json``)::
 
     cd, hd               Chamfer and Hausdorff distance between the result and the input, in % of the
-                         input's longest bounding-box side (the formulas of the evaluation protocol,
-                         5,000 samples of each, fixed seed), both measured in the input's frame
+                         input's longest bounding-box side, measured to the exact surface: 5,000 samples
+                         of each measured to the other's triangles (closest point, :mod:`.exact`), so a
+                         result that is the input's surface reads about 0; a point cloud's samples are
+                         its points, and a result's samples are measured to the discs its points stand for
     boundary_edges       edges used by one face only (the rims of holes and open borders)
     non_manifold_edges   edges used by three or more faces
     non_manifold_vertices  vertices whose faces form more than one fan (two pieces touching at a point)
@@ -16,6 +18,12 @@ The report of every generated mesh (``GenerateResult.quality``, the job's ``resu
     watertight           every edge in exactly two faces
     box_gap              the largest distance between a side of the result's axis-aligned box and the same
                          side of the input's, in % of the input's longest side
+    back_face_share      of what 14 views around the result show (cameras fitted to the input's box), the
+                         share that is the back of a face, 0..1 (:mod:`.visible`)
+    misoriented_edges    interior edges whose two faces run them the same way (:mod:`.defects`)
+    misoriented_area     the area wound against the rest of its piece, share of the result's area, 0..0.5
+    self_intersections   pairs of faces sharing no vertex that cross each other
+    unwelded_vertices    vertices coinciding with another vertex of a different index
 
 The samples are drawn with a fixed seed: the same mesh against the same input always gets the same figures.
 
@@ -30,9 +38,14 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ..faces.defects import defects
 from ..faces.meshops import corner_fans, edge_face_counts, piece_labels, weld
 from ..shapes.shape import Normalization, Shape
-from .metrics import N_SAMPLES, SEED, box_gap, surface_distance
+from .exact import exact_distance
+from .metrics import N_SAMPLES, SEED, box_gap
+from .visible import visible_report
+
+QUALITY_VIEW_SIZE = 128  # pixels a side of each of the report's 14 views: the report runs on every job
 
 
 def count_components(faces: np.ndarray) -> int:
@@ -142,10 +155,20 @@ def mesh_quality(vertices: np.ndarray, faces: np.ndarray, shape: Shape, seed: in
     Returns
     -------
     dict : cd, hd (float, % of the input's longest side, rounded to 0.001), then :func:`topology`'s keys,
-    input_pieces (:func:`input_pieces`) and box_gap (``metrics.box_gap``, rounded to 0.001).
+    input_pieces (:func:`input_pieces`), box_gap (``metrics.box_gap``, rounded to 0.001), back_face_share
+    (rounded to 0.0001) and ``defects.defects``' keys (misoriented_area rounded to 0.0001).
     """
     frame = Normalization.fit(np.asarray(shape.vertices, dtype=np.float64))
-    d = surface_distance((vertices, faces), (shape.vertices, shape.faces), n=N_SAMPLES, seed=seed, frame=frame)
+    d = exact_distance((vertices, faces), (shape.vertices, shape.faces), frame, n=N_SAMPLES, seed=seed,
+                       b_normals=shape.normals)
+    # The views and the defects are measured in the input's unit frame, as the distances are: their figures are
+    # shares, counts and tolerances relative to the input's size, and coordinates near the top of float64 (1e155)
+    # would overflow their squared lengths, cross products and kd-trees in the input's own units.
+    unit = frame.apply(vertices)
+    seen = visible_report(unit, faces, box=frame.apply(shape.vertices), size=QUALITY_VIEW_SIZE)
+    bad = defects(unit, faces)
     return {"cd": round(d.cd, 3), "hd": round(d.hd, 3), **topology(faces),
             "input_pieces": input_pieces(shape) if pieces_in is None else int(pieces_in),
-            "box_gap": round(box_gap(vertices, shape.vertices), 3)}
+            "box_gap": round(box_gap(vertices, shape.vertices), 3),
+            "back_face_share": round(seen["back_face_share"], 4),
+            **bad, "misoriented_area": round(bad["misoriented_area"], 4)}

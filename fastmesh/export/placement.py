@@ -1,6 +1,8 @@
 """Units and pivot of a result: where its origin lies, how tall it stands and which axis is up.
 
-The input's Y axis is taken as up (glTF's convention, and what Blender's and most exporters write).
+The input's Y axis is taken as up (glTF's convention, and what Blender's and most exporters write); with
+``input_up`` ``z`` a Z-up input is turned Y-up before anything else (:func:`read_up`, (x, y, z) -> (x, z, -y)), so
+the frame below is the turned one.
 
 - ``origin``: ``input`` keeps the input's own frame; ``center`` puts the origin at the centre of the result's
   bounding box; ``bottom`` at the centre of its bottom face (the lowest Y, X and Z centred), where a
@@ -67,6 +69,15 @@ def placement(vertices: np.ndarray, origin: str = "input", height: float | None 
         scale = float(height) / tall
     offset = tuple(float(x) + 0.0 for x in -pivot * scale)  # + 0.0 turns -0.0 into 0.0
     return Placement(scale=scale, offset=offset, up=up)
+
+
+def read_up(vertices: np.ndarray, input_up: str) -> np.ndarray:
+    """(V, 3) float64 vertices (or normals) of an input whose up axis is ``input_up``, turned Y-up: the inverse of
+    :func:`turn_up`, (x, y, z) -> (x, z, -y) for ``z``."""
+    if input_up not in ("y", "z"):
+        raise ValueError(f"input_up must be y or z, got {input_up!r}")
+    v = np.asarray(vertices, dtype=np.float64)
+    return v @ Z_UP if input_up == "z" else v
 
 
 def turn_up(vertices: np.ndarray, up: str) -> np.ndarray:

@@ -105,6 +105,18 @@ class TriangleConfig:
     reach_extent : bool
         The pipeline, last: the box of a result that is not the input itself brought to the input's, where it
         falls short of a side by more than a quarter cell (:func:`fastmesh.faces.extent.reach_extent`).
+    solid : float or None
+        The pipeline, per candidate: the surface as the boundary of a solid (:func:`fastmesh.faces.solid.solid_mesh`:
+        Delaunay cells of the vertices labelled inside or outside by a minimum cut of the input's winding numbers
+        and the edge probabilities) comes back where its ``support.surface_fit`` is at most this many times the
+        surface selection's (``info.solid_fits``).  None: not made.
+    solid_patch : bool
+        With ``solid``: the selection's faces that carry a part of the input the cut lost (a wing or a boom the
+        vertices cannot enclose) are added to the solid as pieces of their own
+        (:func:`fastmesh.faces.solid.lost_parts`).
+    solid_open : bool
+        With ``solid``: an open input (``close`` False) gets the solid stage's open surface too; else only a closed
+        one does (on 15 held-out shapes the open surface showed more back faces on 2 of 6 open inputs).
     """
 
     selection: str = "surface"
@@ -131,6 +143,9 @@ class TriangleConfig:
     missed_tol: float = 0.01
     quadric_vertices: bool = True
     reach_extent: bool = True
+    solid: float | None = None
+    solid_patch: bool = True
+    solid_open: bool = False
 
     def __post_init__(self):
         if self.selection not in ("cliques", "surface"):

@@ -1,6 +1,8 @@
 """The two-stage FastMesh pipeline: load the networks once, then ``generate`` many times.
 
-The stages as :meth:`Pipeline.generate` runs them (``STAGES`` names their timings and progress):
+The stages as :meth:`Pipeline.generate` runs them (``STAGES`` names their progress; ``request.TIMED_STAGES`` their
+timings, in which every second of a call is counted once: reading the input with the encoding, and the weighing of
+rivals in ``weighing``):
 
     shape ──normalise──► surface samples                                      encode
           ──► vertex decoder: tokens → 7-bit cells, K candidates in one batch vertices
@@ -14,8 +16,10 @@ The stages as :meth:`Pipeline.generate` runs them (``STAGES`` names their timing
               chosen by the edge logits, kept a surface, holes closed, the
               vertices of flat regions removed (``faces.mesh_from_adjacency``,
               ``surface_triangles``, ``simplify``)
-          ──► the candidate nearest the input surface (``support.surface_fit``) filtering
-          ──► back to the input's frame
+          ──► the candidate nearest the input surface (``support.surface_fit``), weighing
+              and the rivals of the chosen one
+          ──► back to the input's frame, made whole, closed where it must be   faces
+              (``closing``)
           ──► with target_faces: brought to that count (``facecount``)     faces
 
 This is the Python API the CLI, the worker and the evaluation call::
@@ -55,9 +59,11 @@ from ..shapes.canonical import canonical_rotation, frame_normals, turned_degrees
 from ..shapes.shape import Shape
 from . import result as step8
 from .candidate import CELL_SEED
+from .closing import closed_result
+from .finish import last_steps
 from .frames import FrameSteps
 from .result import GenerateResult
-from .runtime import CPU_THREADS, STAGE_THREADS, auto_device, choose_threads
+from .runtime import CPU_THREADS, STAGE_THREADS, auto_device, choose_threads, stage
 from .settings import CELL_NET_DIR, NETWORKS, default_weights_dir, read_settings, write_settings
 
 # ``Pipeline.random``'s support limit, relative to the input's size: its decoder's vertices lie anywhere.
@@ -261,53 +267,32 @@ class Pipeline(FrameSteps):
         done = batch.pop_done()
         return [done[i] for i in range(n)]
 
-    @staticmethod
-    def _unrun(req: Request, vertices: np.ndarray, faces: np.ndarray, source: str) -> GenerateResult:
+    def _unrun(self, req: Request, vertices: np.ndarray, faces: np.ndarray, source: str) -> GenerateResult:
         """The result of a request the networks did not run for: rebuilt from planes, simplified within a flat-faced
-        input's surface, or the input itself; brought to a ``target_faces`` (``step8.held``): the input's own
-        surface split or simplified is nearer it than anything generated.  A cancel asked while it was made
-        stops it here (the flat simplification can take seconds)."""
+        input's surface, or the input itself; closed where the request closes it (``closing.closed_result``);
+        brought to a ``target_faces`` (``step8.held``): the input's own surface split or simplified is nearer it
+        than anything generated.  A cancel asked while it was made stops it here (the flat simplification can take
+        seconds)."""
         req.check()
+        req.timings.enter("faces")
         info, step = {"turned_degrees": 0.0, "result_from": source, "vertices_from": source}, None
+        vertices, faces, note = closed_result(req, vertices, faces, self.triangle_config)
         if req.count.hold:
             info["faces_before_count"] = int(len(faces))
             vertices, faces, step = step8.held(req, vertices, faces)
-        req.report.done("faces")
-        return step8.finished(req, vertices, faces, tokens=0, info=info, count_step=step)
+        result = step8.finished(req, vertices, faces, tokens=0, info=info, count_step=step, note=note)
+        return self._done(req, result, "faces")
 
-    def _last(self, req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict, result_from: str
-              ) -> tuple[np.ndarray, np.ndarray, str, str | None]:
-        """The result (``result_from`` "model", or "input": a low-poly input given back) brought to a
-        ``target_faces`` (``step8.held``), then, where generated, a point cloud's result weighed against its faces
-        spread over the input (``step8.redistributed``, with ``TriangleConfig.redistribute``), its edges turned
-        where the input lies along the other diagonal (``step8.swapped``, with ``TriangleConfig.swap_edges``;
-        ``info["edges_turned"]``), a mesh input's weighed against its decimation to its face count
-        (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go into ``info``), and last its
-        box brought to the input's (``step8.extended``, with ``TriangleConfig.reach_extent``;
-        ``info["extent_sides"]``): vertices, faces, where they come from ("model", "input" or "decimated") and the
-        count step."""
-        step = None
-        if req.count.hold:
-            info["faces_before_count"] = int(len(faces))
-            vertices, faces, step = step8.held(req, vertices, faces)
-        if result_from == "model" and self.triangle_config.redistribute is not None:
-            rival, fits = step8.redistributed(req, vertices, faces, self.triangle_config.redistribute,
-                                              self.triangle_config.support_points)
-            if fits:
-                info["redistribution_fits"] = fits
-            if rival is not None:
-                vertices, faces = rival
-        if result_from == "model" and self.triangle_config.swap_edges:
-            vertices, faces, info["edges_turned"] = step8.swapped(req, vertices, faces)
-        if result_from == "model" and self.triangle_config.weigh_decimation:
-            rival, fits = step8.decimated(req, vertices, faces, self.triangle_config)
-            if fits:
-                info["decimation_fits"] = fits
-            if rival is not None:
-                vertices, faces, result_from, step = *rival, "decimated", None if step is None else "decimated"
-        if result_from != "input" and self.triangle_config.reach_extent:
-            vertices, faces, info["extent_sides"] = step8.extended(req, vertices, faces)
-        return vertices, faces, result_from, step
+    @staticmethod
+    def _done(req: Request, result: GenerateResult, stage: str | None = None) -> GenerateResult:
+        """``result`` with the request's stage timings, its clock stopped once the progress says done."""
+        if stage is None:
+            req.report.done()
+        else:
+            req.report.done(stage)
+        req.timings.stop()
+        result.timings = dict(req.timings)
+        return result
 
     def steps(self, shape: Shape, params: GenerateParams | None = None,
               progress: Callable[[str, float], None] | None = None, should_cancel: Callable[[], bool] | None = None
@@ -319,6 +304,27 @@ class Pipeline(FrameSteps):
         params.validate(limit=self.max_vertices)
         self._target(params, params.sampling(self.max_vertices).read_count)  # refused before any work: no token
         req = Request.start(shape, params, progress, should_cancel)
+        unrun = self._unrun_closed(req, params)
+        if unrun is not None:
+            return unrun
+        turn = canonical_rotation(req.shape.vertices, frame_normals(req.shape))
+        unrun = self._unrun_open(req, params, turn)
+        if unrun is not None:
+            return unrun
+        # The input's own frame, and its canonical one where that lays more of its walls along the axes
+        # (``canonical``): each is generated, and the mesh nearer the input kept.
+        frames = [np.eye(3)]
+        if not np.array_equal(turn, frames[0]):
+            frames.append(turn)
+        made, errors = yield from self._in_frames(req, frames)
+        if not made:
+            raise errors[0]
+        return self._finished(req, self._nearest_frame(req, made))
+
+    def _unrun_closed(self, req: Request, params: GenerateParams) -> GenerateResult | None:
+        """The result, where the networks need not run, of a closed input's planes, a low-poly input given back or a
+        flat-faced input simplified (see :meth:`_unrun`); None where they must run.  Decides whether the result is
+        closed (``req.close``, ``req.reason``, ``req.sealed``) on the way."""
         shape = req.shape  # a point cloud's normals turned outward
         # A point cloud that bounds a polyhedron is closed: the winding numbers are read only where it does not.
         cheap = shape.faces is not None or params.closed != "auto"
@@ -330,35 +336,40 @@ class Pipeline(FrameSteps):
             return self._unrun(req, *flat)
         if not cheap:
             req.close, req.reason = decide_closed(shape, params.closed)
-        few = step8.low_poly(shape, step8.FEW_FACES) if req.count.low_poly_input and params.closed != "true" else None
+        few = step8.low_poly(shape, step8.FEW_FACES) if req.count.low_poly_input else None
+        if few is not None and params.closed == "true":  # given back only where it closes without the networks
+            few = closed_result(req, *few, self.triangle_config)
+            few = few[:2] if few[2] is None else None
         if few is not None:
             return self._unrun(req, *few, "input")
         simple = step8.flat_faced(req)
-        if simple is not None:
-            return self._unrun(req, *simple)
-        turn = canonical_rotation(shape.vertices, frame_normals(shape))
-        # An open piecewise-planar surface (a ramp, a roof without its floor) from its planes: where the points
-        # stop on the sides of its box, there is no surface, whatever the winding numbers decided.
+        return None if simple is None else self._unrun(req, *simple)
+
+    def _unrun_open(self, req: Request, params: GenerateParams, turn: np.ndarray) -> GenerateResult | None:
+        """An open piecewise-planar surface (a ramp, a roof without its floor) from its planes, seen in the
+        canonical frame ``turn``, unless the request asks for a closed result; None where there is none.  Where
+        the points stop on the sides of its box, there is no surface, whatever the winding numbers decided."""
         flat = step8.planar(req, open_=True, turn=turn) if params.closed != "true" else None
-        if flat is not None:
-            req.close, req.reason = False, "asked" if params.closed == "false" else "open_planes"
-            return self._unrun(req, *flat)
-        # The input's own frame, and its canonical one where that lays more of its walls along the axes
-        # (``canonical``): each is generated, and the mesh nearer the input kept.
-        frames = [np.eye(3)]
-        if not np.array_equal(turn, frames[0]):
-            frames.append(turn)
-        made, errors = yield from self._in_frames(req, frames)
-        if not made:
-            raise errors[0]
-        best = self._nearest_frame(req, made)
-        vertices, faces, result_from, pulled = step8.whole(req, best["vertices"], best["faces"])
+        if flat is None:
+            return None
+        req.close, req.reason = False, "asked" if params.closed == "false" else "open_planes"
+        return self._unrun(req, *flat)
+
+    def _finished(self, req: Request, best: dict) -> GenerateResult:
+        """The result of the frame ``best`` (:meth:`_nearest_frame`): made whole, weighed against its rivals and
+        brought to a count (``finish.last_steps``), closed and finished."""
+        req.timings.enter("faces")
+        # The boundary of a solid is free of folds: the steps after it keep it so (``crossings``).
+        solid = best["info"].get("solid_fits", {}).get("faces_from") == "solid"
+        vertices, faces, result_from, pulled = step8.whole(req, best["vertices"], best["faces"], uncrossed=solid)
         info = {**best["info"], "turned_degrees": round(turned_degrees(best["rotation"]), 3), "pulled_in": pulled}
-        vertices, faces, result_from, step = self._last(req, vertices, faces, info, result_from)
+        vertices, faces, result_from, step = last_steps(req, vertices, faces, info, result_from, self.triangle_config)
         if result_from != "model":  # the decimation's, or a low-poly input's own
             info["vertices_from"] = result_from
+        with stage("faces", req.timings):
+            vertices, faces, note = closed_result(req, vertices, faces, self.triangle_config,
+                                                  uncrossed=solid and result_from == "model")
         result = step8.finished(req, vertices, faces, tokens=best["tokens"], info={**info, "result_from": result_from},
-                                evidence=best["evidence"] if result_from == "model" else None, count_step=step)
-        req.report.done()
-        return result
-
+                                evidence=best["evidence"] if result_from == "model" else None, count_step=step,
+                                note=note)
+        return self._done(req, result)

@@ -19,6 +19,7 @@ from ..faces.facecount import CountRule, count_rule
 from ..faces.filtering import predict_edges
 from ..faces.meshops import weld
 from ..faces.missed import missed_points
+from ..faces.solid import solid_mesh
 from ..faces.support import surface_fit
 from ..fitting import distinct, fit_radius, fit_samples, fit_to_planes
 from ..models.cells import raise_cells, snap_to_cells, vertex_probabilities
@@ -110,8 +111,8 @@ class CandidateSteps:
         Candidate k of a frame reads its own surface sample (seed + k) and samples with seed + k: it is what that
         seed gives alone, in whatever batch (``models.generate``: each row keeps its seed, evidence and grammar
         state).  Yields the :class:`DecodeRequest` of the candidates and is sent their sequences
-        (:class:`fastmesh.batch.Batch` decodes it, adds the decoding time to ``req.timings`` and calls the
-        request's ``progress``, here ``report(share)`` of the vertices decoded); returns per candidate, frame
+        (:class:`fastmesh.batch.Batch` decodes it and calls the request's ``progress``, here ``report(share)`` of the
+        vertices decoded; the job's clock is in ``vertices`` meanwhile); returns per candidate, frame
         after frame, its (points, normals, tokens).
         """
         req.check()
@@ -125,9 +126,12 @@ class CandidateSteps:
             report(min(1.0, n_vert / max_v))
 
         report(0.0)
+        # ``vertices`` until the rows come back: in a batch that includes the wait for the round's other jobs, so
+        # every second of the job is in one stage.
+        req.timings.enter("vertices")
         seqs = yield DecodeRequest(torch.cat([prefix for _, _, prefix, _ in encoded]),
                                    None if evidence[0] is None else evidence, sampling, seeds, on_step,
-                                   req.should_cancel, req.timings)
+                                   req.should_cancel)
         return [(pts, nrm, seq.cpu().numpy()) for (pts, nrm, _, _), seq in zip(encoded, seqs, strict=True)]
 
     def vertex_cells(self, tokens: np.ndarray, logodds: torch.Tensor | None, params: GenerateParams,
@@ -216,10 +220,17 @@ class CandidateSteps:
             if tc.support_tol is not None or tc.max_faces_per_edge is not None or tc.selection == "surface":
                 surface = frame.surface(tc.support_points, req.params.seed + k)
             verts, faces = mesh_from_adjacency(positions, edges, tc, points=surface, logits=logits)
+            solid = {}
+            # The boundary of a solid, weighed against the selection's mesh (an open input's with ``solid_open``).
+            if tc.solid is not None and (req.close or req.sealed or tc.solid_open):
+                verts, faces, solid = solid_mesh(positions, pts, nrm, edges, logits, req.close or req.sealed,
+                                                 (verts, faces), surface, tc.solid, tc.flat_tol, req.params.seed + k,
+                                                 tc.solid_patch)
         if len(faces) == 0:
             return GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")
         return {"vertices": verts, "faces": faces, "tokens": int(len(tokens)), "edges": int(len(edges)),
-                "evidence": EdgeEvidence.of_mesh(verts, faces, positions, logits, edges)}
+                "evidence": EdgeEvidence.of_mesh(verts, faces, positions, logits, edges),
+                **({"solid_fits": solid} if solid else {})}
 
     def _missed_cells(self, frame: Frame, points: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """Input ``points`` (K, 3) the mesh left out as vertices: their cells moved to the cell the evidence scores
@@ -248,7 +259,7 @@ class CandidateSteps:
         if room <= 0 or req.count.told:
             return {**best, "added_vertices": 0}
         seed = req.params.seed
-        with stage("filtering", req.timings):
+        with stage("weighing", req.timings):
             reference = frame.surface(tc.support_points, seed)
             extra = missed_points(best["vertices"], best["faces"], reference, tc.missed_tol, room, seed)
             cells, extra = self._missed_cells(frame, extra, seed)
@@ -262,7 +273,7 @@ class CandidateSteps:
             made = self._connect(req, frame, k, np.concatenate([q, cells]), np.concatenate([positions, extra]), None)
         if made is None or isinstance(made, GenerationError):
             return {**best, "added_vertices": 0}
-        with stage("filtering", req.timings):
+        with stage("weighing", req.timings):
             fits = self._weighed(frame, seed, best, made, ("model", "with_missed"))
         if fits["with_missed"] >= MISSED_MARGIN * fits["model"]:
             return {**best, "added_vertices": 0, "missed_fits": fits}
@@ -281,7 +292,7 @@ class CandidateSteps:
         if not self.triangle_config.quadric_vertices or frame.shape.faces is None:
             return best
         budget = req.params.sampling(self.max_vertices).max_vertices
-        with stage("filtering", req.timings):
+        with stage("weighing", req.timings):
             v, _ = quadric_decimation(frame.unit, frame.shape.faces, len(best["faces"]))
             cells = quantize(v)
             _, first = np.unique(sort_key(cells), return_index=True)  # the decoder's order, a vertex per cell
@@ -290,7 +301,7 @@ class CandidateSteps:
         made = self._connect(req, frame, best["k"], cells[first], v[first], None)
         if isinstance(made, GenerationError):
             return best
-        with stage("filtering", req.timings):
+        with stage("weighing", req.timings):
             fits = self._weighed(frame, req.params.seed, best, made, ("decoder", "quadrics"))
         if fits["quadrics"] >= fits["decoder"]:
             return {**best, "quadric_fits": fits}

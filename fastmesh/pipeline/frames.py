@@ -33,7 +33,7 @@ class FrameSteps(CandidateSteps):
         if len(made) == 1:
             return made[0]
         seed = req.params.seed
-        with stage("filtering", req.timings):
+        with stage("weighing", req.timings):
             reference = req.frame.surface(self.triangle_config.support_points, seed)
             fits = [surface_fit(req.frame.norm.apply(m["vertices"]), m["faces"], reference, seed) for m in made]
         return made[-1] if fits[-1] <= FRAME_MARGIN * fits[0] else made[0]
@@ -57,15 +57,18 @@ class FrameSteps(CandidateSteps):
         for frame in frames:
             frame.decoded, decoded = decoded[:len(frame.encoded)], decoded[len(frame.encoded):]
         work = [(frame, k) for frame in frames for k in range(len(frame.decoded))]
+        req.timings.enter("enhancer")
         for j, (frame, k) in enumerate(work):
             report("enhancer", 0.0, j, len(work))
             frame.positions.append(self._positions(req, frame, k))
+        req.timings.enter("faces")
         for j, (frame, k) in enumerate(work):
             report("faces", 0.0, j, len(work))
             parts = report.part("filtering", j, len(work)) if req.params.filtering else None
             frame.meshes.append(self._faces(req, frame, k, parts))
             report("faces", 1.0, j, len(work))
         made, errors = [], []
+        req.timings.enter("weighing")  # the candidates, and the rivals of the chosen one (``_choose``)
         for frame in frames:
             try:
                 made.append(self._choose(req, frame))
@@ -110,7 +113,7 @@ class FrameSteps(CandidateSteps):
                 errors.append(cand)
                 fits.append(None)
                 continue
-            with stage("filtering", req.timings):  # choosing among candidates: a filtering step
+            with stage("weighing", req.timings):  # choosing among candidates
                 fit = surface_fit(cand["vertices"], cand["faces"], frame.reference, seed) if n_cand > 1 else 0.0
             fits.append(round(float(fit), 6))
             if best is None or fit < best["fit"]:
@@ -123,7 +126,7 @@ class FrameSteps(CandidateSteps):
         info = {"generated_vertices": best["generated_vertices"], "edges": best["edges"], "candidates": n_cand,
                 "chosen_seed": best["seed"], "added_vertices": best["added_vertices"],
                 "vertices_from": best["vertices_from"]}
-        info.update({name: best[name] for name in ("missed_fits", "quadric_fits") if name in best})
+        info.update({name: best[name] for name in ("missed_fits", "quadric_fits", "solid_fits") if name in best})
         if n_cand > 1:
             info["fits"] = fits  # per candidate: its surface_fit in the unit cube, None if it made no mesh
         return {"vertices": frame.norm.invert(best["vertices"]) @ frame.rotation, "faces": best["faces"],

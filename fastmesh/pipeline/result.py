@@ -15,13 +15,16 @@ import numpy as np
 from ..evaluation.quality import mesh_quality
 from ..export.output import MeshOut, finish
 from ..export.quads import EdgeEvidence
+from ..faces.crossings import pull_in_uncrossed
 from ..faces.decimation import COUNT_SLACK, asset_decimation, quadric_decimation, repaired_decimation
 from ..faces.extent import MAX_ADDED, reach_extent
 from ..faces.facecount import TOLERANCE as COUNT_TOLERANCE
 from ..faces.facecount import hold_count
 from ..faces.flat import simplify_flat
+from ..faces.kitbash import kitbash_union
 from ..faces.meshops import edge_face_counts, remove_unreferenced, triangle_areas, weld
 from ..faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
+from ..faces.plane_cells import plane_cells
 from ..faces.redistribute import redistribute
 from ..faces.support import surface_fit
 from ..faces.swap import swap_edges
@@ -31,6 +34,7 @@ from ..request import PLANAR_SAMPLES, Request
 from ..shapes.open_planar import open_polyhedron
 from ..shapes.planar import polyhedron
 from ..shapes.shape import Shape
+from .closing import unclosed_note
 from .runtime import stage
 
 # A low-poly mesh input of a polyhedron is given back as it is when it has at most this many times the faces
@@ -42,7 +46,11 @@ LOW_POLY_SLACK = 1.25
 CLOSED_MARGIN = 1.1
 # A mesh input of at most this many faces (welded, a surface) comes back as it is without running the networks: a
 # shape that few faces describe has no cheaper mesh for them to find, and ``whole`` would keep it over one as big.
-FEW_FACES = 32
+# Run through the shipped networks regardless (``benchmarks/low_poly.py``, seeds 0 and 1), low-poly inputs of 64-260
+# faces came back as themselves (a cylinder of 64, an icosphere of 80, a torus of 144, a faceted egg of 156 and 260)
+# after 3-9 s of networks, but a capsule of 128 (126 faces generated); a cone of 24 came back on one seed and as 22
+# generated faces on the other.
+FEW_FACES = 100
 
 
 @dataclass
@@ -51,10 +59,12 @@ class GenerateResult:
 
     Attributes
     ----------
-    vertices : (V, 3) float64, input units (Y-up; ``up=z`` turns only the OBJ and PLY files)
+    vertices : (V, 3) float64, input units (Y-up: an ``input_up=z`` input turned so; ``up=z`` turns only the OBJ and
+        PLY files)
     faces : (F, 3) int64
     tokens : int, vertex tokens generated (BOS/EOS included)
-    timings : dict, seconds per stage: encode, vertices, enhancer, faces, filtering
+    timings : dict, seconds per stage (``request.TIMED_STAGES``: encode, vertices, enhancer, faces, filtering,
+        weighing), every second of the call in one
     quality : dict, distance to the input and topology (:func:`fastmesh.evaluation.quality.mesh_quality`): cd, hd (% of
         the input's size), boundary_edges, non_manifold_edges, components, watertight; and faces, target_faces,
         target_met (faces within ``facecount.TOLERANCE`` of the target; None without one) and count_step
@@ -79,13 +89,18 @@ class GenerateResult:
 
 
 
-def whole(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, str, int]:
+def whole(req: Request, vertices: np.ndarray, faces: np.ndarray, uncrossed: bool = False
+          ) -> tuple[np.ndarray, np.ndarray, str, int]:
     """The result made whole (``pieces``: no surface pinched at a vertex, no stray pieces beyond the input's
     ``req.pieces_in``, no vertex more than ``pieces.FAR_CELLS`` cells from the input), or the input itself where
-    it is a low-poly surface with no more faces (``req.count.low_poly_input``).  Returns vertices, faces, where
-    they come from ("model" or "input") and how many vertices were pulled in to the input."""
+    it is a low-poly surface with no more faces (``req.count.low_poly_input``).  ``uncrossed``: no vertex is pulled
+    in where its faces would then cross others (``crossings.pull_in_uncrossed``; the solid face stage's result).
+    Returns vertices, faces, where they come from ("model" or "input") and how many vertices were pulled in."""
     shape = req.shape
-    vertices, pulled = pull_in(vertices, req.surface_points, far_limit(shape.vertices))
+    if uncrossed:
+        vertices, pulled = pull_in_uncrossed(vertices, faces, req.surface_points, far_limit(shape.vertices))
+    else:
+        vertices, pulled = pull_in(vertices, req.surface_points, far_limit(shape.vertices))
     if pulled.any():
         # Vertices pulled onto one sample made one, the faces between them (no area) dropped, before pinches are
         # split into coincident copies that must stay apart; an edge the welding crowds keeps two faces.
@@ -125,15 +140,21 @@ def planar(req: Request, open_: bool = False, turn: np.ndarray | None = None
     the pose), or with ``open_`` its open surface whose open edges lie on its bounding box in its own frame or,
     turned by ``turn`` (3, 3), in its canonical one (``open_planar.open_polyhedron``); in the input's frame, with
     where it comes from ("planes"); or a low-poly mesh input of the same shape, welded, where it has at most
-    ``LOW_POLY_SLACK`` times the rebuild's faces ("input": a cylinder's caps keep their centres).  None where the
-    input is not one."""
+    ``LOW_POLY_SLACK`` times the rebuild's faces ("input": a cylinder's caps keep their centres).  A closed mesh
+    input of flat parts that touch or overlap gives their union rebuilt from its planes (``kitbash.kitbash_union``;
+    "planes").  None where the input is not one."""
     shape, frame = req.shape, req.frame
     with stage("faces", req.timings):
+        union = kitbash_union(frame.unit, shape.faces) if shape.faces is not None and not open_ else None
+        if union is not None:  # closed parts that touch or overlap: their union, rebuilt from its planes
+            return frame.norm.invert(union[0]), union[1], "planes"
         if shape.faces is None and shape.normals is not None:
             points, normals = frame.unit, shape.normals
         else:
             points, normals = frame.samples(PLANAR_SAMPLES, 0)
         found = open_polyhedron(points, normals) if open_ else polyhedron(points, normals)
+        if found is None and not open_:  # planes the corners path cannot close (a step's overhang, a table's legs)
+            found = plane_cells(points, normals)
         if found is None and open_ and turn is not None and not np.array_equal(turn, np.eye(3)):
             found = open_polyhedron(points @ turn.T, normals @ turn.T)
             found = None if found is None else (found[0] @ turn, found[1])
@@ -173,7 +194,7 @@ def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, config: Tri
     # A result that must be closed and is open is not the asset the decimation is (closed by asset_decimation).
     margin = CLOSED_MARGIN if req.close and (edge_face_counts(faces) == 1).any() else 1.0
     model = (frame.norm.apply(vertices), faces)
-    with stage("filtering", req.timings):
+    with stage("weighing", req.timings):
         rival = asset_decimation(frame.unit, shape.faces, len(faces), req.pieces_in, req.close, COUNT_SLACK)
         if rival is None:
             rival = _repaired(req, model, margin, config)
@@ -209,7 +230,7 @@ def redistributed(req: Request, vertices: np.ndarray, faces: np.ndarray, factor:
     they come back only where the input shows the result cut across its curves."""
     if req.shape.faces is not None or len(faces) == 0:
         return None, {}
-    with stage("filtering", req.timings):
+    with stage("weighing", req.timings):
         rival = spread(vertices, faces, *req.count_samples, factor=factor)
         if rival is None:
             return None, {}
@@ -242,7 +263,7 @@ def extended(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.
     (:func:`low_poly`).  Returns vertices, faces and the sides reached."""
     shape, norm = req.shape, req.frame.norm
     add = not req.count.hold and low_poly(shape, len(faces) + 2 * MAX_ADDED) is None
-    with stage("filtering", req.timings):
+    with stage("weighing", req.timings):
         points = req.frame.unit if shape.faces is None else req.frame.unit[np.unique(shape.faces)]
         v, f = unsplit(vertices, faces)
         unit = norm.apply(v)
@@ -256,7 +277,7 @@ def swapped(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.n
     """The result's edges turned where the other diagonal of their two triangles lies nearer the input
     (``swap.swap_edges`` against the input's samples), pinched copies made one first and split again after; and
     the number turned (the result as it was where none)."""
-    with stage("filtering", req.timings):
+    with stage("weighing", req.timings):
         v, f = unsplit(vertices, faces)
         f, turned = swap_edges(v, f, *req.count_samples)
         return (*split_pinches(v, f), turned) if turned else (vertices, faces, 0)
@@ -280,22 +301,36 @@ def held(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndar
 
 
 def finished(req: Request, vertices: np.ndarray, faces: np.ndarray, tokens: int, info: dict,
-             evidence: EdgeEvidence | None = None, count_step: str | None = None) -> GenerateResult:
+             evidence: EdgeEvidence | None = None, count_step: str | None = None, note: str | None = None
+             ) -> GenerateResult:
     """The result with its quality report; ``count_step``: how it was brought to the face count asked for
     (:func:`held`, or "decimated" where the input's decimation came back); ``evidence``: the face model's edges,
-    which choose the quads first (``quads.pair_triangles``)."""
+    which choose the quads first (``quads.pair_triangles``); ``note``: why a result that was to be closed is not
+    (``closing.closed_result``).  Its quality's ``closed_decision`` (:func:`closed_decision`) claims no closed mesh
+    that is not one."""
     params, timings = req.params, req.timings
     met = None
     if req.count.hold:  # the count asked for holds (``facecount``)
         met = bool(abs(len(faces) - params.target_faces) <= COUNT_TOLERANCE * params.target_faces)
-    why = req.reason
-    quality = {**mesh_quality(vertices, faces, req.shape, pieces_in=req.pieces_in), "faces": int(len(faces)),
-               "closed_decision": why if why == "asked" else ("closed" if req.close else "open"),
-               "target_faces": params.target_faces, "target_met": met, "count_step": count_step}
-    # Quads, UVs, baking and placement: timed with the faces they are made of.
+    # Measuring the result, then its quads, UVs, baking and placement: timed with the faces they are made of.
     with stage("faces", timings):
+        measured = mesh_quality(vertices, faces, req.shape, pieces_in=req.pieces_in)
+        decision, note = closed_decision(req, measured, note)
+        quality = {**measured, "faces": int(len(faces)), "closed_decision": decision,
+                   "target_faces": params.target_faces, "target_met": met, "count_step": count_step}
         mesh, where, notes = finish(vertices, faces, params, source=req.shape, evidence=evidence)
     return GenerateResult(vertices=mesh.vertices, faces=mesh.faces, tokens=tokens, timings=timings,
                           info={**info, "closed_decision": req.decision, "placement": where.to_dict(),
-                                "notes": notes},
+                                "notes": ([note] if note else []) + notes},
                           quality={**quality, **mesh.counts()}, mesh=mesh)
+
+
+def closed_decision(req: Request, quality: dict, note: str | None) -> tuple[str, str | None]:
+    """The report's ``closed_decision`` of a result whose ``quality`` (``mesh_quality``) is measured: "not_closed"
+    where the request closes it (``req.close``) and it keeps open edges or edges of three or more faces, with a note
+    for people (``note``, or one made here); else "asked" (closed=true or false), "closed" or "open" (decided from
+    the input)."""
+    open_edges, fins = int(quality["boundary_edges"]), int(quality["non_manifold_edges"])
+    if req.close and (open_edges or fins):
+        return "not_closed", note or unclosed_note(req, open_edges, fins)
+    return (req.reason if req.reason == "asked" else "closed" if req.close else "open"), None

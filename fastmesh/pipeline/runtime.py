@@ -12,6 +12,7 @@ import torch
 
 from ..faces.filtering import Predictor
 from ..models.generate import Cancelled
+from ..request import StageTimes
 
 # torch CPU threads when neither the caller nor $FASTMESH_TORCH_THREADS says: decoding one sequence is a chain of
 # small matrix-vector products, and on our 2-core machine a second thread made generation slower, not faster.
@@ -48,7 +49,15 @@ def auto_device(device: str | None = None) -> torch.device:
 
 @contextmanager
 def stage(name: str, timings: dict[str, float]) -> Iterator[None]:
-    """Time the block into ``timings[name]`` (seconds add up over candidates and frames)."""
+    """Count the block in stage ``name`` of ``timings`` (seconds add up over candidates and frames): a
+    :class:`StageTimes` moves its clock there and back; a plain dict gets the block's seconds added."""
+    if isinstance(timings, StageTimes):
+        before = timings.enter(name)
+        try:
+            yield
+        finally:
+            timings.enter(before)
+        return
     t = time.perf_counter()
     try:
         yield

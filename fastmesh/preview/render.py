@@ -97,14 +97,20 @@ def _lambert(normals_view: np.ndarray, cfg: RenderConfig) -> np.ndarray:
             + cfg.fill_strength * np.clip(normals_view @ fill, 0, None))
 
 
-def _face_shades(v: np.ndarray, faces: np.ndarray, cam: Camera, cfg: RenderConfig) -> np.ndarray:
-    """(F, 3) flat colours: face normals turned towards the eye, then lit."""
+def _face_shades(v: np.ndarray, faces: np.ndarray, cam: Camera, cfg: RenderConfig,
+                 back_color: tuple[float, float, float] | None = None) -> np.ndarray:
+    """(F, 3) flat colours: face normals turned towards the eye, then lit; faces seen from their back in
+    ``back_color`` where given."""
     tri = v[faces]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
     towards_eye = cam.eye - tri.mean(1)
-    n *= np.where((n * towards_eye).sum(1) < 0, -1.0, 1.0)[:, None]  # two-sided lighting
-    return _lambert(n @ cam.rotation.T, cfg)[:, None] * np.asarray(cfg.face_color)
+    back = (n * towards_eye).sum(1) < 0
+    n *= np.where(back, -1.0, 1.0)[:, None]  # two-sided lighting
+    color = np.tile(np.asarray(cfg.face_color, dtype=np.float64), (len(faces), 1))
+    if back_color is not None:
+        color[back] = back_color
+    return _lambert(n @ cam.rotation.T, cfg)[:, None] * color
 
 
 def _normalised_depth(iz: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -186,7 +192,8 @@ def _finish(img: np.ndarray, cov: np.ndarray, ss: int, alpha: bool) -> np.ndarra
 
 
 def render_mesh(vertices, faces, size: int = 512, wireframe: bool = False, points=None,
-                alpha: bool = False, config: RenderConfig = DEFAULT_CONFIG) -> np.ndarray:
+                alpha: bool = False, config: RenderConfig = DEFAULT_CONFIG,
+                back_color: tuple[float, float, float] | None = None) -> np.ndarray:
     """Render a triangle mesh from the fixed 3/4 view.
 
     Parameters
@@ -204,6 +211,9 @@ def render_mesh(vertices, faces, size: int = 512, wireframe: bool = False, point
     alpha : bool
         Return RGBA with the background transparent (coverage as alpha).
     config : RenderConfig
+    back_color : (3,) float in [0, 1], optional
+        Colour of the faces seen from their back (their winding turns them away from the camera);
+        without it both sides look alike.
 
     Returns
     -------
@@ -215,34 +225,51 @@ def render_mesh(vertices, faces, size: int = 512, wireframe: bool = False, point
         No vertices or faces, NaN/inf, out-of-range indices, zero extent.
     """
     size = _check_size(size, config)
-    v = _as_points(vertices, "vertices")
-    f = _as_faces(faces, len(v))
-    pts = None if points is None else _subsample(_as_points(points, "points", allow_empty=True), config)
-    referenced = np.zeros(len(v), dtype=bool)
-    referenced[f.ravel()] = True  # unreferenced vertices must not shrink the framing or depth range
-    used = v[referenced]
+    v, f, pts, referenced = _mesh_inputs(vertices, faces, points, config)
     ss = _supersample(size, config)
     side = size * ss
-    cam = fit_camera(used if pts is None or len(pts) == 0 else np.concatenate([used, pts]), side, config)
+    # Unreferenced vertices must not shrink the framing or the depth range.
+    cam = fit_camera(v[referenced] if pts is None else np.concatenate([v[referenced], pts]), side, config)
     x, y, iz = cam.project(v)
     lo, hi = iz[referenced].min(), iz[referenced].max()
-    if pts is not None and len(pts):
+    if pts is not None:
         px, py, piz = cam.project(pts)
         lo, hi = min(lo, piz.min()), max(hi, piz.max())
     zbuf = np.full(side * side, EMPTY, dtype=np.int64)
-    depth = _normalised_depth(iz, lo, hi)
-    colors = np.empty((len(f), 3), dtype=np.float32)
-    for s in range(0, len(f), config.face_batch):  # bounded memory for dense (input) meshes
-        chunk = f[s:s + config.face_batch]
-        raster_triangles(x, y, depth, chunk, zbuf, side, config, id_offset=s)
-        colors[s:s + len(chunk)] = _face_shades(v, chunk, cam, config)
-    if pts is not None and len(pts):
+    colors = _raster_mesh(v, f, (x, y, _normalised_depth(iz, lo, hi)), cam, zbuf, side, config, back_color)
+    if pts is not None:  # splats drawn over the faces, slightly nearer (``point_depth_bias``)
         depth = _normalised_depth(piz, lo, hi) - config.point_depth_bias
         raster_splats(px, py, depth, config.overlay_point_radius * ss, zbuf, side, id_offset=len(f))
         colors = np.concatenate([colors, np.tile(np.asarray(config.point_color, dtype=np.float32), (len(pts), 1))])
     wire = _wire_alpha(x, y, f, len(f), side, config.wire_width * ss, config) if wireframe else None
     img, cov = _compose(zbuf, colors, side, config, wire)
     return _finish(img, cov, ss, alpha)
+
+
+def _mesh_inputs(vertices, faces, points, config: RenderConfig
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    """:func:`render_mesh`'s inputs checked: vertices (N, 3), faces (F, 3), the overlay points subsampled
+    (``max_points``; None where there are none) and the (N,) mask of the vertices the faces use."""
+    v = _as_points(vertices, "vertices")
+    f = _as_faces(faces, len(v))
+    pts = None if points is None else _subsample(_as_points(points, "points", allow_empty=True), config)
+    referenced = np.zeros(len(v), dtype=bool)
+    referenced[f.ravel()] = True
+    return v, f, pts if pts is not None and len(pts) else None, referenced
+
+
+def _raster_mesh(v: np.ndarray, f: np.ndarray, screen: tuple[np.ndarray, np.ndarray, np.ndarray], cam: Camera,
+                 zbuf: np.ndarray, side: int, config: RenderConfig,
+                 back_color: tuple[float, float, float] | None) -> np.ndarray:
+    """Rasterise faces ``f`` into ``zbuf`` (their ids from 0) at the vertices' ``screen`` x, y and normalised
+    depth, and return their (F, 3) float32 shades."""
+    x, y, depth = screen
+    colors = np.empty((len(f), 3), dtype=np.float32)
+    for s in range(0, len(f), config.face_batch):  # bounded memory for dense (input) meshes
+        chunk = f[s:s + config.face_batch]
+        raster_triangles(x, y, depth, chunk, zbuf, side, config, id_offset=s)
+        colors[s:s + len(chunk)] = _face_shades(v, chunk, cam, config, back_color)
+    return colors
 
 
 def render_points(points, normals=None, size: int = 512, alpha: bool = False,

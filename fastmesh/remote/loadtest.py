@@ -304,7 +304,7 @@ def summarize(records: list[dict], wall: float, http: Counter, errors: Counter, 
 
 
 NAME_WIDTH = 22  # the first column of the text report
-STAGE_LABELS = {"total": "total incl. queue"}
+STAGE_LABELS = {"total": "total (no queue)"}
 
 
 def _seconds(x: float | None) -> str:
@@ -331,7 +331,7 @@ def format_report(rep: dict) -> str:
 
     lines.append(row("end-to-end", rep["end_to_end_s"]))
     lines.append(row("queue wait", rep["queue_wait_s"]))
-    # The job's own "total" runs from upload to finish, queue wait included: last, and named so.
+    # The job's own "total" is the sum of its stages, the queue wait apart: last, and named so.
     stages = sorted((k for k in rep["stages_s"] if k != "queue"), key=lambda k: k == "total")
     for k in stages:
         lines.append(row(f"  {STAGE_LABELS.get(k, k)}", rep["stages_s"][k]))

@@ -8,6 +8,7 @@ so results can be written back where the input was.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 from pathlib import Path
@@ -18,6 +19,10 @@ from .orientation import outward
 from .shape import EXPORT_FORMATS, MAX_FACES, MAX_POINTS, Normalization, Shape, ShapeError, too_many
 
 NORMAL_BLOCK = 32_768  # points whose normals are estimated at once (bounds that step's memory)
+# Points of a cloud the pipeline reads at most: 4x its largest draw (16,384 support points; a mesh is read as 8,192
+# and 16,384 samples).  More only cost memory and time in the steps that read every point (normals, planes, pieces).
+CLOUD_POINTS = 65_536
+THIN_SEED = 0
 
 
 # --------------------------------------------------------------------------- loading
@@ -42,9 +47,10 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
     max_points, max_faces : int
         Larger inputs are refused (``ShapeError('too_large')``) before heavy work.
     normals : bool
-        Give a point cloud a unit normal at every point (estimating missing or unusable ones, the
-        costly part of loading a large cloud).  False keeps the file's normals as they are (or None);
-        :func:`with_normals` completes them later.
+        Make a point cloud what the pipeline reads (:func:`ready_cloud`): at most :data:`CLOUD_POINTS` of its
+        points, each with a unit normal (missing or unusable ones estimated, the costly part of loading a large
+        cloud).  False keeps every point and the file's normals as they are (or None); :func:`ready_cloud` does
+        the rest later.
     texture : bool
         Read a glTF mesh's base-colour texture and UVs too (``Shape.texture``, for ``bake``).
 
@@ -55,7 +61,7 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
         ``degenerate`` or ``too_large``.
     """
     from .pointfiles import load_numpy_points, load_text_points
-    from .precheck import plain_parse_error
+    from .precheck import check_parse_cost, plain_parse_error
     from .sniff import file_format
 
     data, name = _read(source, filename)
@@ -65,6 +71,7 @@ def load_shape(source: str | os.PathLike | bytes, filename: str | None = None,
     if len(data) == 0:
         raise ShapeError("empty", "file is empty")
     try:
+        check_parse_cost(data, ext, max_points, max_faces)  # what reading costs, before a parser spends it
         if ext in ("xyz", "txt"):
             shape = load_text_points(data, max_points)
         elif ext in ("npy", "npz"):
@@ -119,15 +126,16 @@ def _load_trimesh(data: bytes, ext: str, texture: bool = False) -> Shape:
     # Geometry only: an OBJ's materials would make trimesh import an image library for textures that
     # this upload does not carry anyway.
     extra = {"skip_materials": True} if ext == "obj" else {}
-    loaded = trimesh.load(io.BytesIO(data), file_type=ext, process=False, **extra)
-    found = None
     texture = texture and ext in ("glb", "gltf")
+    with _images_of_any_size(texture):
+        loaded = trimesh.load(io.BytesIO(data), file_type=ext, process=False, **extra)
+    found = None
     if isinstance(loaded, trimesh.Scene):
-        from .texture import drop_unreadable, texture_of
+        from .texture import read_texture, texture_of
 
         for g in loaded.geometry.values():  # dump() copies visuals: a textured one decodes its images
             if isinstance(g, trimesh.Trimesh) and texture:
-                drop_unreadable(g)
+                read_texture(g)
             elif isinstance(g, trimesh.Trimesh):
                 g.visual = trimesh.visual.ColorVisuals()
         geoms = [g for g in loaded.dump() if hasattr(g, "vertices")] if loaded.geometry else []
@@ -160,13 +168,30 @@ def _load_trimesh(data: bytes, ext: str, texture: bool = False) -> Shape:
     raise ShapeError("unreadable", f"no mesh or points found in .{ext} file")
 
 
+@contextlib.contextmanager
+def _images_of_any_size(on: bool):
+    """With ``on``, images of any size open (their headers only): PIL refuses a large one at its opening, which the
+    glTF reader takes silently for no texture; ``texture.read_texture`` refuses it by its size, saying so."""
+    if not on:
+        yield
+        return
+    from PIL import Image
+
+    bomb = Image.MAX_IMAGE_PIXELS
+    Image.MAX_IMAGE_PIXELS = None
+    try:
+        yield
+    finally:
+        Image.MAX_IMAGE_PIXELS = bomb
+
+
 def validate_shape(shape: Shape, max_points: int = MAX_POINTS, max_faces: int = MAX_FACES,
                    normals: bool = True) -> Shape:
     """Check a shape for the failures every consumer would trip over.
 
     Geometry checks (face areas, collinearity) run in the unit cube, so coordinates anywhere in
-    float64's range give the same answers.  ``normals``: complete a point cloud's normals
-    (:func:`with_normals`); False keeps what the file gave (or None).
+    float64's range give the same answers.  ``normals``: thin a point cloud and complete its normals
+    (:func:`ready_cloud`); False keeps what the file gave (all its points, its normals or None).
     """
     v = np.asarray(shape.vertices, dtype=np.float64)
     if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
@@ -201,7 +226,33 @@ def validate_shape(shape: Shape, max_points: int = MAX_POINTS, max_faces: int = 
         if given.shape != v.shape:
             given = None
     out = Shape(vertices=v, normals=given)
-    return with_normals(out) if normals else out
+    return ready_cloud(out) if normals else out
+
+
+def thinned(shape: Shape, n: int = CLOUD_POINTS, seed: int = THIN_SEED) -> Shape:
+    """A point cloud of at most ``n`` of the shape's points (a seeded uniform draw, kept in the file's order) with
+    their normals; a mesh, or a cloud of ``n`` points or fewer, as it is.
+
+    Parameters
+    ----------
+    shape : Shape
+        (N, 3) vertices, (N, 3) normals or None.
+    n : int
+        Points kept at most (:data:`CLOUD_POINTS`).
+    seed : int
+        Seed of the draw: equal inputs give equal clouds, whichever interface reads them.
+    """
+    if shape.faces is not None or len(shape.vertices) <= n:
+        return shape
+    keep = np.sort(np.random.default_rng(seed).choice(len(shape.vertices), size=n, replace=False))
+    normals = None if shape.normals is None else np.asarray(shape.normals)[keep]
+    return Shape(vertices=np.asarray(shape.vertices)[keep], normals=normals)
+
+
+def ready_cloud(shape: Shape) -> Shape:
+    """A point cloud as the pipeline reads it: :func:`thinned`, then :func:`with_normals` (estimated on the points
+    kept); a mesh as it is.  ``load_shape`` and the worker both call it, so a cloud gives one mesh through either."""
+    return with_normals(thinned(shape))
 
 
 def with_normals(shape: Shape) -> Shape:

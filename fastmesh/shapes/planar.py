@@ -6,19 +6,32 @@ polyhedron they bound, with a vertex exactly where three of them meet.  The deco
 of 128 cells and only sees such shapes in the poses of its training data; this stage needs neither.  It follows
 PolyFit (Nan and Wonka, 2017): candidate faces from the arrangement of the planes' intersection lines, here each
 chosen by whether the plane's own points cover it (:mod:`.arrangement`), and the result kept only where it is
-closed and explains the points both ways (``polyhedron``).  Anything else (a curved part, noise beyond the
-tolerance, a face the points do not decide) gives None, and the networks make the mesh.
+closed and explains the points both ways (``polyhedron``).  A scan's planes hold its points at its own noise,
+read from the points (``noise.noise_level``), where each plane's points spread off it as that noise does and no
+more (a curved scan's facets spread their points across their width).  Anything else (a curved part, a face the
+points do not decide) gives None, and the networks make the mesh.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .arrangement import Cell, chosen, merge_points, outline
+from .noise import fitted_normals, noise_level
+
+# A scan (``noise.noise_level`` reads its noise): its planes hold the points within NOISE_SIGMAS noise levels
+# (3.5: all but 0.05 % of Gaussian noise), seeded by normals within NOISY_DEGREES, explaining all but NOISY_INLIERS
+# of them (a dense scan's samples between its noisy vertices spread by less than the vertices do, so a few near the
+# vertices lie beyond the noise read from the samples), and each plane's points lie off it by at most FLAT_RMS noise
+# levels in RMS (a flat side: 1.0 to 1.25; a facet over a noisy cylinder: 1.7 or more).
+NOISE_SIGMAS = 3.5
+NOISY_DEGREES = 15.0
+NOISY_INLIERS = 0.99
+FLAT_RMS = 1.4
 
 
 @dataclass(frozen=True)
@@ -73,10 +86,10 @@ def planar_mesh(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, cut:
     has no faces it can close, or the corners are too many.
     """
     pts, nrm = _subsample(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.max_points)
-    found = detect_planes(pts, nrm, cfg)
+    found = _planes_at_noise(pts, nrm, cfg)
     if found is None:
         return None
-    planes, labels = found
+    planes, labels, cfg = found
     spacing = float(np.median(cKDTree(pts).query(pts, k=9)[0][:, -1]))
     reach = cfg.reach * spacing
     near, real, extra = neighbour_planes(pts, labels, planes, reach), len(planes), np.zeros((0, 4))
@@ -105,6 +118,50 @@ def planar_mesh(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, cut:
     return None if faces is None else (vertices, faces, pts, reach, extra)
 
 
+def _planes_at_noise(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig
+                     ) -> tuple[np.ndarray, np.ndarray, PlanarConfig] | None:
+    """:func:`detect_planes` at the points' own noise: the planes, the plane of each point, and the tolerances
+    they were found with (``cfg``'s, or for a scan whose noise exceeds them those of ``NOISE_SIGMAS`` noise
+    levels, its normals fitted to its neighbours and only the planes as flat as the noise: :func:`_flat_only`)."""
+    sigma = noise_level(points)
+    if NOISE_SIGMAS * sigma <= cfg.tolerance:
+        found = detect_planes(points, normals, cfg)
+        return None if found is None else (*found, cfg)
+    cfg = replace(cfg, tolerance=NOISE_SIGMAS * sigma, normal_degrees=NOISY_DEGREES, inliers=NOISY_INLIERS)
+    fitted, order = fitted_normals(points, normals)
+    found = detect_planes(points, fitted, cfg, order)
+    found = None if found is None else _flat_only(points, *found, sigma, cfg)
+    return None if found is None else (*found, cfg)
+
+
+def _flat_only(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, sigma: float, cfg: PlanarConfig
+               ) -> tuple[np.ndarray, np.ndarray] | None:
+    """A noisy scan's planes (K, 4), each fitted again to all the points it took (the seed's fit saw only those
+    whose normals agreed), and the plane of each point (N,), without those whose points lie off them by an RMS
+    above ``FLAT_RMS`` times the noise ``sigma``: a facet laid over a curved scan holds its points within
+    the tolerance too, but spread over its whole width (the sag of the curve), not as the noise spreads them; so
+    does a sliver grown from a few points beyond the noise along an edge.  None where, without them, more than
+    ``1 - cfg.inliers`` of the points are unexplained (a curved scan)."""
+    planes = np.array([_refit(points[labels == k], plane) for k, plane in enumerate(planes)])
+    mine = labels >= 0
+    off = np.abs(np.einsum("ij,ij->i", points[mine], planes[labels[mine], :3]) - planes[labels[mine], 3])
+    count = np.bincount(labels[mine], minlength=len(planes))
+    rms = np.sqrt(np.bincount(labels[mine], weights=off**2, minlength=len(planes)) / np.maximum(count, 1))
+    flat = rms <= FLAT_RMS * sigma
+    if (~mine).sum() + count[~flat].sum() > len(points) * (1 - cfg.inliers) or not flat.any():
+        return None
+    renumber = np.cumsum(flat) - 1
+    return planes[flat], np.where(mine & flat[np.maximum(labels, 0)], renumber[np.maximum(labels, 0)], -1)
+
+
+def _refit(points: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """(4,) the least-squares plane of ``points`` (M, 3), its normal on the side of ``plane``'s (4,)."""
+    centre = points.mean(0)
+    n = np.linalg.svd(points - centre, full_matrices=False)[2][-1]
+    n = n if n @ plane[:3] >= 0 else -n
+    return np.r_[n, n @ centre]
+
+
 def _distinct(ring: np.ndarray) -> np.ndarray:
     """A ring of vertex ids without repeats in a row (corners that merged into one vertex, as at a cone's
     apex, where several lines cross within rounding of each other)."""
@@ -118,17 +175,17 @@ def _subsample(points: np.ndarray, normals: np.ndarray, n: int) -> tuple[np.ndar
     return points[keep], normals[keep]
 
 
-def detect_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig
+def detect_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, order: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray] | None:
     """(N, 3) points and normals -> (K, 4) planes (unit normal n, offset d: n.x = d, n along the points'
     normals) and (N,) the plane of each point, or None where planes leave more than ``1 - cfg.inliers`` of the
-    points unexplained.  Greedy: each unexplained point in turn seeds a plane from its own normal, refitted to
-    the points it gathers."""
+    points unexplained.  Greedy: each unexplained point in turn (in the points' order, or ``order`` (N,)) seeds a
+    plane from its own normal, refitted to the points it gathers."""
     cos = (np.cos(np.radians(cfg.normal_degrees)), np.cos(np.radians(cfg.loose_degrees)))
     labels = np.full(len(points), -1)
     planes, failed = [], 0
     allowed = len(points) * (1 - cfg.inliers)
-    for seed in range(len(points)):
+    for seed in range(len(points)) if order is None else order:
         if (labels < 0).sum() <= allowed:
             break
         if labels[seed] >= 0:
@@ -246,7 +303,7 @@ def _triangulate(vertices: np.ndarray, planes: np.ndarray, loops: list[tuple[int
             members = [o] + [h for h, a in enumerate(areas) if a < 0 and _inside(flat[h][0], flat[o])]
             coords = np.vstack([flat[i] for i in members])
             ends = np.cumsum([len(flat[i]) for i in members]).astype(np.uint32)
-            tri = mapbox_earcut.triangulate_float64(coords, ends).reshape(-1, 3)
+            tri = _split_needles(mapbox_earcut.triangulate_float64(coords, ends).reshape(-1, 3), coords)
             ids = np.concatenate([rings[i] for i in members])[tri]
             normal = np.cross(vertices[ids[:, 1]] - vertices[ids[:, 0]], vertices[ids[:, 2]] - vertices[ids[:, 0]])
             flip = normal @ n < 0
@@ -255,6 +312,31 @@ def _triangulate(vertices: np.ndarray, planes: np.ndarray, loops: list[tuple[int
         if sum(len(f) for f in flat if _area(f) < 0) and len(outers) == 0:
             return None
     return np.vstack(faces).astype(np.int64) if faces else None
+
+
+def _split_needles(tri: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """``tri`` (T, 3) ear-clipped triangles of 2D points ``flat`` (N, 2) without the needles: a triangle whose
+    corners lie in a line (a ring's corner on a straight edge, within rounding on the convex side, is clipped as an
+    ear of no area) dropped, and the triangle across its long edge split at its middle corner instead, so that
+    the corner's two edges each have their one triangle."""
+    tri = [tuple(int(i) for i in t) for t in tri]
+    scale = max(float(np.ptp(flat, axis=0).max()) ** 2, 1e-300)
+    for _ in range(len(tri)):
+        t = flat[np.array(tri)]
+        e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+        area = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+        bad = np.flatnonzero(np.abs(area) <= 1e-12 * scale)
+        if not len(bad):
+            break
+        a, b, c = tri[bad[0]]
+        p, q, m = max(((a, b, c), (b, c, a), (c, a, b)), key=lambda e: np.linalg.norm(flat[e[1]] - flat[e[0]]))
+        across = [j for j, u in enumerate(tri) if (q, p) in ((u[0], u[1]), (u[1], u[2]), (u[2], u[0]))]
+        if not across:
+            break
+        u = tri[across[0]]
+        x = next(i for i in u if i not in (p, q))
+        tri = [u2 for j, u2 in enumerate(tri) if j not in (bad[0], across[0])] + [(q, m, x), (m, p, x)]
+    return np.array(tri, dtype=np.int64).reshape(-1, 3)
 
 
 def _with_points_on_edges(vertices: np.ndarray, ring: np.ndarray, tol: float) -> np.ndarray:

@@ -122,6 +122,17 @@ def _declared(elements) -> str:
     return ", ".join(f"{n} {PLURALS.get(name, name + 's') if n != 1 else name}" for name, n, _ in elements)
 
 
+def unused_elements(data: bytes) -> str:
+    """The elements of a PLY file other than its vertices and faces, as ``"element 'junk' (148148 rows)"``
+    ("" for none, or for a header that does not read)."""
+    try:
+        _, elements, _ = _ply_header(data)
+    except ShapeError:
+        return ""
+    named = [f"'{name[:30]}' ({n} rows)" for name, n, _ in elements if name not in ("vertex", "face") and n]
+    return f"element{'s' if len(named) > 1 else ''} {', '.join(named)}" if named else ""
+
+
 def ply_length_error(data: bytes) -> str:
     """Words for a binary PLY whose body does not match its header (trimesh's 'PLY is unexpected length!')."""
     try:

@@ -12,6 +12,7 @@ import io
 
 import numpy as np
 
+from .precheck import parse_budget
 from .shape import Shape, ShapeError, too_many
 
 MAX_TEXT_LINE = 1024  # characters in one line of a text point file (six numbers take ~150)
@@ -29,6 +30,10 @@ def load_text_points(data: bytes, max_points: int) -> Shape:
     lines = text_lines - data.count(b"\n#") - data.startswith(b"#") - data.count(b"\n\n") - data.count(b"\n\r\n")
     if lines > max_points:
         raise ShapeError("too_large", f"{lines} lines exceed the limit of {max_points} points")
+    most, _ = parse_budget("xyz", max_points, 0)  # comments and blank lines are read too
+    if text_lines > most:
+        raise ShapeError("too_large", f"{text_lines} lines exceed the limit of {most} lines of a text point file "
+                                      f"(its {max_points} points, comments and blank lines)")
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as e:

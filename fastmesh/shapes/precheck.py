@@ -13,13 +13,88 @@ from __future__ import annotations
 import re
 import struct
 
-from .ply_check import MAX_PLY_HEADER, ply_length_error
+import numpy as np
+
+from .ply_check import MAX_PLY_HEADER, ply_length_error, unused_elements
 from .shape import ShapeError, too_many
 from .sniff import STL_HEADER, STL_TRIANGLE, not_obj
 
 FORMAT_NAMES = {"obj": "Wavefront OBJ", "glb": "binary glTF (GLB)", "gltf": "glTF JSON", "ply": "PLY",
                 "stl": "STL", "off": "OFF", "xyz": "text point", "txt": "text point", "npy": "NumPy .npy",
                 "npz": "NumPy .npz"}
+# What one point and one face may take in a text file of each format, as (lines, values): an OBJ vertex with its
+# ``vt`` and ``vn`` lines (11 words), a PLY vertex with normal, colour and UV (12), a face with its colour, an ASCII
+# STL facet (7 lines, 21 words).  Parsing time and memory follow the lines and values, used or not.
+TEXT_COST = {"obj": ((3, 11), (1, 4)), "ply": ((1, 12), (1, 8)), "off": ((1, 7), (1, 8)), "stl": ((0, 0), (7, 21)),
+             "xyz": ((1, 6), (0, 0)), "txt": ((1, 6), (0, 0))}
+SPARE_LINES, SPARE_VALUES = 1_000, 10_000  # a header, comments, groups and materials on top
+WORD_CHUNK = 1 << 22  # bytes counted at once (bounds the count's memory)
+
+
+# --------------------------------------------------------------------------- parse cost of text files
+
+
+def parse_budget(ext: str, max_points: int, max_faces: int) -> tuple[int, int]:
+    """``(lines, values)`` a text file of format ``ext`` may hold: what ``max_points`` points and ``max_faces``
+    faces take at most in it (:data:`TEXT_COST`), and a spare for headers and comments."""
+    (p_lines, p_values), (f_lines, f_values) = TEXT_COST[ext]
+    return (max_points * p_lines + max_faces * f_lines + SPARE_LINES,
+            max_points * p_values + max_faces * f_values + SPARE_VALUES)
+
+
+def count_lines(data: bytes) -> int:
+    """Lines of a text, ended by \\n, \\r\\n or \\r (the last one unended or not)."""
+    unended = bool(data) and not data.endswith((b"\n", b"\r"))
+    return data.count(b"\n") + data.count(b"\r") - data.count(b"\r\n") + unended
+
+
+def count_words(data: bytes) -> int:
+    """Runs of bytes other than ASCII whitespace (space, \\t, \\n, \\v, \\f, \\r): the words ``bytes.split`` makes,
+    what a text parser splits a file into."""
+    total, after_space = 0, True
+    view = memoryview(data)
+    for lo in range(0, len(data), WORD_CHUNK):
+        block = np.frombuffer(view[lo:lo + WORD_CHUNK], np.uint8)
+        space = (block == 32) | ((block >= 9) & (block <= 13))
+        start = ~space
+        start[1:] &= space[:-1]
+        start[0] &= after_space
+        total += int(np.count_nonzero(start))
+        after_space = bool(space[-1])
+    return total
+
+
+def _is_text(data: bytes, ext: str) -> bool:
+    """Whether a mesh parser reads ``data`` as text: an OBJ, an OFF, an ASCII PLY or STL (a text point file's reader
+    counts its own lines: ``pointfiles.load_text_points``)."""
+    if ext == "ply":
+        return re.search(rb"^format\s+ascii", data[:MAX_PLY_HEADER], re.M) is not None
+    if ext == "stl":  # ASCII when it starts with 'solid' and has not the length of a binary one (check_stl)
+        count = struct.unpack("<I", data[80:STL_HEADER])[0] if len(data) >= STL_HEADER else -1
+        return data.lstrip()[:5].lower() == b"solid" and len(data) != STL_HEADER + STL_TRIANGLE * count
+    return ext in ("obj", "off")
+
+
+def check_parse_cost(data: bytes, ext: str, max_points: int, max_faces: int) -> None:
+    """Refuse a text file with more lines or values than a file within the limits holds (:func:`parse_budget`),
+    counting every line and value, also those the shape does not use (comments, texture coordinates, a PLY
+    element other than vertices and faces): a parser reads them all, and their time and memory are spent before
+    any count of points or faces could refuse the file."""
+    if not _is_text(data, ext):
+        return
+    name = FORMAT_NAMES.get(ext, ext)
+    max_lines, max_values = parse_budget(ext, max_points, max_faces)
+    unused = unused_elements(data) if ext == "ply" else ""
+    why = (f" ({unused} not used)" if unused else "") + \
+        f"; a {name} file may hold what {max_points} points and {max_faces} faces take"
+    lines = count_lines(data)
+    if lines > max_lines:
+        raise ShapeError("too_large", f"the {name} file has {lines} lines to read, over the limit of {max_lines} "
+                                      f"lines{why}")
+    values = count_words(data)
+    if values > max_values:
+        raise ShapeError("too_large", f"the {name} file has {values} values to read, over the limit of {max_values} "
+                                      f"values{why}")
 
 
 # --------------------------------------------------------------------------- OBJ

@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .errors import ShapeError
+
 if TYPE_CHECKING:
     from .texture import SurfaceTexture
 
@@ -21,15 +23,6 @@ MAX_POINTS = 2_000_000
 MAX_FACES = 2_000_000
 # Smallest bounding-box side: 1 / MIN_EXTENT is still a normal float64 (subnormal extents overflow the scale).
 MIN_EXTENT = float(np.finfo(np.float64).tiny)
-
-
-class ShapeError(ValueError):
-    """Input that cannot become a shape.  ``code`` is a stable machine-readable reason."""
-
-    def __init__(self, code: str, message: str):
-        super().__init__(message)
-        self.code = code
-        self.message = message
 
 
 @dataclass

@@ -8,7 +8,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import ShapeError
+
 MAX_SOURCE_SIDE = 2048  # an input texture is read at most this many texels a side (a baked one has 1024)
+# Pixels of the largest input texture read for ``bake`` (8K a side): decoded whole once (4 bytes a pixel, 256 MiB at
+# the limit) before it is scaled down, which a parse's capped process holds beside its libraries.
+MAX_TEXTURE_SIDE = 8192
+MAX_TEXTURE_PIXELS = MAX_TEXTURE_SIDE * MAX_TEXTURE_SIDE
 
 
 @dataclass
@@ -74,25 +80,67 @@ def _image_of_material(material) -> tuple[object | None, np.ndarray]:
     return image, np.pad(factor, (0, 4 - len(factor)), constant_values=1.0)[:4]
 
 
-def _pixels(image) -> np.ndarray | None:
-    """(H, W, 4) uint8 of a PIL image, at most :data:`MAX_SOURCE_SIDE` a side; None where it does not decode."""
+def check_texture_size(image) -> None:
+    """Refuse a texture image of more than :data:`MAX_TEXTURE_PIXELS`, from its header (before it is decoded).
+
+    Raises
+    ------
+    ShapeError
+        ``too_large``, naming the image's size and the limit.
+    """
+    width, height = image.size
+    if width * height > MAX_TEXTURE_PIXELS:
+        raise ShapeError("too_large", f"the input's base-colour texture is {width} x {height} pixels "
+                                      f"({width * height:,}), over the limit of {MAX_TEXTURE_PIXELS:,} pixels "
+                                      f"({MAX_TEXTURE_SIDE} x {MAX_TEXTURE_SIDE}) read for bake=true; scale the "
+                                      "texture down, or submit without bake")
+
+
+def _reduced(image):
+    """A PIL image as RGBA of at most :data:`MAX_SOURCE_SIDE` a side, or None where it does not decode.
+
+    Scaled in place before the conversion (JPEG even decodes at the smaller scale): the full-size image is held
+    once, in its own mode, never copied at full size.
+    """
     from PIL import Image
 
     try:
-        rgba = image.convert("RGBA")
-        rgba.thumbnail((MAX_SOURCE_SIDE, MAX_SOURCE_SIDE))
-        return np.asarray(rgba)
+        if image.mode not in ("RGB", "RGBA", "L", "LA"):  # palettes and 16-bit images scale badly as they are
+            image = image.convert("RGBA")
+        image.thumbnail((MAX_SOURCE_SIDE, MAX_SOURCE_SIDE))
+        return image.convert("RGBA")
     except (OSError, ValueError, Image.DecompressionBombError):
         return None
 
 
-def drop_unreadable(mesh) -> None:
-    """Strip the visuals of a trimesh mesh whose base-colour image does not decode (copying it would fail)."""
+def _pixels(image) -> np.ndarray | None:
+    """(H, W, 4) uint8 of a PIL image, at most :data:`MAX_SOURCE_SIDE` a side; None where it does not decode."""
+    small = _reduced(image)
+    return None if small is None else np.asarray(small)
+
+
+def read_texture(mesh) -> None:
+    """Decode the base-colour image of a trimesh mesh once, scaled down to :data:`MAX_SOURCE_SIDE` a side, in place
+    of the full one (which copying the mesh would copy); strip the visuals of a mesh whose image does not decode.
+
+    Raises
+    ------
+    ShapeError
+        ``too_large``: the image has more than :data:`MAX_TEXTURE_PIXELS` (:func:`check_texture_size`).
+    """
     import trimesh
 
-    image, _ = _image_of_material(getattr(mesh.visual, "material", None))
-    if image is not None and _pixels(image) is None:
+    material = getattr(mesh.visual, "material", None)
+    image, _ = _image_of_material(material)
+    if image is None:
+        return
+    check_texture_size(image)
+    small = _reduced(image)
+    if small is None:
         mesh.visual = trimesh.visual.ColorVisuals()
+        return
+    setattr(material, "baseColorTexture" if getattr(material, "baseColorTexture", None) is not None else "image",
+            small)
 
 
 def texture_of(meshes: list) -> SurfaceTexture | None:

@@ -4,6 +4,8 @@ A batch is accepted whole or not at all: every file is read and parsed first, ea
 a file refused is the batch's answer (its 4xx names the file by position and name) and no job is created.
 A failure while creating the jobs (the queue filled meanwhile, Redis) deletes those already created.
 The form is ``POST /v1/jobs``'s, with ``files`` (repeated, at most ``max_batch_files``) for ``file``.
+An ``Idempotency-Key`` names the whole batch: a retry with the same files and parameters gets its jobs (200),
+any difference (a file more or fewer included) is ``409 idempotency_conflict``.
 """
 
 from __future__ import annotations
@@ -28,6 +30,9 @@ from .jobs import create_once, fingerprinted, parse_timed, queue_full, submitted
 
 router = APIRouter(prefix="/v1/batches", tags=["jobs"])
 
+BATCH_CONFLICT = ("this Idempotency-Key was used for a different batch: other files, another number of files, "
+                  "or other parameters")
+
 
 @router.post("", status_code=202, response_model=Batch, dependencies=[Depends(strict_form)],
              summary="Submit several shapes with one set of parameters; returns their queued jobs",
@@ -49,10 +54,13 @@ def submit_batch(request: Request, who: Owner, store: StoreDep, settings: Settin
     parsed = []
     for i, file in enumerate(files):
         filename = safe_filename(file.filename)
-        with about_file(i, filename), parse_slot(slots, settings):
+        with about_file(i, filename), parse_slot(slots, settings, request.state.bucket):
             data = read_upload(file, settings)
             key = f"{form.idempotency_key}#{i}" if form.idempotency_key else None
-            idem = Idempotency(store, who, key, data, {**fingerprint, "filename": filename})
+            # The number of files is part of each file's fingerprint: a retry with files added or left out
+            # differs from the batch the key names (409), it does not extend or cut it.
+            idem = Idempotency(store, who, key, data, {**fingerprint, "filename": filename, "batch_files": len(files)},
+                               conflict=BATCH_CONFLICT)
             parsed.append((idem, parse_timed(parses, settings, data, filename, texture=params["bake"])))
             del data  # not held while the next file is read
     jobs_made = create_all(store, settings, who, params, webhook, parsed)

@@ -54,7 +54,7 @@ def submit(request: Request, who: Owner, store: StoreDep, settings: SettingsDep,
     charge(store, settings, request.state.bucket)
     params, webhook = submitted_params(store, settings, form)
     (file,) = form.files
-    with parse_slot(slots, settings):
+    with parse_slot(slots, settings, request.state.bucket):
         data = read_upload(file, settings)
         filename = safe_filename(file.filename)
         idem = Idempotency(store, who, form.idempotency_key, data,

@@ -1,0 +1,51 @@
+"""The last steps of a generated result (:meth:`fastmesh.pipeline.Pipeline.steps`), after the frames: brought to a
+``target_faces``, then weighed against its rivals and touched up as :class:`TriangleConfig` asks."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..faces.crossings import adds_crossings
+from ..faces.triangles import TriangleConfig
+from ..request import Request
+from . import result as step8
+
+
+def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict, result_from: str,
+               config: TriangleConfig) -> tuple[np.ndarray, np.ndarray, str, str | None]:
+    """The result (``result_from`` "model", or "input": a low-poly input given back) brought to a
+    ``target_faces`` (``step8.held``), then, where generated, a point cloud's result weighed against its faces
+    spread over the input (``step8.redistributed``, with ``TriangleConfig.redistribute``), its edges turned
+    where the input lies along the other diagonal (``step8.swapped``, with ``TriangleConfig.swap_edges``;
+    ``info["edges_turned"]``), a mesh input's weighed against its decimation to its face count
+    (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go into ``info``), and last its
+    box brought to the input's (``step8.extended``, with ``TriangleConfig.reach_extent``;
+    ``info["extent_sides"]``): vertices, faces, where they come from ("model", "input" or "decimated") and the
+    count step."""
+    step = None
+    if req.count.hold:
+        info["faces_before_count"] = int(len(faces))
+        vertices, faces, step = step8.held(req, vertices, faces)
+    # The boundary of a solid is closed and free of folds by construction: the redistribution's collapses and
+    # the edge turns, which see no faces but their own, would fold it.
+    patched = result_from == "model" and info.get("solid_fits", {}).get("faces_from") != "solid"
+    if patched and config.redistribute is not None:
+        rival, fits = step8.redistributed(req, vertices, faces, config.redistribute, config.support_points)
+        if fits:
+            info["redistribution_fits"] = fits
+        if rival is not None:
+            vertices, faces = rival
+    if patched and config.swap_edges:
+        vertices, faces, info["edges_turned"] = step8.swapped(req, vertices, faces)
+    if result_from == "model" and config.weigh_decimation:
+        rival, fits = step8.decimated(req, vertices, faces, config)
+        if fits:
+            info["decimation_fits"] = fits
+        if rival is not None:
+            vertices, faces, result_from, step = *rival, "decimated", None if step is None else "decimated"
+    if result_from != "input" and config.reach_extent:
+        before = vertices, faces
+        vertices, faces, info["extent_sides"] = step8.extended(req, vertices, faces)
+        if result_from == "model" and not patched and adds_crossings(before, (vertices, faces)):
+            (vertices, faces), info["extent_sides"] = before, 0  # a vertex moved out folds the solid
+    return vertices, faces, result_from, step

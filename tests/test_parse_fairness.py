@@ -146,6 +146,10 @@ def test_one_keys_slow_uploads_do_not_starve_another_keys(app, monkeypatch):
         answers = [post(app.url, f"small{i}.xyz", small, bearer(KEY2)) for i in range(14)]
         assert [r.status_code for r in answers] == [202] * 14, [r.text[:200] for r in answers if r.status_code != 202]
         assert len(started) == slots - 1 and not release.is_set()  # key 1's uploads were still being parsed
+        deadline = time.monotonic() + 30
+        while not slow_answers and time.monotonic() < deadline:  # key 1's last upload gives up waiting for a slot
+            time.sleep(0.02)
+        assert len(slow_answers) == 1 and len(started) == slots - 1  # while its others are still being parsed
     finally:
         release.set()
         for t in threads:

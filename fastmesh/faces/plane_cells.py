@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
 from ..shapes.arrangement import merge_points
-from ..shapes.planar import PlanarConfig, _closed, _distinct, _planes_at_noise, _subsample, _with_points_on_edges
+from ..shapes.planar import PlanarConfig, _closed, _distinct, _with_points_on_edges, planes_found
 from .cells import min_cut
 from .kitbash import flat_rebuild, flat_regions
 from .meshops import distance_to_triangles, remove_unreferenced
@@ -204,12 +204,10 @@ def plane_cells(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = Pla
     samples' nearest points the other); or None where the points are not held by planes, the cells are more than
     ``plane_arrangement.MAX_CELLS`` or the result is not that close.
     """
-    pts, nrm = _subsample(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.max_points)
-    found = _planes_at_noise(pts, nrm, cfg)
+    found = planes_found(points, normals, cfg)
     if found is None:
         return None
-    planes, labels, cfg = found
-    spacing = float(np.median(cKDTree(pts).query(pts, k=9)[0][:, -1]))
+    pts, nrm, planes, labels, cfg, spacing = found
     reach = cfg.reach * spacing
     made = plane_arrangement(pts, labels, planes, reach)
     if made is None:

@@ -85,12 +85,10 @@ def planar_mesh(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, cut:
     vertices, faces, the points read (subsampled), the cover radius and the added planes; or None where a plane
     has no faces it can close, or the corners are too many.
     """
-    pts, nrm = _subsample(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.max_points)
-    found = _planes_at_noise(pts, nrm, cfg)
+    found = planes_found(points, normals, cfg)
     if found is None:
         return None
-    planes, labels, cfg = found
-    spacing = float(np.median(cKDTree(pts).query(pts, k=9)[0][:, -1]))
+    pts, _, planes, labels, cfg, spacing = found
     reach = cfg.reach * spacing
     near, real, extra = neighbour_planes(pts, labels, planes, reach), len(planes), np.zeros((0, 4))
     if cut is not None:
@@ -116,6 +114,19 @@ def planar_mesh(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, cut:
         return None
     faces = _triangulate(vertices, planes, [(k, _distinct(index[ring])) for k, ring in loops], cfg.tolerance)
     return None if faces is None else (vertices, faces, pts, reach, extra)
+
+
+def planes_found(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig) -> tuple | None:
+    """The planes of an oriented point cloud (P, 3), normals (P, 3), at its own noise level: the points read
+    (subsampled) and their normals, the (K, 4) planes, each point's plane (-1: none), the config at the noise
+    level, the points' median spacing; None where planes do not hold the points."""
+    pts, nrm = _subsample(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.max_points)
+    found = _planes_at_noise(pts, nrm, cfg)
+    if found is None:
+        return None
+    planes, labels, cfg = found
+    spacing = float(np.median(cKDTree(pts).query(pts, k=9)[0][:, -1]))
+    return pts, nrm, planes, labels, cfg, spacing
 
 
 def _planes_at_noise(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig
@@ -315,10 +326,9 @@ def _triangulate(vertices: np.ndarray, planes: np.ndarray, loops: list[tuple[int
 
 
 def _split_needles(tri: np.ndarray, flat: np.ndarray) -> np.ndarray:
-    """``tri`` (T, 3) ear-clipped triangles of 2D points ``flat`` (N, 2) without the needles: a triangle whose
-    corners lie in a line (a ring's corner on a straight edge, within rounding on the convex side, is clipped as an
-    ear of no area) dropped, and the triangle across its long edge split at its middle corner instead, so that
-    the corner's two edges each have their one triangle."""
+    """``tri`` (T, 3) ear-clipped triangles of 2D points ``flat`` (N, 2) with each needle (corners in a line: a
+    ring's corner on a straight edge clipped as an ear of no area) dropped and the triangle across its long edge
+    split at its middle corner instead, so that the corner's two edges each have their one triangle."""
     tri = [tuple(int(i) for i in t) for t in tri]
     scale = max(float(np.ptp(flat, axis=0).max()) ** 2, 1e-300)
     for _ in range(len(tri)):
@@ -340,8 +350,7 @@ def _split_needles(tri: np.ndarray, flat: np.ndarray) -> np.ndarray:
 
 
 def _with_points_on_edges(vertices: np.ndarray, ring: np.ndarray, tol: float) -> np.ndarray:
-    """``ring`` of vertex ids with every other vertex lying inside one of its edges (within ``tol``) inserted in
-    order."""
+    """``ring`` of vertex ids with every other vertex inside one of its edges (within ``tol``) inserted in order."""
     out = []
     for a, b in zip(ring, np.roll(ring, -1), strict=True):
         out.append(a)

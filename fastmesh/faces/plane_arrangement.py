@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..shapes.arrangement import merge_points
+from ..shapes.planar import signed_area
 
 MAX_CELLS = 4000  # an arrangement of more cells is refused: too many planes crossing to be a prop's flat parts
 GROWN = 0.05  # the cells' box: the points' box grown by this (unit frame) on every side
@@ -227,15 +228,13 @@ def _plane_facets(k: int, flat: list[tuple[int, int, np.ndarray]], mine: np.ndar
 
 
 def polygon_area(flat: np.ndarray) -> float:
-    """The area of a polygon (m, 2) (shoelace formula), whichever way it winds."""
-    x, y = flat.T
-    return 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
+    """The area of a polygon (m, 2), whichever way it winds."""
+    return abs(signed_area(flat))
 
 
 def _ccw(flat: np.ndarray) -> np.ndarray:
     """The polygon (m, 2) wound counter-clockwise."""
-    x, y = flat.T
-    return flat if float(x @ np.roll(y, -1) - y @ np.roll(x, -1)) >= 0 else flat[::-1]
+    return flat if signed_area(flat) >= 0 else flat[::-1]
 
 
 def _convex_overlap(f: np.ndarray, g: np.ndarray) -> np.ndarray | None:

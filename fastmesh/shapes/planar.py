@@ -117,9 +117,8 @@ def planar_mesh(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, cut:
 
 
 def planes_found(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig) -> tuple | None:
-    """The planes of an oriented point cloud (P, 3), normals (P, 3), at its own noise level: the points read
-    (subsampled) and their normals, the (K, 4) planes, each point's plane (-1: none), the config at the noise
-    level, the points' median spacing; None where planes do not hold the points."""
+    """The planes of points (P, 3) with normals (P, 3) at their own noise: the points read and their normals, the
+    (K, 4) planes, each point's plane (-1: none), the config at that noise, the median spacing; or None."""
     pts, nrm = _subsample(np.asarray(points, np.float64), np.asarray(normals, np.float64), cfg.max_points)
     found = _planes_at_noise(pts, nrm, cfg)
     if found is None:
@@ -308,7 +307,7 @@ def _triangulate(vertices: np.ndarray, planes: np.ndarray, loops: list[tuple[int
         basis = np.c_[u, np.cross(n, u)]
         rings = [_with_points_on_edges(vertices, ring, tol) for kk, ring in loops if kk == k]
         flat = [vertices[r] @ basis for r in rings]
-        areas = [_area(f) for f in flat]
+        areas = [signed_area(f) for f in flat]
         outers = [i for i, a in enumerate(areas) if a > 0]
         for o in outers:
             members = [o] + [h for h, a in enumerate(areas) if a < 0 and _inside(flat[h][0], flat[o])]
@@ -320,7 +319,7 @@ def _triangulate(vertices: np.ndarray, planes: np.ndarray, loops: list[tuple[int
             flip = normal @ n < 0
             ids[flip] = ids[flip][:, ::-1]
             faces.append(ids)
-        if sum(len(f) for f in flat if _area(f) < 0) and len(outers) == 0:
+        if sum(len(f) for f in flat if signed_area(f) < 0) and len(outers) == 0:
             return None
     return np.vstack(faces).astype(np.int64) if faces else None
 
@@ -362,7 +361,8 @@ def _with_points_on_edges(vertices: np.ndarray, ring: np.ndarray, tol: float) ->
     return np.array(out, dtype=np.int64)
 
 
-def _area(flat: np.ndarray) -> float:
+def signed_area(flat: np.ndarray) -> float:
+    """The area of a polygon (m, 2) by the shoelace formula: positive wound counter-clockwise."""
     x, y = flat.T
     return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
 

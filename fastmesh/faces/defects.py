@@ -20,7 +20,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .meshops import face_sides, triangle_areas, weld
+from .meshops import face_sides, remove_unreferenced, triangle_areas, weld
 
 TOUCH = 1e-7  # overlaps thinner than this share of the longest side are touching, not crossing
 PAIR_CHUNK = 50_000  # face pairs tested per vectorised step (~2 kB each)
@@ -108,12 +108,8 @@ def _tree_classes(a: np.ndarray, b: np.ndarray, same: np.ndarray, piece: np.ndar
 def unwelded_vertices(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6) -> int:
     """Referenced vertices of (V, 3) ``vertices`` within ``tol`` of the longest side of another one
     (``meshops.weld``'s rule), counted beyond the first of each group."""
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    used = np.asarray(vertices, dtype=np.float64)[np.unique(f)]
-    if len(used) == 0:
-        return 0
-    extent = float(np.ptp(used, axis=0).max()) or 1.0
-    return int(len(used) - len(np.unique(np.round((used - used.min(0)) / (extent * tol)), axis=0)))
+    used, f, _ = remove_unreferenced(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64))
+    return int(len(used) - len(weld(used, f, tol)[0]))
 
 
 def _candidate_pairs(tri: np.ndarray) -> np.ndarray:

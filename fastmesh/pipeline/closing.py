@@ -18,7 +18,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ..faces.crossings import adds_crossings
-from ..faces.meshops import edge_face_counts, remove_unreferenced, triangle_areas, weld
+from ..faces.meshops import edge_face_counts, face_sides, remove_unreferenced, triangle_areas, weld
 from ..faces.pieces import split_pinches
 from ..faces.surface_triangles import surface_from_faces
 from ..faces.triangles import TriangleConfig
@@ -46,9 +46,6 @@ def weld_seams(unit: np.ndarray, faces: np.ndarray, tol: float = SEAM_TOL) -> tu
     ----------
     unit : (V, 3) float, in the unit cube
     faces : (F, 3) int
-    uncrossed : bool
-        A closed try is kept only where it has no more faces crossing each other than the result
-        (``crossings.adds_crossings``): the solid face stage's result, free of folds, stays so.
 
     Returns
     -------
@@ -56,7 +53,7 @@ def weld_seams(unit: np.ndarray, faces: np.ndarray, tol: float = SEAM_TOL) -> tu
     """
     v = np.asarray(unit, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    edges = np.sort(face_sides(f), axis=1)
     uniq, counts = np.unique(edges, axis=0, return_counts=True)
     rim = np.unique(uniq[counts == 1])
     if len(rim) < 2:
@@ -84,6 +81,9 @@ def closed_result(req: Request, vertices: np.ndarray, faces: np.ndarray, config:
     req : Request
     vertices : (V, 3) float, the input's frame
     faces : (F, 3) int
+    uncrossed : bool
+        A closed try is kept only where it has no more faces crossing each other than the result
+        (``crossings.adds_crossings``): the solid face stage's result, free of folds, stays so.
 
     Returns
     -------

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..shapes.arrangement import merge_points
 from ..shapes.planar import _closed, _triangulate
-from .meshops import weld
+from .meshops import triangle_areas, weld
 
 MAX_FACES = 500_000  # a denser mesh is a scan or a sculpt, not parts an artist placed (and its union takes seconds)
 MAX_PARTS = 256  # more welded pieces than this are scattered debris or a particle mesh, not parts of a prop
@@ -275,7 +275,8 @@ def _flips(vertices: np.ndarray, f: np.ndarray) -> list[tuple[float, int, int, t
         if c == d or (c, d) in directed or (d, c) in directed:
             continue
         quad = vertices[[a, b, c, d]]
-        big = vertices[f[i]] if _area(vertices[f[i]]) >= _area(vertices[f[j]]) else vertices[f[j]]
+        area = triangle_areas(vertices, f[[i, j]])
+        big = vertices[f[i]] if area[0] >= area[1] else vertices[f[j]]
         normal = np.cross(big[1] - big[0], big[2] - big[0])
         normal /= np.linalg.norm(normal)
         if np.abs((quad - big[0]) @ normal).max() > COPLANAR:
@@ -301,10 +302,6 @@ def _min_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         cos = np.einsum("ij,ij->i", u, w) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1), 1e-300)
         out = np.minimum(out, np.arccos(np.clip(cos, -1, 1)))
     return out
-
-
-def _area(tri: np.ndarray) -> float:
-    return float(np.linalg.norm(np.cross(tri[1] - tri[0], tri[2] - tri[0])))
 
 
 def _corners(vertices: np.ndarray, border: np.ndarray, straight: float = STRAIGHT_SINE) -> np.ndarray:

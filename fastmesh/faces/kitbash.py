@@ -17,7 +17,7 @@ import numpy as np
 
 from ..shapes.arrangement import merge_points
 from ..shapes.planar import _closed, _triangulate
-from .meshops import triangle_areas, weld
+from .meshops import face_sides, triangle_areas, weld, wound_alike
 
 MAX_FACES = 500_000  # a denser mesh is a scan or a sculpt, not parts an artist placed (and its union takes seconds)
 MAX_PARTS = 256  # more welded pieces than this are scattered debris or a particle mesh, not parts of a prop
@@ -173,7 +173,7 @@ def _signed_volume(v: np.ndarray, f: np.ndarray) -> float:
 
 def flat_regions(vertices: np.ndarray, faces: np.ndarray, limit: int | None = None
                  ) -> tuple[np.ndarray, np.ndarray] | None:
-    """The flat regions of a closed mesh: faces joined edge to edge that lie in one plane (within ``COPLANAR``
+    """The flat regions of a mesh: faces joined edge to edge that lie in one plane (within ``COPLANAR``
     of the plane of the region's largest face), whichever way they face: two faces in one plane that meet at an
     edge facing each other are a fold of no volume (where two parts' sides lay in one plane, their growth and
     shrinking leave one, or a needle without area), which the region's outline then leaves out.
@@ -191,9 +191,11 @@ def flat_regions(vertices: np.ndarray, faces: np.ndarray, limit: int | None = No
     unit = normal / np.maximum(area, 1e-300)[:, None]
     e = np.sort(np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1), axis=2).reshape(-1, 2)
     edge = np.unique(e, axis=0, return_inverse=True)[1].reshape(-1)
-    owners = np.argsort(edge, kind="stable") // 3  # closed: each edge's two faces side by side
+    order = np.argsort(edge, kind="stable")
+    ends = edge[order]
+    pair = np.flatnonzero(ends[1:] == ends[:-1])  # an edge's two faces side by side (an open edge has one)
     across: list[list[int]] = [[] for _ in faces]
-    for a, b in owners.reshape(-1, 2):
+    for a, b in zip(order[pair] // 3, order[pair + 1] // 3, strict=True):
         across[a].append(int(b))
         across[b].append(int(a))
     region, planes = np.full(len(faces), -1), []
@@ -215,15 +217,19 @@ def flat_regions(vertices: np.ndarray, faces: np.ndarray, limit: int | None = No
 
 def flat_rebuild(vertices: np.ndarray, faces: np.ndarray, region: np.ndarray, planes: np.ndarray,
                  straight: float = STRAIGHT_SINE) -> tuple[np.ndarray, np.ndarray] | None:
-    """A closed mesh's flat regions (``region`` (F,), ``planes`` (R, 4): :func:`flat_regions`) each triangulated
-    again from its outline, the vertices inside a region or along a straight edge between two regions (turning by a
-    sine under ``straight``) dropped; None where the result is not closed (the mesh as it is then stands)."""
+    """A mesh's flat regions (``region`` (F,), ``planes`` (R, 4): :func:`flat_regions`) each triangulated again
+    from its outline, the vertices inside a region or along a straight edge between two regions (turning by a sine
+    under ``straight``) dropped; None where the result is not as closed as the mesh (closed, or open along the same
+    length of edges, each in one face; the mesh as it is then stands)."""
     directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     side = np.tile(region, 3)
     n = len(vertices)
     order = np.argsort(directed[:, 0] * n + directed[:, 1])
-    twin = order[np.searchsorted(directed[order, 0] * n + directed[order, 1], directed[:, 1] * n + directed[:, 0])]
-    out = side[twin] != side  # closed and oriented: every directed edge has its twin
+    keys = directed[order, 0] * n + directed[order, 1]
+    found = np.minimum(np.searchsorted(keys, directed[:, 1] * n + directed[:, 0]), len(keys) - 1)
+    twin = order[found]
+    lone = keys[found] != directed[:, 1] * n + directed[:, 0]  # an open edge: the outline of its region
+    out = lone | (side[twin] != side)
     border, owner = directed[out], side[out]
     keep = _corners(vertices, border, straight)
     loops = []
@@ -235,9 +241,27 @@ def flat_rebuild(vertices: np.ndarray, faces: np.ndarray, region: np.ndarray, pl
     index = np.full(len(vertices), -1)
     index[used] = np.arange(len(used))
     out = _triangulate(vertices[used], planes, [(r, index[ring]) for r, ring in loops], COPLANAR)
-    if out is None or not _closed(out):
+    if out is None or not _as_closed(vertices[used], out, _open_length(vertices, directed[lone])):
         return None
     return vertices[used], fatter(vertices[used], out)
+
+
+def _open_length(vertices: np.ndarray, edges: np.ndarray) -> float:
+    """The total length of edges (E, 2)."""
+    return float(np.linalg.norm(vertices[edges[:, 1]] - vertices[edges[:, 0]], axis=1).sum())
+
+
+def _as_closed(vertices: np.ndarray, faces: np.ndarray, open_length: float) -> bool:
+    """Whether a rebuild is closed (``open_length`` 0), or wound alike with every edge in at most two faces and its
+    open edges as long as ``open_length`` (the mesh's own, whose straight runs it keeps)."""
+    if open_length == 0.0:
+        return _closed(faces)
+    if not wound_alike(faces):
+        return False
+    sides = face_sides(faces)
+    _, inverse, count = np.unique(np.sort(sides, axis=1), axis=0, return_inverse=True, return_counts=True)
+    length = _open_length(vertices, sides[count[inverse.reshape(-1)] == 1])
+    return abs(length - open_length) <= 1e-9 * max(open_length, 1.0)
 
 
 def fatter(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -70,6 +70,13 @@ def edge_face_counts(faces: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0, return_counts=True)[1].astype(np.int64)
 
 
+def wound_alike(faces: np.ndarray) -> bool:
+    """Whether no edge of ``faces`` (F, 3) has more than two faces and no two faces run one edge the same way (an
+    edge-manifold surface, closed or open, consistently wound)."""
+    sides = face_sides(faces)
+    return len(np.unique(sides, axis=0)) == len(sides) and int(edge_face_counts(faces).max(initial=0)) <= 2
+
+
 def corner_fans(faces: np.ndarray) -> np.ndarray:
     """(3F,) the fan of each face corner around its vertex: corners of one vertex share a label exactly when
     their faces are joined edge to edge around it.  Corner i of face k is entry ``i * F + k``.

@@ -27,8 +27,8 @@ from ..shapes.arrangement import merge_points
 from ..shapes.planar import PlanarConfig, _closed, _distinct, _with_points_on_edges, planes_found
 from .cells import min_cut
 from .kitbash import flat_rebuild, flat_regions
-from .meshops import distance_to_triangles, remove_unreferenced
-from .plane_arrangement import WELD_EPS, Polytope, facets, plane_arrangement, plane_basis, polygon_area
+from .meshops import distance_to_triangles, remove_unreferenced, wound_alike
+from .plane_arrangement import GROWN, WELD_EPS, Polytope, facets, plane_arrangement, plane_basis, polygon_area
 from .winding import winding_numbers
 
 MAX_REGIONS = 256  # flat regions of the union (``kitbash.MAX_REGIONS``)
@@ -53,7 +53,7 @@ def labelled(cells: list[Polytope], points: np.ndarray, normals: np.ndarray, a: 
 
 
 def cells_surface(planes: np.ndarray, pid: np.ndarray, rings: list[np.ndarray], a: np.ndarray, b: np.ndarray,
-                  inside: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray] | None:
+                  inside: np.ndarray, tol: float, open_: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
     """The boundary of the inside cells: the facets between an inside and an outside cell, each wound outward,
     their corners made one where they meet and each flat region triangulated again from its outline
     (``kitbash.flat_rebuild``).
@@ -67,19 +67,22 @@ def cells_surface(planes: np.ndarray, pid: np.ndarray, rings: list[np.ndarray], 
     inside : (C,) bool
     tol : float, corners this close are one vertex: planes fitted to samples cross a little apart where more than
         three meet (``planar.planar_mesh`` merges its corners within its plane tolerance, as here)
+    open_ : bool, an inside cell may touch the box: the facets on the box are left out, and the surface is open
+        there (a building without its floor)
 
     Returns
     -------
-    (V, 3) float64 vertices and (F, 3) int64 faces, closed and oriented outward; or None where they are not (a
-    cell in the box's edge labelled inside), or the union has more than ``MAX_REGIONS`` flat regions.
+    (V, 3) float64 vertices and (F, 3) int64 faces, closed (or with ``open_`` open only on the box) and oriented
+    outward; or None where they are not (a cell in the box's edge labelled inside), or the union has more than
+    ``MAX_REGIONS`` flat regions.
     """
-    made = _outward_facets(planes, pid, rings, a, b, inside)
+    made = _outward_facets(planes, pid, rings, a, b, inside, open_)
     if made is None:
         return None
     corners, loops, oriented, row_plane = made
     # Merged within ``tol`` first (corners where more than three planes meet are one vertex), else only within
     # rounding where that merges a small facet's corners across it (a noisy scan's ``tol`` is 3.5 noise levels).
-    made = _welded(corners, oriented, loops, tol) or _welded(corners, oriented, loops, WELD_EPS)
+    made = _welded(corners, oriented, loops, tol, open_) or _welded(corners, oriented, loops, WELD_EPS, open_)
     if made is None:
         return None
     vertices, faces, row = made
@@ -99,16 +102,18 @@ def cells_surface(planes: np.ndarray, pid: np.ndarray, rings: list[np.ndarray], 
 
 
 def _outward_facets(planes: np.ndarray, pid: np.ndarray, rings: list[np.ndarray], a: np.ndarray, b: np.ndarray,
-                    inside: np.ndarray) -> tuple[np.ndarray, list, np.ndarray, np.ndarray] | None:
+                    inside: np.ndarray, open_: bool = False) -> tuple[np.ndarray, list, np.ndarray, np.ndarray] | None:
     """The facets between an inside and an outside cell (:func:`cells_surface`'s parameters) in 3D, each wound
     outward: (C, 3) their corners, their rings (plane row, (m,) ids into the corners), (P, 4) the rows: each
     plane facing one way, and (P,) the plane of each row.  None where there are none or an inside cell touches the
-    box."""
+    box (with ``open_``, that facet is left out)."""
     ins_a = inside[a]
     ins_b = np.where(b < 0, False, inside[np.maximum(b, 0)])
     corners, loops, rows = [], [], {}
     for t in np.flatnonzero(ins_a != ins_b):
         if b[t] < 0:
+            if open_:
+                continue
             return None
         sign = 1.0 if ins_a[t] else -1.0
         n, d = planes[pid[t], :3], planes[pid[t], 3]
@@ -127,12 +132,12 @@ def _outward_facets(planes: np.ndarray, pid: np.ndarray, rings: list[np.ndarray]
     return np.array(corners), loops, oriented, row_plane
 
 
-def _welded(corners: np.ndarray, planes: np.ndarray, loops: list[tuple[int, np.ndarray]], tol: float
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def _welded(corners: np.ndarray, planes: np.ndarray, loops: list[tuple[int, np.ndarray]], tol: float,
+            open_: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The facets' rings ``loops`` ((plane row, (m,) ids into ``corners`` (C, 3))) as one closed mesh: corners
     within ``tol`` made one vertex, each ring fanned with the vertices on its edges (:func:`_fans`, on
-    ``planes`` (P, 4)): vertices, faces and the plane row of each face; None where that is not closed and
-    consistently wound."""
+    ``planes`` (P, 4)): vertices, faces and the plane row of each face; None where that is not closed (with
+    ``open_``: no edge in more than two faces) and consistently wound."""
     vertices, index = merge_points(corners, tol)
     rings = [(k, _distinct(index[ids])) for k, ids in loops]
     # A facet whose corners merged into a line (a sliver narrower than ``tol``) is none.
@@ -141,7 +146,8 @@ def _welded(corners: np.ndarray, planes: np.ndarray, loops: list[tuple[int, np.n
     if not rings:
         return None
     vertices, faces, row = _fans(vertices, planes, rings, tol)
-    return (*remove_unreferenced(vertices, faces)[:2], row) if _closed(faces) else None
+    whole = _closed(faces) or (open_ and wound_alike(faces))
+    return (*remove_unreferenced(vertices, faces)[:2], row) if whole else None
 
 
 def _fans(vertices: np.ndarray, planes: np.ndarray, rings: list[tuple[int, np.ndarray]], tol: float
@@ -186,19 +192,22 @@ def _signed(flat: np.ndarray) -> float:
     return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
 
 
-def plane_cells(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = PlanarConfig()
+def plane_cells(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = PlanarConfig(), open_: bool = False
                 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """The closed mesh the planes of an oriented point cloud bound, whatever their arrangement.
+    """The closed mesh the planes of an oriented point cloud bound, whatever their arrangement; with ``open_`` the
+    mesh open where the points stop on their box (a building without its floor, a crate without its lid).
 
     Parameters
     ----------
     points : (N, 3) float, in the unit frame (``shape.Normalization``)
     normals : (N, 3) float, unit, pointing out of the shape
     cfg : the planes path's tolerances (``planar.PlanarConfig``); its planes held at the points' own noise
+    open_ : bool, the surface may stop on the box (``cells_surface``)
 
     Returns
     -------
-    (V, 3) float64 vertices and (F, 3) int64 faces, closed, edge-manifold and oriented outward, each flat region
+    (V, 3) float64 vertices and (F, 3) int64 faces, closed (or open only on the box), edge-manifold and oriented
+    outward, each flat region
     triangulated from its outline, whose surface and the points lie within twice the planes path's reach (plus
     its plane tolerance) of each other both ways (exact point-to-triangle distances one way, the surface's
     samples' nearest points the other); or None where the points are not held by planes, the cells are more than
@@ -217,9 +226,11 @@ def plane_cells(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = Pla
     inside = labelled(cells, pts, nrm, a, b, SMOOTH_SPACINGS * spacing * uncovered)
     if not inside.any():
         return None
-    mesh = cells_surface(all_planes, pid, rings, a, b, inside, cfg.tolerance)
-    if mesh is None or not _closed(mesh[1]):
+    mesh = cells_surface(all_planes, pid, rings, a, b, inside, cfg.tolerance, open_)
+    if mesh is None or not (_closed(mesh[1]) or open_):
         return None
+    if not _closed(mesh[1]):
+        mesh = _to_extent(*mesh, all_planes[len(planes):], cfg.tolerance)
     return mesh if _near(*mesh, pts, 2 * reach + cfg.tolerance) else None
 
 
@@ -232,3 +243,19 @@ def _near(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, limit: fl
         return False
     samples = sample_triangles(vertices, faces, len(points), np.random.default_rng(0))[0]
     return bool(cKDTree(points).query(samples)[0].max() < limit)
+
+
+def _to_extent(vertices: np.ndarray, faces: np.ndarray, box: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """An open surface's vertices on the cells' box (``box`` (6, 4), ``plane_arrangement.box_planes``: grown
+    ``GROWN`` beyond the points) moved to where the points stop: each to the point of its faces' planes on its
+    side of the points' own box, so that its walls end where theirs do."""
+    region, planes = flat_regions(vertices, faces)
+    v = vertices.copy()
+    for side in box:
+        on = np.flatnonzero(np.abs(vertices @ side[:3] - side[3]) < tol)
+        for i in on:
+            rows = planes[np.unique(region[(faces == i).any(axis=1)])]
+            rows = rows[np.abs(rows[:, :3] @ side[:3]) < 1 - 1e-9]  # the walls through it, not the box's own plane
+            lhs, rhs = np.vstack([rows[:, :3], side[:3]]), np.r_[rows[:, 3], side[3] - GROWN]
+            v[i] += np.linalg.lstsq(lhs, rhs - lhs @ v[i], rcond=None)[0]  # the least move onto them all
+    return v, faces

@@ -369,6 +369,7 @@ class Pipeline(FrameSteps):
         with stage("faces", req.timings):
             vertices, faces, note = closed_result(req, vertices, faces, self.triangle_config,
                                                   uncrossed=solid and result_from == "model")
+        faces = step8.facing(req, vertices, faces)
         result = step8.finished(req, vertices, faces, tokens=best["tokens"], info={**info, "result_from": result_from},
                                 evidence=best["evidence"] if result_from == "model" else None, count_step=step,
                                 note=note)

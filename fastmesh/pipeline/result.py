@@ -8,7 +8,9 @@ made of flat faces within its own surface; :func:`finished` makes the
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 
@@ -23,6 +25,7 @@ from ..faces.facecount import hold_count
 from ..faces.flat import simplify_flat
 from ..faces.kitbash import kitbash_union
 from ..faces.meshops import edge_face_counts, remove_unreferenced, triangle_areas, weld
+from ..faces.orient import face_input
 from ..faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
 from ..faces.plane_cells import plane_cells
 from ..faces.redistribute import redistribute
@@ -32,6 +35,7 @@ from ..faces.triangles import TriangleConfig
 from ..models.generate import GenerationError
 from ..request import PLANAR_SAMPLES, Request
 from ..shapes.open_planar import open_polyhedron
+from ..shapes.orientation import outward
 from ..shapes.planar import polyhedron
 from ..shapes.shape import Shape
 from .closing import unclosed_note
@@ -140,7 +144,8 @@ def planar(req: Request, open_: bool = False, turn: np.ndarray | None = None
     the pose), or with ``open_`` its open surface whose open edges lie on its bounding box in its own frame or,
     turned by ``turn`` (3, 3), in its canonical one (``open_planar.open_polyhedron``); in the input's frame, with
     where it comes from ("planes"); or a low-poly mesh input of the same shape, welded, where it has at most
-    ``LOW_POLY_SLACK`` times the rebuild's faces ("input": a cylinder's caps keep their centres).  A closed mesh
+    ``LOW_POLY_SLACK`` times the rebuild's faces ("input": a cylinder's caps keep their centres).  Planes the corners
+    path cannot close or open give the cells of their arrangement (``plane_cells.plane_cells``).  A closed mesh
     input of flat parts that touch or overlap gives their union rebuilt from its planes (``kitbash.kitbash_union``;
     "planes").  None where the input is not one."""
     shape, frame = req.shape, req.frame
@@ -152,16 +157,29 @@ def planar(req: Request, open_: bool = False, turn: np.ndarray | None = None
             points, normals = frame.unit, shape.normals
         else:
             points, normals = frame.samples(PLANAR_SAMPLES, 0)
-        found = open_polyhedron(points, normals) if open_ else polyhedron(points, normals)
-        if found is None and not open_:  # planes the corners path cannot close (a step's overhang, a table's legs)
-            found = plane_cells(points, normals)
-        if found is None and open_ and turn is not None and not np.array_equal(turn, np.eye(3)):
-            found = open_polyhedron(points @ turn.T, normals @ turn.T)
-            found = None if found is None else (found[0] @ turn, found[1])
+        if not open_:  # the corners, else the cells of planes the corners cannot close (a step's overhang, legs)
+            found = polyhedron(points, normals) or plane_cells(points, normals)
+        else:  # open where the points stop on their box, in their own frame or the canonical one
+            found = _framed(open_polyhedron, points, normals, turn)
+            if found is None and not req.close:  # a closed input's cells were weighed closed already
+                found = _framed(partial(plane_cells, open_=True), points, normals, turn)
+                found = found if found is not None and (edge_face_counts(found[1]) == 1).any() else None  # open
     if found is None:
         return None
     low = low_poly(shape, int(LOW_POLY_SLACK * len(found[1])))
     return (frame.norm.invert(found[0]), found[1], "planes") if low is None else (*low, "input")
+
+
+def _framed(rebuild: Callable, points: np.ndarray, normals: np.ndarray, turn: np.ndarray | None
+            ) -> tuple[np.ndarray, np.ndarray] | None:
+    """``rebuild(points, normals)`` (an open surface whose open edges lie on the points' box) in the points' own
+    frame, else turned by ``turn`` (3, 3; the canonical frame, where a turned building's floor lies on its box)
+    and turned back; None where neither gives one."""
+    found = rebuild(points, normals)
+    if found is None and turn is not None and not np.array_equal(turn, np.eye(3)):
+        found = rebuild(points @ turn.T, normals @ turn.T)
+        found = None if found is None else (found[0] @ turn, found[1])
+    return found
 
 
 def flat_faced(req: Request) -> tuple[np.ndarray, np.ndarray, str] | None:
@@ -289,6 +307,16 @@ def _fits(req: Request, support_points: int, **meshes: tuple[np.ndarray, np.ndar
     seed = req.params.seed
     reference = req.frame.surface(support_points, seed)
     return {name: round(surface_fit(v, f, reference, seed), 6) for name, (v, f) in meshes.items()}
+
+
+def facing(req: Request, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The result's faces with its open pieces turned to face the input (``orient.face_input``), read from the
+    input's samples (``req.count_samples``) with their normals turned out of what they enclose
+    (``orientation.outward``: a Quake model's inward normals too; a sheet's as given)."""
+    with stage("faces", req.timings):  # in the unit cube: cross products of 1e155 coordinates overflow
+        points, normals = req.count_samples
+        norm = req.frame.norm
+        return face_input(norm.apply(vertices), faces, norm.apply(points), outward(norm.apply(points), normals))
 
 
 def held(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:

@@ -208,3 +208,21 @@ def test_the_pipeline_rebuilds_a_step_from_its_planes():
         assert res.info["result_from"] == "planes" and res.tokens == 0
         assert len(res.faces) == len(truth.faces) and res.quality["watertight"]
         assert distance_to_triangles(res.vertices, truth.vertices, truth.faces).max() < 1e-5 * size
+
+
+@pytest.mark.parametrize("family", ["bevel", "bay"])
+def test_noisy_bevels_and_bays_are_rebuilt_right_or_not_at_all(family):
+    """Four each of the bevel and bay families scanned with 0.3 % noise as points, any pose and unit: each one the
+    cells give lies within 1 % of its size of the truth (before, boxes that left out a bevel's chamfers came back
+    3-6 % off: the points were held to twice the reach, not to the plane tolerance at their noise)."""
+    rng = np.random.default_rng(77 + len(family))
+    for _ in range(4):
+        truth = _posed(FAMILIES[family](rng), rng, 10.0 ** rng.uniform(-3, 3))
+        norm, found = _rebuilt(_input(truth, rng, False, noise=0.003))
+        if found is not None:
+            vertices, faces = norm.invert(found[0]), found[1]
+            size = float(np.ptp(truth.vertices, axis=0).max())
+            for (va, fa), (vb, fb) in (((vertices, faces), (truth.vertices, truth.faces)),
+                                       ((truth.vertices, truth.faces), (vertices, faces))):
+                samples = trimesh.Trimesh(va, fa, process=False).sample(3000, seed=0)
+                assert distance_to_triangles(samples, vb, fb).max() < 0.01 * size

@@ -93,7 +93,6 @@ def _flips(fa: np.ndarray, fb: np.ndarray, same_dir: np.ndarray, nf: int) -> tup
     return flip, label
 
 
-
 def face_input(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """``faces`` with each sheet turned where its area faces against the input more than with it: a piece with an
     open edge that encloses almost no volume (``SHEET_VOLUME``: a roof, a terrain, a wall) has no inside for

@@ -212,11 +212,10 @@ def plane_cells(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = Pla
     Returns
     -------
     (V, 3) float64 vertices and (F, 3) int64 faces, closed (or open only on the box), edge-manifold and oriented
-    outward, each flat region
-    triangulated from its outline, on which every point lies within ``COVER_TOLERANCES`` plane tolerances (exact
-    point-to-triangle distances) and whose samples lie within twice the planes path's reach (plus its plane
-    tolerance) of a point; or None where the points are not held by planes, the cells are more than
-    ``plane_arrangement.MAX_CELLS`` or the result is not that close.
+    outward, each flat region triangulated from its outline, on which every point lies within
+    ``COVER_TOLERANCES`` plane tolerances (exact point-to-triangle distances) and whose samples lie within twice
+    the planes path's reach (plus its plane tolerance) of a point; or None where the points are not held by planes,
+    the cells are more than ``plane_arrangement.MAX_CELLS`` or the result is not that close.
     """
     found = planes_found(points, normals, cfg)
     if found is None:

@@ -13,9 +13,10 @@ NOISE_NEAR = 12
 NOISE_FAR = 48
 NOISE_PROBES = 1024  # the median over this many varies by about 2 %
 CURVED_GROWTH = 1.6
+SIDE_COS = 0.5  # neighbours whose normals turn by more than 60 degrees lie on another side (``noise_level``)
 
 
-def noise_level(points: np.ndarray) -> float:
+def noise_level(points: np.ndarray, normals: np.ndarray | None = None) -> float:
     """The standard deviation of the points' noise off their surface, or 0 where the surface's own curvature,
     not noise, moves them off the plane of their neighbours.
 
@@ -26,14 +27,26 @@ def noise_level(points: np.ndarray) -> float:
     median at ``NOISE_FAR`` neighbours exceeds ``CURVED_GROWTH`` times the near one, curvature is what is
     measured, and no noise is read.
 
+    With ``normals``, a probe's neighbours are the nearest of the points on its side of the surface (normals
+    within ``SIDE_COS``, among its ``2 * NOISE_FAR`` nearest; where that leaves under half the probes enough of
+    them, as without normals): on a thin wall or a shelf the far neighbourhood otherwise reaches the other side,
+    which reads as curvature.
+
     Parameters
     ----------
     points : (N, 3) float, in the unit frame
+    normals : (N, 3) float, optional, unit
     """
     if len(points) <= NOISE_FAR:
         return 0.0
-    probe = points[np.random.default_rng(0).choice(len(points), min(len(points), NOISE_PROBES), replace=False)]
-    idx = cKDTree(points).query(probe, k=NOISE_FAR)[1]
+    pick = np.random.default_rng(0).choice(len(points), min(len(points), NOISE_PROBES), replace=False)
+    idx = cKDTree(points).query(points[pick], k=min(len(points), NOISE_FAR if normals is None else 2 * NOISE_FAR))[1]
+    if normals is not None:
+        n = np.asarray(normals, dtype=np.float64)
+        side = np.einsum("pkd,pd->pk", n[idx], n[pick]) > SIDE_COS
+        sided = np.take_along_axis(idx, np.argsort(~side, axis=1, kind="stable"), axis=1)[side.sum(1) >= NOISE_FAR]
+        # Normals whose signs disagree leave few probes a side of their own: read as without normals.
+        idx = sided if 2 * len(sided) >= len(pick) else idx
     near, far = (_plane_rms(points, idx[:, :k]) for k in (NOISE_NEAR, NOISE_FAR))
     near *= np.sqrt(NOISE_NEAR / (NOISE_NEAR - 3))
     far *= np.sqrt(NOISE_FAR / (NOISE_FAR - 3))

@@ -133,7 +133,7 @@ def _planes_at_noise(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig
     """:func:`detect_planes` at the points' own noise: the planes, the plane of each point, and the tolerances
     they were found with (``cfg``'s, or for a scan whose noise exceeds them those of ``NOISE_SIGMAS`` noise
     levels, its normals fitted to its neighbours and only the planes as flat as the noise: :func:`_flat_only`)."""
-    sigma = noise_level(points)
+    sigma = noise_level(points, normals)
     if NOISE_SIGMAS * sigma <= cfg.tolerance:
         found = detect_planes(points, normals, cfg)
         return None if found is None else (*found, cfg)

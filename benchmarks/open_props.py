@@ -19,7 +19,7 @@ import numpy as np
 import trimesh
 
 from fastmesh.faces.defects import winding
-from fastmesh.faces.meshops import distance_to_triangles, edge_face_counts
+from fastmesh.faces.meshops import distance_to_triangles, face_sides, open_sides
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.shapes.shape import Shape
@@ -50,15 +50,13 @@ def floorless(pipe: Pipeline, rng: np.random.Generator) -> None:
         size = float(np.ptp(truth.vertices, axis=0).max())
         res = pipe.generate(_input(truth, rng, False), PARAMS)
         v, f = res.vertices, res.faces
-        counts = edge_face_counts(f)
-        sides = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        rim = np.unique(sides[counts[np.unique(sides, axis=0, return_inverse=True)[1].reshape(-1)] == 1])
+        rim = np.unique(face_sides(f)[open_sides(f)])
         off = np.abs(v[rim] @ floor[:3] - floor[3]).max() / size if len(rim) else 0.0
         both = max(distance_to_triangles(trimesh.Trimesh(a, b, process=False).sample(4000, seed=0), c, d).max()
                    for (a, b), (c, d) in (((v, f), (truth.vertices, truth.faces)),
                                           ((truth.vertices, truth.faces), (v, f)))) / size
         print(f"floorless {family}: {len(f)} faces ({res.info['result_from']}) for the truth's {len(truth.faces)}, "
-              f"open edges {int((counts == 1).sum())} (off the floor by {100 * off:.3f} %), distance both ways "
+              f"open edges {int(open_sides(f).sum())} (off the floor by {100 * off:.3f} %), distance both ways "
               f"{100 * both:.3f} %")
 
 

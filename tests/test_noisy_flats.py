@@ -33,13 +33,14 @@ def _scan(mesh: Shape, noise: float, rng: np.random.Generator, dense: bool) -> S
     return with_normals(Shape(vertices=points + rng.normal(0, noise * size, points.shape)))
 
 
-def _rebuilt(scan: Shape) -> tuple[Normalization, tuple[np.ndarray, np.ndarray] | None]:
-    """The scan's polyhedron in its unit frame, read as the pipeline reads it (a mesh's surface samples)."""
+def _rebuilt(scan: Shape, rebuild=polyhedron) -> tuple[Normalization, tuple[np.ndarray, np.ndarray] | None]:
+    """The scan rebuilt in its unit frame by ``rebuild(points, normals)`` (the corners' polyhedron, or
+    ``plane_cells``), read as the pipeline reads it (a mesh's 8,192 surface samples)."""
     norm = Normalization.fit(scan.vertices)
     if scan.faces is None:
-        return norm, polyhedron(norm.apply(scan.vertices), scan.normals)
+        return norm, rebuild(norm.apply(scan.vertices), scan.normals)
     points, normals = sample_surface(scan, 8192, seed=0, vertices=norm.apply(scan.vertices))
-    return norm, polyhedron(points.astype(np.float64), normals.astype(np.float64))
+    return norm, rebuild(points.astype(np.float64), normals.astype(np.float64))
 
 
 def _close_to(found: tuple[np.ndarray, np.ndarray], truth: np.ndarray, faces: np.ndarray, limit: float) -> None:

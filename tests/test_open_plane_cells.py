@@ -13,7 +13,13 @@ import trimesh
 from test_plane_cells import FAMILIES, SCALES
 
 from fastmesh.faces.defects import winding
-from fastmesh.faces.meshops import distance_to_triangles, edge_face_counts, point_triangle_distance
+from fastmesh.faces.meshops import (
+    distance_to_triangles,
+    edge_face_counts,
+    face_sides,
+    open_sides,
+    point_triangle_distance,
+)
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.shapes.io import sample_surface
@@ -69,9 +75,7 @@ def test_floorless_flat_props_come_back_open_at_the_bottom_only(pipe, family, de
         assert len(f) <= FACES * len(truth.faces)
         counts = edge_face_counts(f)
         assert counts.max() == 2 and (counts == 1).any()
-        sides = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        inverse = np.unique(sides, axis=0, return_inverse=True)[1].reshape(-1)
-        rim = np.unique(sides[counts[inverse] == 1])
+        rim = np.unique(face_sides(f)[open_sides(f)])
         assert np.abs(v[rim] @ floor[:3] - floor[3]).max() < RIM * size  # open along the bottom outline only
         assert winding(v, f)["misoriented_edges"] == 0
         rng_s = np.random.default_rng(0)

@@ -9,13 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from test_noisy_flats import _rebuilt, _scan
 
-from fastmesh.evaluation.primitives import point_cloud
 from fastmesh.faces.meshops import distance_to_triangles
 from fastmesh.faces.plane_cells import plane_cells
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.shapes.io import sample_surface, with_normals
+from fastmesh.shapes.io import sample_surface
 from fastmesh.shapes.planar import polyhedron
 from fastmesh.shapes.shape import Normalization, Shape
 
@@ -87,27 +87,6 @@ def _posed(solid, rng: np.random.Generator, scale: float) -> Shape:
     return Shape(vertices=np.asarray(tm.apply_transform(pose).vertices, dtype=np.float64), faces=np.asarray(tm.faces))
 
 
-def _input(truth: Shape, rng: np.random.Generator, dense: bool, noise: float = 0.0) -> Shape:
-    """The truth as a dense mesh (faces of 2 % of its size, each vertex moved by ``noise`` of it) or as 8,192 bare
-    points (moved as much, normals estimated as ``io.load`` estimates them)."""
-    size = float(np.ptp(truth.vertices, axis=0).max())
-    if dense:
-        tm = trimesh.Trimesh(truth.vertices, truth.faces, process=False).subdivide_to_size(0.02 * size)
-        return Shape(vertices=np.asarray(tm.vertices) + rng.normal(0, noise * size, tm.vertices.shape),
-                     faces=np.asarray(tm.faces))
-    points = point_cloud(truth, seed=int(rng.integers(1 << 30))).vertices
-    return with_normals(Shape(vertices=points + rng.normal(0, noise * size, points.shape)))
-
-
-def _rebuilt(scan: Shape) -> tuple[Normalization, tuple[np.ndarray, np.ndarray] | None]:
-    """The scan rebuilt in its unit frame, read as the pipeline reads it (a mesh's 8,192 surface samples)."""
-    norm = Normalization.fit(scan.vertices)
-    if scan.faces is None:
-        return norm, plane_cells(norm.apply(scan.vertices), scan.normals)
-    points, normals = sample_surface(scan, 8192, seed=0, vertices=norm.apply(scan.vertices))
-    return norm, plane_cells(points.astype(np.float64), normals.astype(np.float64))
-
-
 def _check(found: tuple[np.ndarray, np.ndarray], truth: Shape, norm: Normalization, limit: float) -> None:
     """Closed, outward, one piece, no more faces than the truth's own triangulation, and within ``limit`` of the
     truth's size of it both ways (exact point-to-triangle distances from 4,000 samples of each)."""
@@ -131,7 +110,7 @@ def test_random_flat_shapes_come_back_from_their_planes(family, dense):
     rng = np.random.default_rng(sorted(FAMILIES).index(family) * 2 + dense)
     for scale in SCALES:
         truth = _posed(FAMILIES[family](rng), rng, scale)
-        norm, found = _rebuilt(_input(truth, rng, dense))
+        norm, found = _rebuilt(_scan(truth, 0.0, rng, dense), plane_cells)
         assert found is not None, (family, scale)
         _check(found, truth, norm, 1e-5)
 
@@ -145,7 +124,7 @@ def test_corners_inside_straight_edges_do_not_depend_on_rounding():
     rng = np.random.default_rng(sorted(FAMILIES).index("step") * 2)
     for scale in SCALES:
         truth = _posed(_step(rng), rng, scale)
-        scan = _input(truth, rng, False)
+        scan = _scan(truth, 0.0, rng, False)
         norm = Normalization.fit(scan.vertices)
         points = norm.apply(scan.vertices)
         for draw in range(3):
@@ -165,7 +144,7 @@ def test_noisy_scans_of_steps_insets_and_notches(dense):
     for family in ("step", "inset", "notch"):
         for scale in (1e-3, 1e3):
             truth = _posed(FAMILIES[family](rng), rng, scale)
-            norm, found = _rebuilt(_input(truth, rng, dense, noise=0.003))
+            norm, found = _rebuilt(_scan(truth, 0.003, rng, dense), plane_cells)
             if found is not None:
                 _check(found, truth, norm, 0.01)
                 rebuilt += 1
@@ -192,7 +171,7 @@ def test_curved_shapes_are_not_rebuilt_from_planes(noise):
     for tm in (trimesh.creation.icosphere(4), trimesh.creation.cylinder(0.5, 1.0, sections=128)):
         mesh = Shape(vertices=np.asarray(tm.vertices), faces=np.asarray(tm.faces))
         for dense in (False, True):
-            assert _rebuilt(_input(mesh, rng, dense, noise))[1] is None
+            assert _rebuilt(_scan(mesh, noise, rng, dense), plane_cells)[1] is None
 
 
 def test_the_pipeline_rebuilds_a_step_from_its_planes():
@@ -204,7 +183,7 @@ def test_the_pipeline_rebuilds_a_step_from_its_planes():
     truth = _posed(_step(rng), rng, 1e-3)
     size = float(np.ptp(truth.vertices, axis=0).max())
     for dense in (True, False):
-        res = pipe.generate(_input(truth, rng, dense), GenerateParams(seed=0))
+        res = pipe.generate(_scan(truth, 0.0, rng, dense), GenerateParams(seed=0))
         assert res.info["result_from"] == "planes" and res.tokens == 0
         assert len(res.faces) == len(truth.faces) and res.quality["watertight"]
         assert distance_to_triangles(res.vertices, truth.vertices, truth.faces).max() < 1e-5 * size
@@ -220,7 +199,7 @@ def test_noisy_bevels_and_bays_are_rebuilt_right_or_not_at_all(family):
     rebuilt = 0
     for _ in range(4):
         truth = _posed(FAMILIES[family](rng), rng, 10.0 ** rng.uniform(-3, 3))
-        norm, found = _rebuilt(_input(truth, rng, False, noise=0.003))
+        norm, found = _rebuilt(_scan(truth, 0.003, rng, False), plane_cells)
         rebuilt += found is not None
         if found is not None:
             vertices, faces = norm.invert(found[0]), found[1]

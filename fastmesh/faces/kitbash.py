@@ -17,7 +17,7 @@ import numpy as np
 
 from ..shapes.arrangement import merge_points
 from ..shapes.planar import _closed, _triangulate
-from .meshops import face_sides, triangle_areas, weld, wound_alike
+from .meshops import face_sides, open_sides, triangle_areas, weld, wound_alike
 
 MAX_FACES = 500_000  # a denser mesh is a scan or a sculpt, not parts an artist placed (and its union takes seconds)
 MAX_PARTS = 256  # more welded pieces than this are scattered debris or a particle mesh, not parts of a prop
@@ -258,9 +258,7 @@ def _as_closed(vertices: np.ndarray, faces: np.ndarray, open_length: float) -> b
         return _closed(faces)
     if not wound_alike(faces):
         return False
-    sides = face_sides(faces)
-    _, inverse, count = np.unique(np.sort(sides, axis=1), axis=0, return_inverse=True, return_counts=True)
-    length = _open_length(vertices, sides[count[inverse.reshape(-1)] == 1])
+    length = _open_length(vertices, face_sides(faces)[open_sides(faces)])
     return abs(length - open_length) <= 1e-9 * max(open_length, 1.0)
 
 

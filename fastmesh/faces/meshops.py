@@ -70,6 +70,15 @@ def edge_face_counts(faces: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0, return_counts=True)[1].astype(np.int64)
 
 
+def open_sides(faces: np.ndarray) -> np.ndarray:
+    """(3F,) bool, per side of :func:`face_sides`: its edge is in no other face (an open edge)."""
+    sides = np.sort(face_sides(faces), axis=1)
+    if len(sides) == 0:
+        return np.zeros(0, dtype=bool)
+    _, inverse, count = np.unique(sides, axis=0, return_inverse=True, return_counts=True)
+    return count[inverse.reshape(-1)] == 1
+
+
 def wound_alike(faces: np.ndarray) -> bool:
     """Whether no edge of ``faces`` (F, 3) has more than two faces and no two faces run one edge the same way (an
     edge-manifold surface, closed or open, consistently wound)."""

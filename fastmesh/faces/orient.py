@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .meshops import piece_labels
+from .meshops import open_sides, piece_labels
 
 # A piece with an open edge is a sheet, sided by the input rather than by its signed volume, where that volume is
 # under this share of its area^(3/2): random wavy sheets read 0.0000, the open results of held-out inputs 0.005 to
@@ -127,10 +127,8 @@ def _sheets(v: np.ndarray, f: np.ndarray, label: np.ndarray, area_normal: np.nda
     """(pieces,) bool: the pieces with an open edge whose signed volume about their vertices' centroid is under
     ``SHEET_VOLUME`` times their area to the power 3/2."""
     n = label.max() + 1
-    sides = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    _, edge, count = np.unique(sides, axis=0, return_inverse=True, return_counts=True)
     open_piece = np.zeros(n, dtype=bool)
-    open_piece[np.tile(label, 3)[count[edge.reshape(-1)] == 1]] = True
+    open_piece[np.tile(label, 3)[open_sides(f)]] = True
     centre = np.zeros((n, 3))
     corner = np.repeat(label, 3)
     np.add.at(centre, corner, v[f].reshape(-1, 3))

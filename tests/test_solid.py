@@ -180,8 +180,9 @@ def test_face_network_probabilities_make_cuts_cheap():
 
 def test_parts_the_cut_loses_come_from_the_rival():
     """A box and, beside it, a plate thinner than the sample spacing whose vertices are one layer: the cut
-    encloses the box and loses the plate (no thin-part vertices added); the rival's plate faces are added as a
-    piece of their own, and the report counts them."""
+    encloses the box and loses the plate (no thin-part vertices added).  Where the box alone lies over the margin
+    from the input, the rival's plate faces are added as a piece of their own, and the report counts them; where
+    it fits (an unbounded margin), the solid comes back closed, with nothing patched in."""
     box = trimesh.creation.box((1.0, 1.0, 1.0))
     plate = trimesh.creation.box((1.0, 1.0, 0.004))
     plate.apply_translation((1.75, 0.0, 0.0))
@@ -189,19 +190,24 @@ def test_parts_the_cut_loses_come_from_the_rival():
     sheet_v = np.array([[1.25, -0.5, 0.0], [2.25, -0.5, 0.0], [2.25, 0.5, 0.0], [1.25, 0.5, 0.0]])
     v = np.concatenate([box.vertices, sheet_v])
     rival_f = np.concatenate([box.faces, np.array([[8, 9, 10], [8, 10, 11]])])
-    out_v, out_f, report = sd.solid_mesh(v, pts, nrm, None, None, True, (v, rival_f), pts, np.inf, thin=False)
+    out_v, out_f, report = sd.solid_mesh(v, pts, nrm, None, None, True, (v, rival_f), pts, 1.5, thin=False)
     assert report["faces_from"] == "solid" and report["patched_faces"] == 2
     assert len(out_f) == 14
     kept = set(map(tuple, np.round(out_v[out_f].mean(1), 6)))
     assert tuple(np.round(sheet_v[[0, 1, 2]].mean(0), 6)) in kept
     assert self_intersections(out_v, out_f) == 0
-    _, _, plain = sd.solid_mesh(v, pts, nrm, None, None, True, (v, rival_f), pts, np.inf, patch=False, thin=False)
+    _, _, plain = sd.solid_mesh(v, pts, nrm, None, None, True, (v, rival_f), pts, 1.5, patch=False, thin=False)
     assert plain["patched_faces"] == 0 and plain["fits"]["solid"] > report["fits"]["solid"]
+    assert plain["faces_from"] == "surface"
+    whole_v, whole_f, whole = sd.solid_mesh(v, pts, nrm, None, None, True, (v, rival_f), pts, np.inf, thin=False)
+    assert whole["faces_from"] == "solid" and whole["patched_faces"] == 0
+    _assert_solid_boundary(whole_v, whole_f, 1.0)
 
 
 def test_the_pipeline_reports_the_solid_stage_and_keeps_it_whole():
     """``TriangleConfig.solid``: each candidate's solid weighed in the face stage, ``info.solid_fits`` says which
-    came back; where the solid did, no later step turns its edges or folds it.  Off (None), nothing changes."""
+    came back; where the solid did, no later step turns its edges or folds it.  It ships on; off (None), the
+    report has no such entry."""
     import torch
 
     from fastmesh.evaluation.primitives import icosphere, point_cloud
@@ -211,9 +217,11 @@ def test_the_pipeline_reports_the_solid_stage_and_keeps_it_whole():
     torch.set_num_threads(1)
     pipe = Pipeline.random(seed=0)
     cloud = point_cloud(icosphere(3), 4096, seed=0)
-    off = pipe.generate(cloud, GenerateParams(seed=0))
-    assert "solid_fits" not in off.info
-    pipe.triangle_config = replace(pipe.triangle_config, solid=np.inf)
+    assert TriangleConfig().solid is not None
+    off = replace(pipe.triangle_config, solid=None)
+    pipe.triangle_config, shipped = off, pipe.triangle_config
+    assert "solid_fits" not in pipe.generate(cloud, GenerateParams(seed=0)).info
+    pipe.triangle_config = replace(shipped, solid=np.inf)
     on = pipe.generate(cloud, GenerateParams(seed=0))
     report = on.info["solid_fits"]
     assert report["faces_from"] in ("solid", "surface") and set(report["fits"]) == {"solid", "surface"}
@@ -306,3 +314,63 @@ def test_thin_parts_come_back_as_thin_closed_parts(seed):
     assert distance_to_triangles(on_part, out_v, out_f).max() < 3.0 * limit
     lost_v, lost_f, _ = sd.solid_mesh(v, pts, nrm, None, None, True, no_rival, pts, np.inf, patch=False, thin=False)
     assert distance_to_triangles(on_part, lost_v, lost_f).max() > 10.0 * limit  # the cut alone loses it
+
+
+@pytest.mark.parametrize("lift", [0.0, 1e-9, 1e-6, 1e-4, 1e-3])
+def test_a_flat_input_asked_closed_is_weighed_not_raised(lift):
+    """A flat input (a square of samples) asked to be closed: its cells are flat or nearly so, and the cut, with
+    or without thin-part vertices, may enclose nothing.  The stage weighs what it has (the rival where the solid
+    is empty) and never samples a surface of no area."""
+    rng = np.random.default_rng(int(lift * 1e9) % 97)
+    pts = np.c_[rng.uniform(0, 1, (2000, 2)), np.zeros(2000)]
+    nrm = np.tile([0.0, 0.0, 1.0], (2000, 1))
+    v = np.c_[rng.uniform(0, 1, (30, 2)), rng.normal(0, lift, 30) if lift else np.zeros(30)]
+    rival_f = np.array([[0, 1, 2], [1, 2, 3]])
+    out_v, out_f, report = sd.solid_mesh(v, pts, nrm, None, None, True, (v, rival_f), pts, 1.1)
+    assert report["faces_from"] in ("solid", "surface") and len(out_f)
+    if report["fits"]["solid"] is None:
+        assert report["faces_from"] == "surface" and np.array_equal(out_f, rival_f)
+
+
+def test_a_solid_candidate_keeps_its_margin_against_the_other_candidates():
+    """The solid comes back where it lies within ``TriangleConfig.solid`` times its own selection's fit; among
+    candidates it keeps that allowance: a solid 5 % farther from the input than another candidate's selection is
+    chosen over it at a margin of 1.1 (a clean closed mesh over a folded one), one 20 % farther is not."""
+    from fastmesh.pipeline import Pipeline
+
+    pipe = Pipeline.random(seed=0)
+    pipe.triangle_config = replace(pipe.triangle_config, solid=1.1)
+    solid = {"solid_fits": {"faces_from": "solid"}}
+    surface = {"solid_fits": {"faces_from": "surface"}}
+    assert pipe._allowed(solid, 1.05) < pipe._allowed(surface, 1.0)
+    assert pipe._allowed(solid, 1.2) > pipe._allowed(surface, 1.0)
+    assert pipe._allowed({}, 1.0) == 1.0
+    pipe.triangle_config = replace(pipe.triangle_config, solid=None)
+    assert pipe._allowed(solid, 1.05) == 1.05
+
+
+@pytest.mark.parametrize("solid_open", [False, True])
+def test_an_open_input_is_cut_as_a_closed_one_with_solid_open(monkeypatch, solid_open):
+    """``solid_open``: an input decided open (a half sphere: it encloses nothing) gets the solid stage
+    too, cut at a closed input's threshold (what it encloses), the parts that enclose nothing patched in from
+    the selection; without it, the stage is not made for an open input."""
+    import torch
+
+    from fastmesh.params import GenerateParams
+    from fastmesh.pipeline import Pipeline, candidate
+    from fastmesh.shapes.shape import Shape
+
+    torch.set_num_threads(1)
+    calls = []
+    real = candidate.solid_mesh
+    monkeypatch.setattr(candidate, "solid_mesh", lambda *a, **k: calls.append(a[5]) or real(*a, **k))
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(3000, 3))
+    pts = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    pts[:, 2] = np.abs(pts[:, 2])
+    cloud = Shape(vertices=pts, faces=None, normals=pts.copy())
+    pipe = Pipeline.random(seed=0)
+    pipe.triangle_config = replace(pipe.triangle_config, solid=1.1, solid_open=solid_open)
+    out = pipe.generate(cloud, GenerateParams(seed=0))
+    assert not out.info["closed_decision"]["close"] and len(out.faces)
+    assert calls == ([True] * len(calls) if solid_open else []) and (len(calls) > 0) == solid_open

@@ -53,6 +53,8 @@ ADDED_P = 0.5
 DATA_WEIGHT = 1.0
 # A part of the input farther than this many support limits (``support.support_limit``) from the solid is lost.
 LOST_LIMITS = 2.0
+# An interface whose area is at most this share of the input's longest side squared encloses nothing.
+FLAT_AREA = 1e-12
 # The cells reach beyond the vertices' hull to their box grown by this share of its longest side.
 BOX_MARGIN = 0.25
 
@@ -121,6 +123,9 @@ def solid_surface(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray,
     f = interface(tri, a, b, inside)
     if not closed and len(f):
         f = _on_input(v, f, pts, np.asarray(normals, dtype=np.float64))
+    # Cells of a flat input are flat: an interface of no area encloses nothing (and cannot be weighed).
+    if len(f) and triangle_areas(v, f).sum() <= FLAT_AREA * float(np.ptp(pts, axis=0).max()) ** 2:
+        f = f[:0]
     v, f, _ = remove_unreferenced(v, f)
     return v, f
 
@@ -182,7 +187,7 @@ def with_thin_parts(vertices: np.ndarray, points: np.ndarray, normals: np.ndarra
                            known=known, thin_reach=THIN_REACH * spacing)
     # Kept where it loses fewer samples and lies no farther from them (a cell it filled past the part would).
     if not len(tf) or lost_samples(pts, tv, tf, LOST_LIMITS * limit).sum() >= lost.sum() or (
-            surface_fit(tv, tf, pts, seed) > surface_fit(v, f, pts, seed)):
+            len(f) and surface_fit(tv, tf, pts, seed) > surface_fit(v, f, pts, seed)):
         return v, f, 0
     used = int((cKDTree(extra).query(tv)[0] == 0).sum())
     return tv, tf, used
@@ -247,8 +252,9 @@ def solid_mesh(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, ed
     flat_tol : float or None, as ``TriangleConfig.flat_tol`` (relative to the vertices' longest side)
     seed : int
     patch : bool
-        The rival's faces that carry a part of the input the cut lost are added to the solid, as pieces of their
-        own (:func:`lost_parts`; ``patched_faces`` counts them): the result is then no longer closed there.
+        Where the solid alone lies over ``margin`` times the rival's fit, the rival's faces that carry a part of
+        the input the cut lost are added to it, as pieces of their own (:func:`lost_parts`; ``patched_faces``
+        counts them), and that is weighed instead: the result is then no longer closed there.
     thin : bool
         Where the cut loses parts of the input, it is cut again with the input's samples there among the vertices
         (``fastmesh.faces.thin``; ``thin_vertices`` counts those the surface uses), kept where it loses fewer.
@@ -260,14 +266,18 @@ def solid_mesh(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, ed
         ``thin_vertices`` and ``faces_from``
     """
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-    f, added, patched = np.zeros((0, 3), dtype=np.int64), 0, 0
+    f, added = np.zeros((0, 3), dtype=np.int64), 0
     if _spans_space(v):
         v, f, added = with_thin_parts(v, points, normals, edges, logits, closed, seed, thin)
     if len(f) and flat_tol is not None:
         v, f = _without_flat(v, f, flat_tol)
-    if patch and len(f) and len(rival[1]):
-        v, f, patched = _patched(v, f, rival, np.asarray(reference, dtype=np.float64))
-    return _weighed(v, f, rival, reference, margin, seed, {"patched_faces": patched, "thin_vertices": added})
+    counts = {"patched_faces": 0, "thin_vertices": added}
+    whole = _weighed(v, f, rival, reference, margin, seed, counts)
+    # The solid as the cut made it, closed, where it fits; else with the parts it lost from the rival.
+    if whole[2]["faces_from"] == "solid" or not (patch and len(f) and len(rival[1])):
+        return whole
+    v, f, patched = _patched(v, f, rival, np.asarray(reference, dtype=np.float64))
+    return _weighed(v, f, rival, reference, margin, seed, {**counts, "patched_faces": patched})
 
 
 def _spans_space(vertices: np.ndarray) -> bool:

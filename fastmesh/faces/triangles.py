@@ -109,14 +109,15 @@ class TriangleConfig:
         The pipeline, per candidate: the surface as the boundary of a solid (:func:`fastmesh.faces.solid.solid_mesh`:
         Delaunay cells of the vertices labelled inside or outside by a minimum cut of the input's winding numbers
         and the edge probabilities) comes back where its ``support.surface_fit`` is at most this many times the
-        surface selection's (``info.solid_fits``).  None: not made.
+        surface selection's (``info.solid_fits``).  None: not made.  What ships keeps it within 1.1 times.
     solid_patch : bool
-        With ``solid``: the selection's faces that carry a part of the input the cut lost (a wing or a boom the
-        vertices cannot enclose) are added to the solid as pieces of their own
-        (:func:`fastmesh.faces.solid.lost_parts`).
+        With ``solid``: where the solid alone lies too far from the input, the selection's faces that carry a part
+        of the input the cut lost (a wing or a boom the vertices cannot enclose) are added to it as pieces of their
+        own (:func:`fastmesh.faces.solid.lost_parts`), and that is weighed instead.
     solid_open : bool
-        With ``solid``: an open input (``close`` False) gets the solid stage's open surface too; else only a closed
-        one does (on 15 held-out shapes the open surface showed more back faces on 2 of 6 open inputs).
+        With ``solid``: an open input (``close`` False) gets the solid stage too, cut as a closed input's: what it
+        encloses comes back as a solid, the parts that enclose nothing (a wing, a sheet) patched in from the
+        selection's mesh; else only a closed input does.
     """
 
     selection: str = "surface"
@@ -143,9 +144,9 @@ class TriangleConfig:
     missed_tol: float = 0.01
     quadric_vertices: bool = True
     reach_extent: bool = True
-    solid: float | None = None
+    solid: float | None = 1.1
     solid_patch: bool = True
-    solid_open: bool = False
+    solid_open: bool = True
 
     def __post_init__(self):
         if self.selection not in ("cliques", "surface"):

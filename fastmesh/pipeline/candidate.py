@@ -221,9 +221,10 @@ class CandidateSteps:
                 surface = frame.surface(tc.support_points, req.params.seed + k)
             verts, faces = mesh_from_adjacency(positions, edges, tc, points=surface, logits=logits)
             solid = {}
-            # The boundary of a solid, weighed against the selection's mesh (an open input's with ``solid_open``).
+            # The boundary of a solid, weighed against the selection's mesh (an open input's with ``solid_open``:
+            # what it encloses, cut as a closed input's, the parts that enclose nothing patched in from the mesh).
             if tc.solid is not None and (req.close or req.sealed or tc.solid_open):
-                verts, faces, solid = solid_mesh(positions, pts, nrm, edges, logits, req.close or req.sealed,
+                verts, faces, solid = solid_mesh(positions, pts, nrm, edges, logits, True,
                                                  (verts, faces), surface, tc.solid, tc.flat_tol, req.params.seed + k,
                                                  tc.solid_patch)
         if len(faces) == 0:

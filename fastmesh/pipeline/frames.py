@@ -103,9 +103,17 @@ class FrameSteps(CandidateSteps):
             req.corners = req.frame.norm.invert(self._corners(req.frame))
         return frame.norm.apply(req.corners @ frame.rotation.T)
 
+    def _allowed(self, cand: dict, fit: float) -> float:
+        """A candidate's ``fit`` as the choice reads it: a solid's (``solid_fits``) divided by the margin it is
+        allowed against its own selection (``TriangleConfig.solid``), so that it keeps that allowance against
+        the other candidates' selections too."""
+        solid = cand.get("solid_fits", {}).get("faces_from") == "solid"
+        return fit / self.triangle_config.solid if solid and self.triangle_config.solid else fit
+
     def _choose(self, req: Request, frame: Frame) -> dict:
-        """The frame's candidate nearest its input surface (``support.surface_fit``), turned back to the input's
-        frame; raises the first candidate's GenerationError when none made a mesh."""
+        """The frame's candidate nearest its input surface (``support.surface_fit``, a solid's with its margin:
+        :meth:`_allowed`), turned back to the input's frame; raises the first candidate's GenerationError when
+        none made a mesh."""
         n_cand, seed = req.candidates, req.params.seed
         best, fits, errors = None, [], []
         for k, cand in enumerate(frame.meshes):
@@ -116,7 +124,7 @@ class FrameSteps(CandidateSteps):
             with stage("weighing", req.timings):  # choosing among candidates
                 fit = surface_fit(cand["vertices"], cand["faces"], frame.reference, seed) if n_cand > 1 else 0.0
             fits.append(round(float(fit), 6))
-            if best is None or fit < best["fit"]:
+            if best is None or self._allowed(cand, fit) < self._allowed(best, best["fit"]):
                 cells, positions, _ = frame.positions[k]
                 best = {**cand, "fit": fit, "seed": seed + k, "k": k, "cells": cells, "positions": positions}
         if best is None:

@@ -136,6 +136,8 @@ def test_pipeline_candidates_are_each_seed_alone(monkeypatch):
     # Candidates are scored before the whole step; the random networks' strays would be pulled in after it, and
     # those the rest covers dropped.
     monkeypatch.setattr(fp, "pull_in", lambda vertices, surface, limit: (vertices, np.zeros(len(vertices), bool)))
+    monkeypatch.setattr(fp, "pull_in_uncrossed",  # the solid face stage's result is pulled in this way
+                        lambda vertices, faces, surface, limit: (vertices, np.zeros(len(vertices), bool)))
     drop = fp.drop_strays
     monkeypatch.setattr(fp, "drop_strays", lambda vertices, faces, keep, surface=None: drop(vertices, faces, keep))
     pipe = Pipeline.random(seed=0)

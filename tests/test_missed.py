@@ -88,7 +88,8 @@ def test_the_pipeline_adds_missed_points_only_where_the_mesh_comes_nearer(pipe, 
     params = GenerateParams(max_vertices=40, seed=2, temperature=1.0)
     off = pipe.generate(shape, params)
     assert off.info["added_vertices"] == 0 and "missed_fits" not in off.info
-    monkeypatch.setattr(pipe, "triangle_config", replace(pipe.triangle_config, add_missed=1.0))
+    # The surface selection's mesh: the random decoder's solid (cut again with thin-part vertices) misses little.
+    monkeypatch.setattr(pipe, "triangle_config", replace(pipe.triangle_config, add_missed=1.0, solid=None))
     res = pipe.generate(shape, params)
     fits = res.info["missed_fits"]
     assert (res.info["added_vertices"] > 0) == (fits["with_missed"] < MISSED_MARGIN * fits["model"])

@@ -7,6 +7,7 @@ import io
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -178,13 +179,15 @@ def test_vertices_are_fitted_to_the_input_planes_unless_off(pipe):
     box = point_cloud(Shape(vertices=np.asarray(trimesh.creation.box().vertices),
                             faces=np.asarray(trimesh.creation.box().faces)), 4000)
     params = GenerateParams(seed=0, max_vertices=24, closed="false")  # not rebuilt from its planes
-    fitted = pipe.generate(box, params)
-    saved = pipe.fit_config
+    saved, tc = pipe.fit_config, pipe.triangle_config
     try:
+        # The surface selection keeps the decoder's vertices as fitted (the solid adds input samples of its own).
+        pipe.triangle_config = replace(tc, solid=None)
+        fitted = pipe.generate(box, params)
         pipe.fit_config = FitConfig(radius=None)
         loose = pipe.generate(box, params)
     finally:
-        pipe.fit_config = saved
+        pipe.fit_config, pipe.triangle_config = saved, tc
 
     def near_but_off(v):  # within a 7-bit cell of a face plane of the box but not on it
         d = np.abs(0.5 - np.abs(v)).min(axis=1)
@@ -449,10 +452,14 @@ def test_no_faces_is_a_generation_error(pipe):
     # shipped selection still finds the input's surface triangles, which the model only scores).
     from dataclasses import replace
 
+    # The solid face stage labels cells by the input's winding numbers: it has faces however the network scores.
     silent = Pipeline.random(seed=0)
     silent.triangle_config = replace(silent.triangle_config, selection="cliques")
     with torch.no_grad():
         silent.face.edge_out.bias.fill_(-20.0)
+    solid = silent.generate(_sphere(), GenerateParams(max_vertices=16))
+    assert len(solid.faces) and solid.info["solid_fits"]["faces_from"] == "solid"
+    silent.triangle_config = replace(silent.triangle_config, solid=None)
     with pytest.raises(GenerationError) as e:
         silent.generate(_sphere(), GenerateParams(max_vertices=16))
     assert e.value.code == "no_faces"

@@ -126,8 +126,10 @@ def test_the_face_stages_evidence_reaches_the_pairing(monkeypatch, redistribute,
     points, index = trimesh.sample.sample_surface(m, 4096, seed=0)
     shape = Shape(vertices=np.asarray(points), faces=None, normals=np.asarray(m.face_normals[index]))
     pipe = Pipeline.from_pretrained(device="cpu")
-    # Without step 7's added vertices: its new mesh on this cloud leaves step 8 nothing to redistribute.
-    pipe.triangle_config = replace(pipe.triangle_config, redistribute=redistribute, swap_edges=swap, add_missed=None)
+    # Without step 7's added vertices: its new mesh on this cloud leaves step 8 nothing to redistribute.  Without the
+    # solid: step 8 neither redistributes nor turns its edges, and its thin-part vertices have no evidence.
+    pipe.triangle_config = replace(pipe.triangle_config, redistribute=redistribute, swap_edges=swap, add_missed=None,
+                                   solid=None)
     res = pipe.generate(shape, GenerateParams(topology="quad", seed=0))
     assert res.info["result_from"] == "model" and len(seen) == 1
     vertices, faces, evidence = seen[0]

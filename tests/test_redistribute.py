@@ -101,7 +101,8 @@ def test_the_pipeline_weighs_a_point_clouds_result_and_reports_both_fits(pipe, m
     a point cloud's result is weighed against its redistribution, and ``info`` holds both fits; the result that
     comes back is the one the fits name."""
     assert TriangleConfig().redistribute == 2.0 and pipe.triangle_config.redistribute is None
-    monkeypatch.setattr(pipe, "triangle_config", replace(pipe.triangle_config, redistribute=2.0))
+    # The surface selection's result: a solid is never redistributed (``test_solid``).
+    monkeypatch.setattr(pipe, "triangle_config", replace(pipe.triangle_config, redistribute=2.0, solid=None))
     sphere = trimesh.creation.icosphere(3)
     points, normals = _samples(sphere, 2048)
     seen = []

@@ -6,8 +6,8 @@ by a global minimum cut (``cells.min_cut``) of
 
 - a data term from the input (:func:`fastmesh.faces.winding.cell_winding`): the generalized winding number of its
   oriented samples (dipoles of the area each stands for, Barill et al. 2018) at points inside the cell; labelling
-  a cell against it costs the area of its four triangles times how far the number lies from the threshold (a
-  closed input's number read without its sign: an input wound inside-out reads -1 inside);
+  a cell against it costs the area of its four triangles times how far the number lies from the threshold (the
+  number read without its sign: an input wound inside-out reads -1 inside);
 - a smoothness term from the face network (:func:`face_costs`): cutting through a triangle costs its area,
   little where the network says its three edges exist and much where it does not.
 
@@ -16,13 +16,12 @@ outside one (:func:`fastmesh.faces.labels.interface`).  Triangles of one tetrahe
 surface has no self-intersections and one consistent winding by construction, and it is closed: every edge bounds
 an even number of its triangles.  Where the inside touches itself along an edge or at a vertex only, the cells
 around that edge or vertex are relabelled (:func:`fastmesh.faces.labels.made_manifold`) until each edge has two
-triangles and each vertex one fan.  An open input (a wall, a sheet) is labelled at the threshold between the
-numbers in front of and behind a sheet (0), and the triangles that stray from the input or face away from its
-normals (the cut's side that closes what the input leaves open) are dropped: it stays open where the input is,
-wound towards its normals (:func:`solid_surface`).  :func:`solid_mesh` is the pipeline's entry: a part thinner
-than the vertices can enclose is cut again with the input's samples on it among the vertices
-(``fastmesh.faces.thin``), what the cut still loses comes from the rival (the surface selection's mesh), and the
-rival comes back whole where the solid lies farther from the input.
+triangles and each vertex one fan.  :func:`solid_mesh` is the pipeline's entry, for closed and open inputs
+alike: a part thinner than the vertices can enclose is cut again with the input's samples on it among the
+vertices (``fastmesh.faces.thin``); where the solid lies farther from the input than the rival (the surface
+selection's mesh), the parts the cut still loses (a wing, a sheet of an open input) come from the rival, made
+thin closed parts where the input lies on both their sides (``fastmesh.faces.slabs``), and the rival comes back
+whole where even that lies farther.
 """
 
 from __future__ import annotations
@@ -34,15 +33,14 @@ from .cells import cell_boundary_areas, cell_faces, min_cut, tetrahedralise
 from .labels import interface, made_manifold
 from .meshops import edge_face_counts, remove_unreferenced, triangle_areas
 from .pieces import far_limit, pull_in
-from .support import support_distance, support_limit, surface_fit
+from .slabs import thickened
+from .support import support_limit, surface_fit
 from .surface_triangles import edge_log_prob
 from .thin import THIN_REACH, facing_away, lost_samples, thin_picks
 from .winding import cell_winding
 
-# The winding number a closed input's inside reads (1 inside, 0 outside) and an open one's (+-0.5 either side of a
-# sheet): a cell is inside where its number exceeds this.
+# The winding number reads 1 inside a closed input and 0 outside: a cell is inside where its number exceeds this.
 CLOSED_THRESHOLD = 0.5
-OPEN_THRESHOLD = 0.0
 # Cutting through a triangle costs its area times (SMOOTH_FLOOR + 1 - p), p the face network's probability of its
 # three edges (their geometric mean): where the network is sure the cut is nearly free, never quite.
 SMOOTH_FLOOR = 0.05
@@ -74,7 +72,7 @@ def face_costs(vertices: np.ndarray, tri: np.ndarray, edges: np.ndarray | None, 
 
 
 def solid_surface(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, edges: np.ndarray | None = None,
-                  logits: np.ndarray | None = None, closed: bool = True, data_weight: float = DATA_WEIGHT,
+                  logits: np.ndarray | None = None, data_weight: float = DATA_WEIGHT,
                   seed: int = 0, extra: tuple[np.ndarray, np.ndarray] | None = None, known: dict | None = None,
                   thin_reach: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The boundary of the solid the input encloses among ``vertices``' Delaunay cells, wound outward.
@@ -85,9 +83,6 @@ def solid_surface(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray,
     points, normals : (P, 3) float, the input's oriented samples in the frame of ``vertices`` (normals outward)
     edges : (E, 2) int, optional, the face network's predicted edges
     logits : (N, N) float, optional, its edge logits
-    closed : bool
-        The input encloses a volume.  False: cells are labelled at ``OPEN_THRESHOLD`` and the triangles farther
-        from ``points`` than ``support.support_limit`` are dropped, leaving the input's openings open.
     data_weight : float
         The data term's weight against the smoothness term (``DATA_WEIGHT``).
     seed : int, of the samples the winding numbers sum over
@@ -102,18 +97,16 @@ def solid_surface(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray,
     Returns
     -------
     vertices : (M, 3) float64, those of ``vertices`` the surface uses
-    faces : (F, 3) int64, every edge in two faces (closed) or at most two, wound alike; empty where no cell is
-        inside
+    faces : (F, 3) int64, every edge in two faces, wound alike; empty where no cell is inside
     """
     pts = np.asarray(points, dtype=np.float64)
     extra_points, extra_normals = (np.zeros((0, 3)), np.zeros((0, 3))) if extra is None else extra
     v, n = _cell_vertices(vertices, pts, extra_points)
     tets, nb = tetrahedralise(v)
     tri, a, b = cell_faces(tets, nb)
-    thr = CLOSED_THRESHOLD if closed else OPEN_THRESHOLD
-    w = cell_winding(v, tets, points, normals, seed, known)
-    if closed:  # a closed input wound inside-out (an artist's mesh often is, in parts) reads -1 inside
-        w = np.abs(w)
+    thr = CLOSED_THRESHOLD
+    # An input wound inside-out (an artist's mesh often is, in parts) reads -1 inside.
+    w = np.abs(cell_winding(v, tets, points, normals, seed, known))
     if len(extra_points):
         w = np.where(facing_away(v, tets, n, extra_normals, thin_reach), np.maximum(w, thr + 0.5), w)
     inside_cost, outside_cost = _label_costs(v, tets, w, thr, data_weight)
@@ -121,8 +114,6 @@ def solid_surface(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray,
     inside = min_cut(len(tets), inside_cost, outside_cost, a, b, cost)
     inside = made_manifold(tets, nb, tri, a, b, inside, inside_cost, outside_cost, len(v))
     f = interface(tri, a, b, inside)
-    if not closed and len(f):
-        f = _on_input(v, f, pts, np.asarray(normals, dtype=np.float64))
     # Cells of a flat input are flat: an interface of no area encloses nothing (and cannot be weighed).
     if len(f) and triangle_areas(v, f).sum() <= FLAT_AREA * float(np.ptp(pts, axis=0).max()) ** 2:
         f = f[:0]
@@ -167,13 +158,13 @@ def _cut_costs(vertices: np.ndarray, tri: np.ndarray, edges: np.ndarray | None, 
 
 
 def with_thin_parts(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, edges: np.ndarray | None,
-                    logits: np.ndarray | None, closed: bool, seed: int, thin: bool
+                    logits: np.ndarray | None, seed: int, thin: bool
                     ) -> tuple[np.ndarray, np.ndarray, int]:
     """:func:`solid_surface`, and with ``thin`` where it loses input samples, cut again with them among the
     vertices (``thin.thin_picks``), kept where fewer are lost; and how many added vertices the surface uses.
     The second cut reads again only the winding numbers of the cells the added vertices changed."""
     known: dict = {}
-    v, f = solid_surface(vertices, points, normals, edges, logits, closed, seed=seed, known=known)
+    v, f = solid_surface(vertices, points, normals, edges, logits, seed=seed, known=known)
     if not thin:
         return v, f, 0
     pts, nrm = np.asarray(points, dtype=np.float64), np.asarray(normals, dtype=np.float64)
@@ -183,7 +174,7 @@ def with_thin_parts(vertices: np.ndarray, points: np.ndarray, normals: np.ndarra
     if pick is None:
         return v, f, 0
     extra = pts[pick]
-    tv, tf = solid_surface(vertices, pts, nrm, edges, logits, closed, seed=seed, extra=(extra, nrm[pick]),
+    tv, tf = solid_surface(vertices, pts, nrm, edges, logits, seed=seed, extra=(extra, nrm[pick]),
                            known=known, thin_reach=THIN_REACH * spacing)
     # Kept where it loses fewer samples and lies no farther from them (a cell it filled past the part would).
     if not len(tf) or lost_samples(pts, tv, tf, LOST_LIMITS * limit).sum() >= lost.sum() or (
@@ -212,25 +203,13 @@ def _box_corners(points: np.ndarray) -> np.ndarray:
     return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
 
 
-def _on_input(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """The ``faces`` (F, 3) of an open input's cut that lie on its surface (``support.support_distance`` within
-    ``support.support_limit``) and face the way its nearest sample does: far from a sheet its winding numbers read
-    about 0 either side, and the cut closes what the input leaves open on either side of it."""
-    tree = cKDTree(points)
-    f = faces[support_distance(vertices, faces, points, tree) <= support_limit(points, 0.0, tree)]
-    t = vertices[f]
-    normal = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    near = tree.query(t.mean(1))[1]
-    return f[np.einsum("ij,ij->i", normal, normals[near]) > 0]
-
-
 def is_closed_surface(faces: np.ndarray) -> bool:
     """Every edge of ``faces`` (F, 3) in exactly two faces."""
     return bool(len(faces)) and bool((edge_face_counts(faces) == 2).all())
 
 
 def solid_mesh(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, edges: np.ndarray | None,
-               logits: np.ndarray | None, closed: bool, rival: tuple[np.ndarray, np.ndarray], reference: np.ndarray,
+               logits: np.ndarray | None, rival: tuple[np.ndarray, np.ndarray], reference: np.ndarray,
                margin: float, flat_tol: float | None = None, seed: int = 0, patch: bool = True, thin: bool = True
                ) -> tuple[np.ndarray, np.ndarray, dict]:
     """The face stage's solid: :func:`solid_surface`, its flat vertices removed, weighed against ``rival`` (the
@@ -245,7 +224,6 @@ def solid_mesh(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, ed
     vertices : (N, 3) float
     points, normals : (P, 3) float, the input's oriented samples (the winding numbers)
     edges : (E, 2) int or None; logits : (N, N) float or None, the face network's
-    closed : bool, the result must be closed (:func:`solid_surface`)
     rival : (vertices (M, 3), faces (F, 3)), the surface selection's mesh
     reference : (R, 3) float, samples of the input both are weighed against
     margin : float
@@ -254,7 +232,9 @@ def solid_mesh(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, ed
     patch : bool
         Where the solid alone lies over ``margin`` times the rival's fit, the rival's faces that carry a part of
         the input the cut lost are added to it, as pieces of their own (:func:`lost_parts`; ``patched_faces``
-        counts them), and that is weighed instead: the result is then no longer closed there.
+        counts them), and that is weighed instead: the result is then no longer closed there, but where a piece
+        stands for a thin solid part (the input on both its sides), it is made a thin closed part (``slabs``
+        counts them).
     thin : bool
         Where the cut loses parts of the input, it is cut again with the input's samples there among the vertices
         (``fastmesh.faces.thin``; ``thin_vertices`` counts those the surface uses), kept where it loses fewer.
@@ -263,21 +243,21 @@ def solid_mesh(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, ed
     -------
     vertices, faces : the mesh that came back
     report : dict, ``fits`` {"solid", "surface"} (None where the cut left nothing inside), ``patched_faces``,
-        ``thin_vertices`` and ``faces_from``
+        ``slabs``, ``thin_vertices`` and ``faces_from``
     """
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     f, added = np.zeros((0, 3), dtype=np.int64), 0
     if _spans_space(v):
-        v, f, added = with_thin_parts(v, points, normals, edges, logits, closed, seed, thin)
+        v, f, added = with_thin_parts(v, points, normals, edges, logits, seed, thin)
     if len(f) and flat_tol is not None:
         v, f = _without_flat(v, f, flat_tol)
-    counts = {"patched_faces": 0, "thin_vertices": added}
+    counts = {"patched_faces": 0, "slabs": 0, "thin_vertices": added}
     whole = _weighed(v, f, rival, reference, margin, seed, counts)
     # The solid as the cut made it, closed, where it fits; else with the parts it lost from the rival.
     if whole[2]["faces_from"] == "solid" or not (patch and len(f) and len(rival[1])):
         return whole
-    v, f, patched = _patched(v, f, rival, np.asarray(reference, dtype=np.float64))
-    return _weighed(v, f, rival, reference, margin, seed, {**counts, "patched_faces": patched})
+    v, f, patched = _patched(v, f, rival, np.asarray(reference, dtype=np.float64), points, normals)
+    return _weighed(v, f, rival, reference, margin, seed, {**counts, **patched})
 
 
 def _spans_space(vertices: np.ndarray) -> bool:
@@ -301,17 +281,21 @@ def _without_flat(vertices: np.ndarray, faces: np.ndarray, flat_tol: float) -> t
     return vertices, faces
 
 
-def _patched(vertices: np.ndarray, faces: np.ndarray, rival: tuple[np.ndarray, np.ndarray], reference: np.ndarray
-             ) -> tuple[np.ndarray, np.ndarray, int]:
+def _patched(vertices: np.ndarray, faces: np.ndarray, rival: tuple[np.ndarray, np.ndarray], reference: np.ndarray,
+             points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
     """The solid with the ``rival``'s faces that carry a part of the input (``reference`` (R, 3)) it lost
-    (:func:`lost_parts`) and cross none of its own (:func:`_not_crossing`); and how many were added."""
+    (:func:`lost_parts`) and cross none of its own (:func:`_not_crossing`), each piece of them that stands for a
+    thin solid part (the input's samples, ``points`` and ``normals`` (P, 3), on both its sides) made a thin closed
+    part (``slabs.thickened``); and the counts ``patched_faces`` (faces taken) and ``slabs``."""
     take = lost_parts(vertices, faces, *rival, reference)
     if not take.any():
-        return vertices, faces, 0
+        return vertices, faces, {"patched_faces": 0, "slabs": 0}
     both = np.concatenate([vertices, rival[0]])
     extra = _not_crossing(both, faces, rival[1][take] + len(vertices))
-    v, f, _ = remove_unreferenced(both, np.concatenate([faces, extra]))
-    return v, f, len(extra)
+    pts = np.asarray(points, dtype=np.float64)
+    both, f, slabs = thickened(both, faces, extra, pts, normals, LOST_LIMITS * support_limit(pts, 0.0))
+    v, f, _ = remove_unreferenced(both, f)
+    return v, f, {"patched_faces": len(extra), "slabs": slabs}
 
 
 def _weighed(vertices: np.ndarray, faces: np.ndarray, rival: tuple[np.ndarray, np.ndarray], reference: np.ndarray,

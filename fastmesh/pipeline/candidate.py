@@ -224,9 +224,8 @@ class CandidateSteps:
             # The boundary of a solid, weighed against the selection's mesh (an open input's with ``solid_open``:
             # what it encloses, cut as a closed input's, the parts that enclose nothing patched in from the mesh).
             if tc.solid is not None and (req.close or req.sealed or tc.solid_open):
-                verts, faces, solid = solid_mesh(positions, pts, nrm, edges, logits, True,
-                                                 (verts, faces), surface, tc.solid, tc.flat_tol, req.params.seed + k,
-                                                 tc.solid_patch)
+                verts, faces, solid = solid_mesh(positions, pts, nrm, edges, logits, (verts, faces), surface,
+                                                 tc.solid, tc.flat_tol, req.params.seed + k, tc.solid_patch)
         if len(faces) == 0:
             return GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")
         return {"vertices": verts, "faces": faces, "tokens": int(len(tokens)), "edges": int(len(edges)),

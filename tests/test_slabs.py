@@ -1,0 +1,83 @@
+"""Sheets that stand for thin solid parts come back as thin closed parts (``fastmesh.faces.slabs``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from fastmesh.faces.defects import self_intersections
+from fastmesh.faces.meshops import edge_face_counts, wound_alike
+from fastmesh.faces.slabs import thickened
+
+
+def _bent_plate(seed: int, sided: str = "both"):
+    """A plate bent along x (z = bend x^2), ``thick`` thick, ``size`` across (1 mm to 1 km), turned at random and
+    moved far from the origin: its mid-sheet as a 7 x 7 grid of vertices in two triangles a cell, and the input's
+    samples on both faces (``sided`` "both") or on the top one only ("top"), normals outward."""
+    rng = np.random.default_rng(seed)
+    size = 10.0 ** rng.uniform(-3, 3)
+    thick, bend = rng.uniform(0.004, 0.012), rng.uniform(-0.4, 0.4)
+    g = np.linspace(-0.5, 0.5, 7)
+    x, y = np.meshgrid(g, g, indexing="ij")
+    mid = np.stack([x.ravel(), y.ravel(), bend * x.ravel() ** 2], 1)
+    i = np.arange(36).reshape(6, 6)
+    a = (i // 6) * 7 + i % 6
+    sheet = np.concatenate([np.stack([a, a + 7, a + 8], -1), np.stack([a, a + 8, a + 1], -1)]).reshape(-1, 3)
+    u = rng.uniform(-0.5, 0.5, (6000, 2))
+    up = np.stack([-2 * bend * u[:, 0], np.zeros(len(u)), np.ones(len(u))], 1)
+    up /= np.linalg.norm(up, axis=1, keepdims=True)
+    on = np.stack([u[:, 0], u[:, 1], bend * u[:, 0] ** 2], 1)
+    side = np.where(np.arange(len(u)) % 2 == 0, 1.0, -1.0) if sided == "both" else np.ones(len(u))
+    pts, nrm = on + side[:, None] * up * thick / 2, side[:, None] * up
+    turn, far = Rotation.random(random_state=seed).as_matrix(), rng.uniform(-5, 5, 3)
+    place = lambda p: (p @ turn.T + far) * size  # noqa: E731
+    return place(mid), sheet, place(pts), nrm @ turn.T, thick * size, size
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_sheet_with_the_input_on_both_sides_becomes_a_thin_closed_part(seed):
+    """Random bent plates (any pose, mm to km): the mid-sheet comes back a slab, closed, wound alike and
+    outward, crossing nothing, as thick as the plate (its volume the plate's within 15 %), every vertex on the
+    input's faces (within a fifth of the thickness of a sample)."""
+    v, sheet, pts, nrm, thick, size = _bent_plate(seed)
+    out_v, out_f, made = thickened(v, np.zeros((0, 3), dtype=np.int64), sheet, pts, nrm, 0.05 * size)
+    assert made == 1
+    assert (edge_face_counts(out_f) == 2).all() and wound_alike(out_f)
+    mesh = trimesh.Trimesh(out_v, out_f, process=False)
+    area = trimesh.Trimesh(v, sheet, process=False).area
+    assert mesh.volume == pytest.approx(area * thick, rel=0.15)
+    assert self_intersections(out_v, out_f) == 0
+    from scipy.spatial import cKDTree
+
+    assert cKDTree(pts).query(out_v[len(v):])[0].max() < 0.2 * thick + 0.03 * size
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_sheet_with_the_input_on_one_side_stays_a_sheet(seed):
+    """The same plates sampled on one face only (a true sheet): nothing is made; the sheet comes back as it
+    was."""
+    v, sheet, pts, nrm, _, size = _bent_plate(seed, sided="top")
+    out_v, out_f, made = thickened(v, np.zeros((0, 3), dtype=np.int64), sheet, pts, nrm, 0.05 * size)
+    assert made == 0 and np.array_equal(out_f, sheet) and len(out_v) == len(v)
+
+
+def test_a_slab_that_would_cross_the_solid_is_not_made():
+    """A face of the solid passes just under the plate's mid-sheet, through where its slab's walls would stand:
+    the sheet comes back as a sheet, the solid's face untouched."""
+    v, sheet, pts, nrm, thick, size = _bent_plate(0)
+    normal = np.cross(v[sheet[0, 1]] - v[sheet[0, 0]], v[sheet[0, 2]] - v[sheet[0, 0]])
+    normal /= np.linalg.norm(normal)
+    centre = v[sheet[0]].mean(0) - 0.25 * thick * normal
+    # A large triangle in the plane a quarter of the thickness below the first cell, reaching past the rim.
+    e1 = v[sheet[0, 1]] - v[sheet[0, 0]]
+    e1 = e1 - e1 @ normal * normal
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    tri = centre + 0.3 * size * np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 1.0, 0.0]]) @ np.stack(
+        [e1, e2, normal])
+    vertices = np.concatenate([v, tri])
+    solid = np.array([[len(v), len(v) + 1, len(v) + 2]])
+    out_v, out_f, made = thickened(vertices, solid, sheet, pts, nrm, 0.05 * size)
+    assert made == 0 and np.array_equal(out_f, np.concatenate([solid, sheet]))

@@ -109,7 +109,8 @@ class TriangleConfig:
         The pipeline, per candidate: the surface as the boundary of a solid (:func:`fastmesh.faces.solid.solid_mesh`:
         Delaunay cells of the vertices labelled inside or outside by a minimum cut of the input's winding numbers
         and the edge probabilities) comes back where its ``support.surface_fit`` is at most this many times the
-        surface selection's (``info.solid_fits``).  None: not made.  What ships keeps it within 1.1 times.
+        surface selection's (``info.solid_fits``), for point-cloud inputs.  None: not made.  What ships keeps it
+        within 1.1 times.
     solid_patch : bool
         With ``solid``: where the solid alone lies too far from the input, the selection's faces that carry a part
         of the input the cut lost (a wing or a boom the vertices cannot enclose) are added to it as pieces of their

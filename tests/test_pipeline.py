@@ -452,17 +452,18 @@ def test_no_faces_is_a_generation_error(pipe):
     # shipped selection still finds the input's surface triangles, which the model only scores).
     from dataclasses import replace
 
-    # The solid face stage labels cells by the input's winding numbers: it has faces however the network scores.
+    # A point cloud's solid face stage labels cells by the input's winding numbers: it has faces however the
+    # network scores; a mesh input (the sphere here) has no solid stage.
     silent = Pipeline.random(seed=0)
     silent.triangle_config = replace(silent.triangle_config, selection="cliques")
     with torch.no_grad():
         silent.face.edge_out.bias.fill_(-20.0)
-    solid = silent.generate(_sphere(), GenerateParams(max_vertices=16))
-    assert len(solid.faces) and solid.info["solid_fits"]["faces_from"] == "solid"
-    silent.triangle_config = replace(silent.triangle_config, solid=None)
     with pytest.raises(GenerationError) as e:
         silent.generate(_sphere(), GenerateParams(max_vertices=16))
     assert e.value.code == "no_faces"
+    cloud = point_cloud(_sphere(), 4096)
+    solid = silent.generate(cloud, GenerateParams(max_vertices=16))
+    assert len(solid.faces) and solid.info["solid_fits"]["faces_from"] == "solid"
 
 
 def test_pipeline_chooses_its_thread_count(monkeypatch):

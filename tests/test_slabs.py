@@ -81,3 +81,23 @@ def test_a_slab_that_would_cross_the_solid_is_not_made():
     solid = np.array([[len(v), len(v) + 1, len(v) + 2]])
     out_v, out_f, made = thickened(vertices, solid, sheet, pts, nrm, 0.05 * size)
     assert made == 0 and np.array_equal(out_f, np.concatenate([solid, sheet]))
+
+
+def test_pieces_touching_along_a_side_are_fins_once_welded():
+    """A box and a triangle whose side runs along one of the box's edges through vertices of its own at the
+    same places: once welded that edge has three faces, and the triangle and the box's two faces there are fins;
+    the box alone, or the triangle moved off the edge, has none."""
+    from fastmesh.faces.meshops import welded_fins
+
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    v, f = np.asarray(box.vertices), np.asarray(box.faces)
+    edge = next((a, b) for a, b in box.edges_unique if np.isclose(np.abs(v[a] - v[b]).sum(), 1.0))
+    tip = (v[edge[0]] + v[edge[1]]) / 2 + 2.0 * (v[edge[0]] + v[edge[1]]) / 2  # outward from the edge
+    fin_v = np.concatenate([v, v[list(edge)], [tip]])
+    fin_f = np.concatenate([f, [[8, 9, 10]]])
+    fins = welded_fins(fin_v, fin_f)
+    assert fins[-1] and fins.sum() == 3
+    assert not welded_fins(v, f).any()
+    moved = fin_v.copy()
+    moved[8:] += 0.01 * (moved[10] - (moved[8] + moved[9]) / 2)
+    assert not welded_fins(moved, fin_f).any()

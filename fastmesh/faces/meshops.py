@@ -146,6 +146,23 @@ def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6) -> tuple[np
     return v[first], f
 
 
+def welded_fins(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+    """(F,) bool, the ``faces`` (F, 3) with a side in more than two faces once the ``vertices`` (N, 3) within
+    ``tol`` of the longest side of each other are one (as :func:`weld` makes them, and an exported file's reader
+    may): pieces that touch along a side without sharing its vertices make such fins."""
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(f) == 0:
+        return np.zeros(0, dtype=bool)
+    extent = float(np.ptp(v, axis=0).max()) or 1.0
+    one = np.unique(np.round((v - v.min(0)) / (extent * tol)), axis=0, return_inverse=True)[1].reshape(-1)[f]
+    live = (one[:, 0] != one[:, 1]) & (one[:, 1] != one[:, 2]) & (one[:, 0] != one[:, 2])
+    sides = np.sort(face_sides(one), axis=1)
+    _, inverse, count = np.unique(sides, axis=0, return_inverse=True, return_counts=True)
+    live_count = np.bincount(inverse.reshape(-1), weights=np.tile(live, 3).astype(float), minlength=len(count))
+    return live & (live_count[inverse.reshape(-1)] > 2).reshape(3, -1).any(0)
+
+
 def distance_to_triangles(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
                           chunk: int = 1 << 20) -> np.ndarray:
     """Exact Euclidean distance from each point to the nearest triangle of a mesh.

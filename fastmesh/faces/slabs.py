@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .meshops import edge_face_counts, face_sides, open_sides, piece_labels, wound_alike
+from .meshops import edge_face_counts, face_sides, open_sides, piece_labels, welded_fins, wound_alike
 from .orient import orient_faces
 
 # A sample faces a side of the sheet where its normal is within this cosine of the sheet's normal, either way.
@@ -135,10 +135,11 @@ def _slab_of(vertices: np.ndarray, piece: np.ndarray, points: np.ndarray, normal
 
 
 def _crosses(vertices: np.ndarray, faces: np.ndarray, made: tuple[np.ndarray, np.ndarray]) -> bool:
-    """Whether the slab ``made`` (vertices, faces) crosses itself or any of ``faces`` of ``vertices``."""
+    """Whether the slab ``made`` (vertices, faces) crosses itself or any of ``faces`` of ``vertices``, or puts a
+    third face on a side once welded (``meshops.welded_fins``: a rim vertex left where another part's is)."""
     from .crossings import crossing_faces
 
     sv, sf = made
-    all_f = np.concatenate([faces, sf + len(vertices)])
+    all_v, all_f = np.concatenate([vertices, sv]), np.concatenate([faces, sf + len(vertices)])
     mine = np.r_[np.zeros(len(faces), dtype=bool), np.ones(len(sf), dtype=bool)]
-    return bool(crossing_faces(np.concatenate([vertices, sv]), all_f, among=mine).any())
+    return bool(welded_fins(all_v, all_f)[mine].any() or crossing_faces(all_v, all_f, among=mine).any())

@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from .cells import cell_boundary_areas, cell_faces, min_cut, tetrahedralise
 from .labels import interface, made_manifold
-from .meshops import edge_face_counts, remove_unreferenced, triangle_areas
+from .meshops import edge_face_counts, remove_unreferenced, triangle_areas, welded_fins
 from .pieces import far_limit, pull_in
 from .slabs import thickened
 from .support import support_limit, surface_fit
@@ -284,7 +284,8 @@ def _without_flat(vertices: np.ndarray, faces: np.ndarray, flat_tol: float) -> t
 def _patched(vertices: np.ndarray, faces: np.ndarray, rival: tuple[np.ndarray, np.ndarray], reference: np.ndarray,
              points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
     """The solid with the ``rival``'s faces that carry a part of the input (``reference`` (R, 3)) it lost
-    (:func:`lost_parts`) and cross none of its own (:func:`_not_crossing`), each piece of them that stands for a
+    (:func:`lost_parts`), cross none of its own (:func:`_not_crossing`) and put no third face on its sides once
+    welded (``meshops.welded_fins``), each piece of them that stands for a
     thin solid part (the input's samples, ``points`` and ``normals`` (P, 3), on both its sides) made a thin closed
     part (``slabs.thickened``); and the counts ``patched_faces`` (faces taken) and ``slabs``."""
     take = lost_parts(vertices, faces, *rival, reference)
@@ -292,6 +293,8 @@ def _patched(vertices: np.ndarray, faces: np.ndarray, rival: tuple[np.ndarray, n
         return vertices, faces, {"patched_faces": 0, "slabs": 0}
     both = np.concatenate([vertices, rival[0]])
     extra = _not_crossing(both, faces, rival[1][take] + len(vertices))
+    # A face along the solid's side, its corners the solid's own but not shared, is a fin once welded.
+    extra = extra[~welded_fins(both, np.concatenate([faces, extra]))[len(faces):]]
     pts = np.asarray(points, dtype=np.float64)
     both, f, slabs = thickened(both, faces, extra, pts, normals, LOST_LIMITS * support_limit(pts, 0.0))
     v, f, _ = remove_unreferenced(both, f)

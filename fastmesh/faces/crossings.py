@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .meshops import welded_in_place
 from .pieces import pull_in
 
 # Rounds of undoing the moves of vertices whose faces cross after ``pieces.pull_in`` (each round undoes every move
@@ -29,7 +30,7 @@ def crossing_faces(vertices: np.ndarray, faces: np.ndarray, among: np.ndarray | 
     bad = np.zeros(len(faces), dtype=bool)
     if len(faces) < 2:
         return bad
-    v, f = _welded(vertices, faces)
+    v, f = welded_in_place(vertices, faces, WELD_TOL)
     tri = v[f]
     pairs = _candidate_pairs(tri)
     # A face welded flat (two corners one) crosses nothing.
@@ -46,16 +47,6 @@ def crossing_faces(vertices: np.ndarray, faces: np.ndarray, among: np.ndarray | 
         p = pairs[s:s + PAIR_CHUNK]
         bad[p[triangles_cross(tri[p[:, 0]], tri[p[:, 1]], tol)].reshape(-1)] = True
     return bad
-
-
-def _welded(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``meshops.weld``'s vertices, every face kept (F, 3) in its place, collapsed or not."""
-    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    extent = float(np.ptp(v, axis=0).max()) or 1.0
-    _, first, inverse = np.unique(np.round((v - v.min(0)) / (extent * WELD_TOL)), axis=0, return_index=True,
-                                  return_inverse=True)
-    return v[first], inverse.reshape(-1)[f]
 
 
 def adds_crossings(before: tuple[np.ndarray, np.ndarray], after: tuple[np.ndarray, np.ndarray]) -> bool:

@@ -134,6 +134,12 @@ def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6) -> tuple[np
     vertices : (M, 3) float64, the first of each welded group
     faces : (F', 3) int64
     """
+    v, f = welded_in_place(vertices, faces, tol)
+    return v, f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+
+
+def welded_in_place(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`weld`'s vertices (M, 3), and every one of ``faces`` (F, 3) in its place on them, collapsed or not."""
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if len(v) == 0:
@@ -141,21 +147,16 @@ def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6) -> tuple[np
     extent = float(np.ptp(v, axis=0).max()) or 1.0
     _, first, inverse = np.unique(np.round((v - v.min(0)) / (extent * tol)), axis=0, return_index=True,
                                   return_inverse=True)
-    f = inverse.reshape(-1)[f]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
-    return v[first], f
+    return v[first], inverse.reshape(-1)[f]
 
 
 def welded_fins(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6) -> np.ndarray:
     """(F,) bool, the ``faces`` (F, 3) with a side in more than two faces once the ``vertices`` (N, 3) within
     ``tol`` of the longest side of each other are one (as :func:`weld` makes them, and an exported file's reader
     may): pieces that touch along a side without sharing its vertices make such fins."""
-    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if len(f) == 0:
+    if len(faces) == 0:
         return np.zeros(0, dtype=bool)
-    extent = float(np.ptp(v, axis=0).max()) or 1.0
-    one = np.unique(np.round((v - v.min(0)) / (extent * tol)), axis=0, return_inverse=True)[1].reshape(-1)[f]
+    one = welded_in_place(vertices, faces, tol)[1]
     live = (one[:, 0] != one[:, 1]) & (one[:, 1] != one[:, 2]) & (one[:, 0] != one[:, 2])
     sides = np.sort(face_sides(one), axis=1)
     _, inverse, count = np.unique(sides, axis=0, return_inverse=True, return_counts=True)

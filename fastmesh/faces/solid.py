@@ -104,12 +104,11 @@ def solid_surface(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray,
     v, n = _cell_vertices(vertices, pts, extra_points)
     tets, nb = tetrahedralise(v)
     tri, a, b = cell_faces(tets, nb)
-    thr = CLOSED_THRESHOLD
     # An input wound inside-out (an artist's mesh often is, in parts) reads -1 inside.
     w = np.abs(cell_winding(v, tets, points, normals, seed, known))
     if len(extra_points):
-        w = np.where(facing_away(v, tets, n, extra_normals, thin_reach), np.maximum(w, thr + 0.5), w)
-    inside_cost, outside_cost = _label_costs(v, tets, w, thr, data_weight)
+        w = np.where(facing_away(v, tets, n, extra_normals, thin_reach), np.maximum(w, CLOSED_THRESHOLD + 0.5), w)
+    inside_cost, outside_cost = _label_costs(v, tets, w, CLOSED_THRESHOLD, data_weight)
     cost = _cut_costs(v, tri, edges, logits, n, len(extra_points))
     inside = min_cut(len(tets), inside_cost, outside_cost, a, b, cost)
     inside = made_manifold(tets, nb, tri, a, b, inside, inside_cost, outside_cost, len(v))
@@ -252,12 +251,14 @@ def solid_mesh(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, ed
     if len(f) and flat_tol is not None:
         v, f = _without_flat(v, f, flat_tol)
     counts = {"patched_faces": 0, "slabs": 0, "thin_vertices": added}
-    whole = _weighed(v, f, rival, reference, margin, seed, counts)
+    # The rival's fit, read once: the solid as cut and the solid patched are both weighed against it.
+    theirs = round(surface_fit(*rival, reference, seed), 6) if len(rival[1]) else float("inf")
+    whole = _weighed(v, f, rival, theirs, reference, margin, seed, counts)
     # The solid as the cut made it, closed, where it fits; else with the parts it lost from the rival.
     if whole[2]["faces_from"] == "solid" or not (patch and len(f) and len(rival[1])):
         return whole
     v, f, patched = _patched(v, f, rival, np.asarray(reference, dtype=np.float64), points, normals)
-    return _weighed(v, f, rival, reference, margin, seed, {**counts, **patched})
+    return _weighed(v, f, rival, theirs, reference, margin, seed, {**counts, **patched})
 
 
 def _spans_space(vertices: np.ndarray) -> bool:
@@ -301,12 +302,11 @@ def _patched(vertices: np.ndarray, faces: np.ndarray, rival: tuple[np.ndarray, n
     return v, f, {"patched_faces": len(extra), "slabs": slabs}
 
 
-def _weighed(vertices: np.ndarray, faces: np.ndarray, rival: tuple[np.ndarray, np.ndarray], reference: np.ndarray,
-             margin: float, seed: int, counts: dict) -> tuple[np.ndarray, np.ndarray, dict]:
+def _weighed(vertices: np.ndarray, faces: np.ndarray, rival: tuple[np.ndarray, np.ndarray], theirs: float,
+             reference: np.ndarray, margin: float, seed: int, counts: dict) -> tuple[np.ndarray, np.ndarray, dict]:
     """The solid, or the ``rival`` where the solid is empty or its ``support.surface_fit`` to ``reference`` is over
-    ``margin`` times the rival's; with :func:`solid_mesh`'s report (``counts``: ``patched_faces``,
-    ``thin_vertices``)."""
-    theirs = round(surface_fit(*rival, reference, seed), 6) if len(rival[1]) else float("inf")
+    ``margin`` times ``theirs`` (the rival's); with :func:`solid_mesh`'s report (``counts``: ``patched_faces``,
+    ``slabs``, ``thin_vertices``)."""
     ours = round(surface_fit(vertices, faces, reference, seed), 6) if len(faces) else None
     report = {"fits": {"solid": ours, "surface": theirs}, **counts}
     if ours is None or ours > margin * theirs:

@@ -68,6 +68,42 @@ def test_a_roof_cut_along_its_valley_turns_to_its_ridge():
         assert swap_edges(flat, cut, *points)[1] == 0
 
 
+
+def test_a_turn_that_would_cross_another_face_is_turned_back():
+    """The valley under the roof's samples, a fin standing over its diagonal that the roof would pass through:
+    turned as before, the roof's triangles cross the fin; with ``uncrossed`` the edge stays (the valley crosses
+    nothing), and with the fin away it turns as before."""
+    from fastmesh.faces.crossings import crossing_faces
+
+    v = np.array([[0, 0, 0], [1, 0, 0.5], [1, 1, 0], [0, 1, 0.5]], dtype=np.float64)
+    roof, valley = np.array([[0, 1, 3], [1, 2, 3]]), np.array([[0, 1, 2], [0, 2, 3]])
+    points = _samples(trimesh.Trimesh(v, roof, process=False), 4096)
+    fin = np.array([[0.3, 0.3, 0.1], [0.6, 0.6, 0.1], [0.45, 0.45, 0.6]])
+    both, faces = np.vstack([v, fin]), np.vstack([valley, [[4, 5, 6]]])
+    free, turned = swap_edges(both, faces, *points)
+    assert turned == 1 and crossing_faces(both, free).any()
+    kept, turned = swap_edges(both, faces, *points, uncrossed=True)
+    assert turned == 0 and np.array_equal(kept, faces) and not crossing_faces(both, kept).any()
+    away = np.vstack([v, fin + [5.0, 0.0, 0.0]])
+    assert swap_edges(away, faces, *points, uncrossed=True)[1] == 1
+
+
+def test_a_pair_whose_quad_is_not_convex_never_turns():
+    """A dart: the pair's shared edge runs from its notch, so the other diagonal lies outside it and one turned
+    triangle would lie folded back over the other (a sliver showing its back).  Such a pair is never turned,
+    whatever the input says; the same pair with its notch pushed out (a convex quad) may turn."""
+    from fastmesh.faces.swap import _unfolded
+
+    dart = np.array([[0, 0, 0], [2, 0, 0], [-1, 1, 0.2], [-1, -1, 0.2]], dtype=np.float64)
+    faces = np.array([[0, 1, 2], [1, 0, 3]])
+    pairs = turnable(faces)
+    old, new = pairs_before_after(pairs)
+    assert len(pairs) == 1 and not _unfolded(dart, old, new).any()
+    convex = dart * [1, 1, 1] + [[-2, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]]
+    assert _unfolded(convex, old, new).all()
+    folded = trimesh.Trimesh(dart, new[0], process=False)  # the input lies along the turned, folded pair
+    assert swap_edges(dart, faces, *_samples(folded, 2048))[1] == 0
+
 def test_miscut_ellipsoids_of_a_random_family_are_cut_back():
     """Ellipsoids of random axes, turns, units and places, a tenth of their edges turned across the surface: the
     swap turns most of them back (at least 80 % of the faces as they were), the mesh nearer its input than the

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .crossings import crossing_faces
 from .meshops import point_triangle_distance, triangle_areas
 from .support import barycentric_grid, face_samples
 
@@ -37,7 +38,7 @@ _BARY = barycentric_grid(GRID)
 
 
 def swap_edges(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, normals: np.ndarray,
-               rounds: int = ROUNDS, min_gain: float = MIN_GAIN) -> tuple[np.ndarray, int]:
+               rounds: int = ROUNDS, min_gain: float = MIN_GAIN, uncrossed: bool = False) -> tuple[np.ndarray, int]:
     """The mesh's edges turned where the other diagonal of their two triangles fits the input better.
 
     Parameters
@@ -48,6 +49,9 @@ def swap_edges(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, norm
         Samples of the input surface, in the frame of ``vertices``, and their unit normals (either sign); every
         k-th of them where there are more than ``POINTS``.
     rounds, min_gain : see ``ROUNDS`` and ``MIN_GAIN``
+    uncrossed : bool
+        A turn whose triangles then cross another face is turned back (:func:`_uncrossed`): a surface free of
+        crossings (the boundary of a solid) stays free of them.
 
     Returns
     -------
@@ -76,8 +80,13 @@ def swap_edges(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, norm
         after = _misfit(v, new, surface, nearest, pairs[:, 4:], per_point)
         thick = triangle_areas(v, new.reshape(-1, 3)).reshape(-1, 2).min(1) > MIN_AREA * area
         gain = before - after
-        better = np.flatnonzero(thick & (gain > min_gain * before) & (gain > floor))
-        changed = _turn(f, pairs, new, better[np.argsort(-gain[better], kind="stable")])
+        better = np.flatnonzero(thick & _unfolded(v, old, new) & (gain > min_gain * before) & (gain > floor))
+        before_round = f.copy()
+        done = _turn(f, pairs, new, better[np.argsort(-gain[better], kind="stable")])
+        if uncrossed:
+            done = done[_uncrossed(v, f, before_round, pairs[done, 4:])]
+        changed = np.zeros(len(f), dtype=bool)
+        changed[pairs[done, 4:].reshape(-1)] = True
         turned += int(changed.sum()) // 2
         if not changed.any():
             break
@@ -112,6 +121,18 @@ def pairs_before_after(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     old = np.stack([np.stack([a, b, c], 1), np.stack([b, a, d], 1)], 1)
     new = np.stack([np.stack([a, d, c], 1), np.stack([d, b, c], 1)], 1)
     return old, new
+
+
+def _unfolded(vertices: np.ndarray, old: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """(E,) bool, the pairs whose turned triangles ``new`` (E, 2, 3) both face the way the pair did (``old``: the
+    sum of its two normals): where the four corners do not bound a convex quad, one turned triangle lies folded
+    back over the other, a sliver showing its back that crosses no face it does not share a corner with."""
+    def normals(tris: np.ndarray) -> np.ndarray:
+        p = vertices[tris]
+        return np.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :])
+
+    was = normals(old).sum(1)
+    return (np.einsum("eki,ei->ek", normals(new), was) > 0).all(1)
 
 
 def _nearest_face(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -165,9 +186,10 @@ def _misfit(vertices: np.ndarray, tris: np.ndarray, surface: _Surface, nearest: 
 
 def _turn(faces: np.ndarray, pairs: np.ndarray, new: np.ndarray, order: np.ndarray) -> np.ndarray:
     """Turn the pairs in ``order`` (best first) in place in ``faces``, none with a face already turned this
-    round and no new edge made twice; (F,) bool, the faces turned."""
+    round and no new edge made twice; (T,) int64, the pairs turned."""
     used = np.zeros(len(faces), dtype=bool)
     made: set[tuple[int, int]] = set()
+    done = []
     for e in order.tolist():
         f1, f2 = int(pairs[e, 4]), int(pairs[e, 5])
         edge = tuple(sorted((int(pairs[e, 2]), int(pairs[e, 3]))))
@@ -176,4 +198,22 @@ def _turn(faces: np.ndarray, pairs: np.ndarray, new: np.ndarray, order: np.ndarr
         used[f1] = used[f2] = True
         made.add(edge)
         faces[f1], faces[f2] = new[e, 0], new[e, 1]
-    return used
+        done.append(e)
+    return np.asarray(done, dtype=np.int64)
+
+
+def _uncrossed(vertices: np.ndarray, faces: np.ndarray, before: np.ndarray, turned: np.ndarray) -> np.ndarray:
+    """Turn back, in place in ``faces`` (F, 3), each pair of ``turned`` (T, 2: its two faces) whose triangles
+    cross another face, to its two faces in ``before`` (F, 3), until no turned pair's do; (T,) bool, the pairs
+    that stay turned.  A pair turned back lies as it lay before the round, so it crosses only what it did then."""
+    kept = np.ones(len(turned), dtype=bool)
+    for _ in range(len(turned)):
+        among = np.zeros(len(faces), dtype=bool)
+        among[turned[kept].reshape(-1)] = True
+        bad = crossing_faces(vertices, faces, among=among)
+        back = kept & bad[turned].any(1)
+        if not back.any():
+            break
+        kept &= ~back
+        faces[turned[back].reshape(-1)] = before[turned[back].reshape(-1)]
+    return kept

@@ -87,9 +87,13 @@ class TriangleConfig:
         (:func:`fastmesh.faces.redistribute.redistribute`), and comes back so where that lies nearer the input
         (``pipeline.result.redistributed``).  None: not tried.
     swap_edges : bool
-        The pipeline, last: a generated result's edges turned where the other diagonal of their two triangles
-        lies nearer the input (:func:`fastmesh.faces.swap.swap_edges`), after its redistribution is weighed and
-        before a mesh input's decimation is.
+        The pipeline: a generated result's edges turned where the other diagonal of their two triangles lies
+        nearer the input and neither triangle then crosses another face (:func:`fastmesh.faces.swap.swap_edges`,
+        ``uncrossed``), after its redistribution is weighed and before a mesh input's decimation is.
+    refine : float or None
+        The pipeline, after the decimation is weighed: a point cloud's generated result has its edges split where
+        the input bends away from their middles by more than this (relative to the result's longest side)
+        (:func:`fastmesh.faces.refine.refine`), kept where it lies nearer the input.  None: not split.
     add_missed : float or None
         The pipeline, once a frame's candidates are weighed: the input points farther than ``missed_tol`` from
         the chosen mesh, at most this many times its vertices (:func:`fastmesh.faces.missed.missed_points`), are
@@ -141,6 +145,7 @@ class TriangleConfig:
     weigh_decimation: bool = True
     redistribute: float | None = 2.0
     swap_edges: bool = True
+    refine: float | None = CELL
     add_missed: float | None = 0.5
     missed_tol: float = 0.01
     quadric_vertices: bool = True

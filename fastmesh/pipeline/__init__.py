@@ -156,8 +156,9 @@ class Pipeline(FrameSteps):
         a random decoder's vertices lie anywhere in the unit cube, so a candidate triangle may stray from
         the input by the input's size (``surface_tol`` 1.0); and a mesh input's decimation and the vertices of its
         quadrics are not weighed (``weigh_decimation``, ``quadric_vertices``: they would replace every such mesh),
-        nor a point cloud's result redistributed, nor edges turned, nor input points added to its vertices, nor
-        its box brought to the input's (``redistribute``, ``swap_edges``, ``add_missed``, ``reach_extent``: its
+        nor a point cloud's result redistributed or its edges split, nor edges turned, nor input points added to its
+        vertices, nor its box brought to the input's (``redistribute``, ``refine``, ``swap_edges``, ``add_missed``,
+        ``reach_extent``: its
         meshes mean nothing, tests would pay for it, and a result stays its chosen candidate's mesh).
         Keep ``max_vertices`` small with it.
         """
@@ -178,7 +179,7 @@ class Pipeline(FrameSteps):
         return cls(vertex, enhancer, face, device=auto_device(device), source=f"random:{size}:{seed}",
                    threads=threads, triangle_config=TriangleConfig(surface_tol=RANDOM_SURFACE_TOL,
                                                                  weigh_decimation=False, redistribute=None,
-                                                                 swap_edges=False, add_missed=None,
+                                                                 refine=None, swap_edges=False, add_missed=None,
                                                                  quadric_vertices=False, reach_extent=False))
 
     def save(self, directory: str | os.PathLike) -> None:

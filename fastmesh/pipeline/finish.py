@@ -18,7 +18,9 @@ def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
     spread over the input (``step8.redistributed``, with ``TriangleConfig.redistribute``), its edges turned
     where the input lies along the other diagonal (``step8.swapped``, with ``TriangleConfig.swap_edges``;
     ``info["edges_turned"]``), a mesh input's weighed against its decimation to its face count
-    (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go into ``info``), and last its
+    (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go into ``info``), a point cloud's
+    weighed against its edges split where the input bends away from them (``step8.refined``, with
+    ``TriangleConfig.refine``; ``info["edges_split"]`` those kept), and last its
     box brought to the input's (``step8.extended``, with ``TriangleConfig.reach_extent``;
     ``info["extent_sides"]``): vertices, faces, where they come from ("model", "input" or "decimated") and the
     count step."""
@@ -26,8 +28,8 @@ def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
     if req.count.hold:
         info["faces_before_count"] = int(len(faces))
         vertices, faces, step = step8.held(req, vertices, faces)
-    # The boundary of a solid is closed and free of folds by construction: the redistribution's collapses and
-    # the edge turns, which see no faces but their own, would fold it.
+    # The boundary of a solid is closed and free of folds by construction: the redistribution's collapses, which
+    # see no faces but their own, would fold it; edge turns and splits that would make a face cross are undone.
     patched = result_from == "model" and info.get("solid_fits", {}).get("faces_from") != "solid"
     if patched and config.redistribute is not None:
         rival, fits = step8.redistributed(req, vertices, faces, config.redistribute, config.support_points)
@@ -35,7 +37,7 @@ def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
             info["redistribution_fits"] = fits
         if rival is not None:
             vertices, faces = rival
-    if patched and config.swap_edges:
+    if result_from == "model" and config.swap_edges:
         vertices, faces, info["edges_turned"] = step8.swapped(req, vertices, faces)
     if result_from == "model" and config.weigh_decimation:
         rival, fits = step8.decimated(req, vertices, faces, config)
@@ -43,6 +45,13 @@ def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
             info["decimation_fits"] = fits
         if rival is not None:
             vertices, faces, result_from, step = *rival, "decimated", None if step is None else "decimated"
+    if result_from == "model" and config.refine is not None and not req.count.hold:
+        rival, fits, splits = step8.refined(req, vertices, faces, config.refine, config.support_points)
+        if fits:
+            info["refine_fits"] = fits
+        info["edges_split"] = splits if rival is not None else 0
+        if rival is not None:
+            vertices, faces = rival
     if result_from != "input" and config.reach_extent:
         before = vertices, faces
         vertices, faces, info["extent_sides"] = step8.extended(req, vertices, faces)

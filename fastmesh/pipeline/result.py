@@ -29,6 +29,7 @@ from ..faces.orient import face_input
 from ..faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
 from ..faces.plane_cells import plane_cells
 from ..faces.redistribute import redistribute
+from ..faces.refine import refine
 from ..faces.support import surface_fit
 from ..faces.swap import swap_edges
 from ..faces.triangles import TriangleConfig
@@ -291,13 +292,36 @@ def extended(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.
         return (*split_pinches(norm.invert(out_v), out_f), reached)
 
 
+def refined(req: Request, vertices: np.ndarray, faces: np.ndarray, tol: float, support_points: int
+            ) -> tuple[tuple[np.ndarray, np.ndarray] | None, dict, int]:
+    """A point cloud's result with its edges split where the input bends away from them (``refine.refine`` at
+    ``tol`` of the unit cube, against the input's samples with their normals turned out of what they enclose)
+    where that lies nearer the input than the result, in the input's frame; both fits (empty where not weighed)
+    and the edges split.  None where the input is a mesh (its result is weighed against its decimation) or no
+    edge is split."""
+    if req.shape.faces is not None or len(faces) == 0:
+        return None, {}, 0
+    with stage("weighing", req.timings):
+        norm = req.frame.norm
+        points, normals = req.count_samples
+        unit_points = norm.apply(points)
+        v, f = unsplit(vertices, faces)
+        unit, f, splits = refine(norm.apply(v), f, unit_points, outward(unit_points, normals), tol)
+        if splits == 0:
+            return None, {}, 0
+        fits = _fits(req, support_points, model=(norm.apply(vertices), faces), refined=(unit, f))
+    rival = split_pinches(norm.invert(unit), f)
+    return (rival if fits["refined"] < fits["model"] else None), fits, splits
+
+
 def swapped(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-    """The result's edges turned where the other diagonal of their two triangles lies nearer the input
-    (``swap.swap_edges`` against the input's samples), pinched copies made one first and split again after; and
-    the number turned (the result as it was where none)."""
+    """The result's edges turned where the other diagonal of their two triangles lies nearer the input and
+    neither of its triangles then crosses another face (``swap.swap_edges`` against the input's samples,
+    ``uncrossed``), pinched copies made one first and split again after; and the number turned (the result as it
+    was where none)."""
     with stage("weighing", req.timings):
         v, f = unsplit(vertices, faces)
-        f, turned = swap_edges(v, f, *req.count_samples)
+        f, turned = swap_edges(v, f, *req.count_samples, uncrossed=True)
         return (*split_pinches(v, f), turned) if turned else (vertices, faces, 0)
 
 

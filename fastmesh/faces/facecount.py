@@ -262,7 +262,7 @@ class _Collapses:
 # --------------------------------------------------------------------------- more faces
 
 
-def _edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def side_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The distinct undirected edges (E, 2) of ``faces`` (F, 3) and (3F,) the edge of each face side, side
     j of face k (from corner j to corner j + 1) at ``j * F + k``."""
     sides = np.sort(face_sides(faces), axis=1)
@@ -331,7 +331,7 @@ def split_longest(vertices: np.ndarray, faces: np.ndarray, target: int,
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     tree = cKDTree(surface[0]) if surface is not None else None
     while len(f) < target:
-        edges, which = _edges(f)
+        edges, which = side_edges(f)
         lengths = np.linalg.norm(v[edges[:, 1]] - v[edges[:, 0]], axis=1)
         third = f[:, [2, 0, 1]].T.reshape(-1)
         chosen = _choose(lengths, which, third, target - len(f))
@@ -345,14 +345,22 @@ def split_longest(vertices: np.ndarray, faces: np.ndarray, target: int,
         if tree is not None:
             new = project(new, tree, surface[0], surface[1], MAX_MOVE * lengths[chosen])
         v = np.concatenate([v, new])
-        side = middle[which]  # (3F,) the new vertex on each face side, -1 where the side stays whole
-        k = np.flatnonzero(side >= 0)
-        face, j = k % len(f), k // len(f)
-        a, b, c = f[face, j], f[face, (j + 1) % 3], f[face, (j + 2) % 3]
-        keep = np.ones(len(f), dtype=bool)
-        keep[face] = False
-        f = np.concatenate([f[keep], np.c_[a, side[k], c], np.c_[side[k], b, c]])
+        f = split_sides(f, which, middle)[0]
     return v, f
+
+
+def split_sides(faces: np.ndarray, which: np.ndarray, middle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``faces`` (F, 3) with each side whose edge has a ``middle`` vertex (E,; -1: none) split there, each face
+    in two (a face has at most one such side; ``which`` (3F,): the edge of each face side, :func:`side_edges`),
+    windings kept; and (F',) bool, the faces made (after the faces kept)."""
+    side = middle[which]  # (3F,) the new vertex on each face side, -1 where the side stays whole
+    k = np.flatnonzero(side >= 0)
+    face, j = k % len(faces), k // len(faces)
+    a, b, c = faces[face, j], faces[face, (j + 1) % 3], faces[face, (j + 2) % 3]
+    keep = np.ones(len(faces), dtype=bool)
+    keep[face] = False
+    out = np.concatenate([faces[keep], np.c_[a, side[k], c], np.c_[side[k], b, c]])
+    return out, np.r_[np.zeros(int(keep.sum()), dtype=bool), np.ones(2 * len(k), dtype=bool)]
 
 
 def project(points: np.ndarray, tree, samples: np.ndarray, normals: np.ndarray, limit: np.ndarray) -> np.ndarray:

@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .crossings import crossing_faces
-from .facecount import MAX_MOVE, _edges
+from .facecount import MAX_MOVE, side_edges, split_sides
 
 # Input samples read around an edge's middle; those facing within FACING_COS of the edge's faces give its point
 # on the surface (a sample whose normal turns further is the far side of a thin part or across a crease).
@@ -33,7 +33,7 @@ BEND_DEGREES = 3.0
 
 def edge_normals(vertices: np.ndarray, faces: np.ndarray, which: np.ndarray, n_edges: int) -> np.ndarray:
     """(E, 3) unit normals of the edges: the sum of the area-weighted normals of the faces on each (``which``
-    (3F,) the edge of each face side, as ``facecount._edges`` gives it)."""
+    (3F,) the edge of each face side, as ``facecount.side_edges`` gives it)."""
     cross = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
     out = np.zeros((n_edges, 3))
     np.add.at(out, which, np.tile(cross, (3, 1)))
@@ -80,19 +80,6 @@ def _chosen(deviation: np.ndarray, which: np.ndarray, third: np.ndarray, n_faces
     return np.asarray(chosen, dtype=np.int64)
 
 
-def _split(faces: np.ndarray, which: np.ndarray, middle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``faces`` (F, 3) with each side whose edge has a ``middle`` vertex (E,; -1: none) split there (each face
-    has at most one such side); and (F',) bool, the faces made."""
-    side = middle[which]
-    k = np.flatnonzero(side >= 0)
-    face, j = k % len(faces), k // len(faces)
-    a, b, c = faces[face, j], faces[face, (j + 1) % 3], faces[face, (j + 2) % 3]
-    keep = np.ones(len(faces), dtype=bool)
-    keep[face] = False
-    out = np.concatenate([faces[keep], np.c_[a, side[k], c], np.c_[side[k], b, c]])
-    return out, np.r_[np.zeros(int(keep.sum()), dtype=bool), np.ones(2 * len(k), dtype=bool)]
-
-
 def refine(vertices: np.ndarray, faces: np.ndarray, samples: np.ndarray, normals: np.ndarray, tol: float,
            rounds: int = ROUNDS) -> tuple[np.ndarray, np.ndarray, int]:
     """Split the edges whose middles lie farther than ``tol`` from the input surface, at that surface.
@@ -118,7 +105,7 @@ def refine(vertices: np.ndarray, faces: np.ndarray, samples: np.ndarray, normals
     for _ in range(rounds):
         if len(f) == 0:
             break
-        edges, which = _edges(f)
+        edges, which = side_edges(f)
         lengths = np.linalg.norm(v[edges[:, 1]] - v[edges[:, 0]], axis=1)
         middle = 0.5 * (v[edges[:, 0]] + v[edges[:, 1]])
         onto, mean = onto_input(middle, edge_normals(v, f, which, len(edges)), tree, pts, nrm, MAX_MOVE * lengths)
@@ -129,7 +116,7 @@ def refine(vertices: np.ndarray, faces: np.ndarray, samples: np.ndarray, normals
             break
         index = np.full(len(edges), -1, dtype=np.int64)
         index[chosen] = len(v) + np.arange(len(chosen))
-        split, made = _split(f, which, index)
+        split, made = split_sides(f, which, index)
         placed = _unfolded(np.concatenate([v, onto[chosen]]), split, made, len(v), middle[chosen])
         if placed is None:
             break  # a face made crosses even split flat: the round is not made

@@ -1,14 +1,14 @@
 """Curved regions given the faces their curvature needs: edges split where the input bends away from them.
 
 The decoder places about as many vertices on a curved car body as on a box of the same size, so a curved region
-comes back as a few long flat faces cut across its curve (a car at a fifth of its artist's faces, its normals
-off by 15-20 degrees).  :func:`refine` splits, in rounds, each edge whose middle lies farther than ``tol`` from
-the input surface at the nearest point of that surface, as read from the tangent planes of the input samples
-around the middle that face the way the edge's faces do (so a thin part's other side is never taken for its
-own).  Flat regions, straight creases and the faces of a flat-faced shape are left as they are: the middles of
-their edges lie on the input.  A split whose faces would then cross another face keeps its new vertex at the
-edge's middle (a flat split: no shape added, none folded), so a surface free of crossings stays free of them;
-every split keeps the faces' winding, a closed surface closed and an edge-manifold one edge-manifold.
+comes back as a few long flat faces cut across its curve (a TORCS car at a fifth of its artist's faces).
+:func:`refine` splits, in rounds, each edge whose middle lies farther than ``tol`` from the input surface at the
+nearest point of that surface, as read from the tangent planes of the input samples around the middle that face
+the way the edge's faces do (so a thin part's other side is never taken for its own), where those samples' normals
+spread (the input bends there).  Flat regions, straight creases and the faces of a flat-faced shape are left as
+they are.  A split whose faces would then cross another face or turn over keeps its new vertex at the edge's middle
+(a flat split: no shape added, none folded), so a surface free of crossings stays free of them; every split keeps
+the faces' winding, a closed surface closed and an edge-manifold one edge-manifold.
 """
 
 from __future__ import annotations

@@ -8,7 +8,9 @@ turning the edge fits the input better with every vertex where it was: the edge 
 input (its face samples' mean distance to the tangent plane of the nearest input point, times its area) plus
 the distance back from the input points nearest to it (each standing for its share of the input's area); each
 round turns the pairs whose misfit falls the most, no two sharing a face.  Only edges of two faces wound alike
-turn, never onto an edge the mesh has, so a closed mesh stays closed and an edge-manifold one edge-manifold.
+turn, never onto an edge the mesh has, so a closed mesh stays closed and an edge-manifold one edge-manifold;
+nor does a pair whose four corners do not bound a convex quad (one turned triangle would fold back over the
+other), and with ``uncrossed`` a turn that makes a face cross another is turned back.
 """
 
 from __future__ import annotations

@@ -14,8 +14,9 @@ from scipy.spatial import cKDTree
 
 from fastmesh.evaluation.quality import topology
 from fastmesh.faces.crossings import crossing_faces
+from fastmesh.faces.facecount import project
 from fastmesh.faces.meshops import distance_to_triangles, wound_alike
-from fastmesh.faces.refine import onto_input, refine
+from fastmesh.faces.refine import AROUND, FACING_COS, refine
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.pipeline import result as step8
@@ -100,7 +101,7 @@ def test_a_thin_parts_own_side_is_read_not_its_other_side():
     points, normals = _samples(plate, 20000)
     query = np.array([[0.1, -0.2, 0.02], [-0.3, 0.25, 0.03]])
     up = np.tile([0.0, 0.0, 1.0], (2, 1))
-    moved, flat = onto_input(query, up, cKDTree(points), points, normals, np.full(2, 1.0))
+    moved, flat = project(query, cKDTree(points), points, normals, np.full(2, 1.0), AROUND, up, FACING_COS)
     assert np.allclose(moved[:, 2], 0.005, atol=1e-9) and np.allclose(flat, 1.0)
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..tokenizer.grid import CELL
-from .meshops import closest_on_triangles, point_triangle_distance
+from .meshops import closest_on_triangles, face_normals, point_triangle_distance
 
 # All relative to the input box's longest side.  A side falls short where the mesh stops more than this inside it.
 SHORT = 0.25 * CELL
@@ -119,14 +119,10 @@ def _outermost(points: np.ndarray, tree, spacing: float) -> np.ndarray:
     return out
 
 
-def _normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    return np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-
-
 def _turned(v: np.ndarray, f: np.ndarray, new_v: np.ndarray, new_f: np.ndarray) -> np.ndarray:
     """(K,) bool: which faces ``new_f`` (K, 3) of ``new_v`` turn over or lose their area against the faces ``f``
     (K, 3) of ``v`` they stand for, pair by pair."""
-    return np.einsum("ij,ij->i", _normals(v, f), _normals(new_v, new_f)) <= 0
+    return np.einsum("ij,ij->i", face_normals(v, f), face_normals(new_v, new_f)) <= 0
 
 
 def _move_nearest(v: np.ndarray, f: np.ndarray, point: np.ndarray, near: float

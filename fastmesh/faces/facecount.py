@@ -343,7 +343,7 @@ def split_longest(vertices: np.ndarray, faces: np.ndarray, target: int,
         middle[chosen] = len(v) + np.arange(len(chosen))
         new = 0.5 * (v[edges[chosen, 0]] + v[edges[chosen, 1]])
         if tree is not None:
-            new = project(new, tree, surface[0], surface[1], MAX_MOVE * lengths[chosen])
+            new = project(new, tree, surface[0], surface[1], MAX_MOVE * lengths[chosen])[0]
         v = np.concatenate([v, new])
         f = split_sides(f, which, middle)[0]
     return v, f
@@ -363,18 +363,24 @@ def split_sides(faces: np.ndarray, which: np.ndarray, middle: np.ndarray) -> tup
     return out, np.r_[np.zeros(int(keep.sum()), dtype=bool), np.ones(2 * len(k), dtype=bool)]
 
 
-def project(points: np.ndarray, tree, samples: np.ndarray, normals: np.ndarray, limit: np.ndarray) -> np.ndarray:
+def project(points: np.ndarray, tree, samples: np.ndarray, normals: np.ndarray, limit: np.ndarray,
+            k: int = NEAREST, facing: np.ndarray | None = None, min_cos: float = 0.0
+            ) -> tuple[np.ndarray, np.ndarray]:
     """``points`` (M, 3) moved onto the surface the ``samples`` (P, 3) with unit ``normals`` (P, 3) were
-    drawn from: onto the mean of the nearest points of their ``NEAREST`` nearest samples' tangent planes
-    (on a crease between two flat faces that is the crease itself), at most ``limit`` (M,) away.
+    drawn from: onto the mean of the nearest points of their ``k`` nearest samples' tangent planes
+    (on a crease between two flat faces that is the crease itself), at most ``limit`` (M,) away; with ``facing``
+    (M, 3) only the samples whose normals (then outward) lie within ``min_cos`` of it count, and a point none
+    does stays.  Also (M,) the length of the counted samples' mean normal (1 where the surface is flat there).
 
     ``tree`` is a ``cKDTree`` of the samples.
     """
-    k = min(NEAREST, len(samples))
+    k = min(k, len(samples))
     idx = tree.query(points, k=k)[1].reshape(len(points), k)
     n = normals[idx]  # (M, k, 3)
+    agree = np.ones(idx.shape, dtype=bool) if facing is None else np.einsum("mki,mi->mk", n, facing) > min_cos
     off = np.einsum("mki,mki->mk", points[:, None] - samples[idx], n)
-    move = -(off[..., None] * n).mean(1)
+    count = np.maximum(agree.sum(1), 1)[:, None]
+    move = -((off * agree)[..., None] * n).sum(1) / count
     size = np.linalg.norm(move, axis=1)
     scale = np.where(size > limit, limit / np.maximum(size, 1e-300), 1.0)
-    return points + move * scale[:, None]
+    return points + move * scale[:, None], np.linalg.norm((n * agree[..., None]).sum(1), axis=1) / count[:, 0]

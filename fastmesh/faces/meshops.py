@@ -18,10 +18,15 @@ def face_sides(faces: np.ndarray) -> np.ndarray:
     return np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
 
 
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3) normals of ``vertices[faces]`` ((F, 3) int), each as long as twice its face's area (unnormalised)."""
+    t = np.asarray(vertices, dtype=np.float64)[faces]
+    return np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+
+
 def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(F,) areas of ``vertices[faces]`` in squared input units."""
-    t = np.asarray(vertices, dtype=np.float64)[faces]
-    return 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+    return 0.5 * np.linalg.norm(face_normals(vertices, faces), axis=1)
 
 
 def remove_unreferenced(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

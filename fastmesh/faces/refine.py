@@ -17,7 +17,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .crossings import crossing_faces
-from .facecount import MAX_MOVE, side_edges, split_sides
+from .facecount import MAX_MOVE, project, side_edges, split_sides
+from .meshops import face_normals
 
 # Input samples read around an edge's middle; those facing within FACING_COS of the edge's faces give its point
 # on the surface (a sample whose normal turns further is the far side of a thin part or across a crease).
@@ -34,29 +35,9 @@ BEND_DEGREES = 3.0
 def edge_normals(vertices: np.ndarray, faces: np.ndarray, which: np.ndarray, n_edges: int) -> np.ndarray:
     """(E, 3) unit normals of the edges: the sum of the area-weighted normals of the faces on each (``which``
     (3F,) the edge of each face side, as ``facecount.side_edges`` gives it)."""
-    cross = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
     out = np.zeros((n_edges, 3))
-    np.add.at(out, which, np.tile(cross, (3, 1)))
+    np.add.at(out, which, np.tile(face_normals(vertices, faces), (3, 1)))
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
-
-
-def onto_input(points: np.ndarray, facing: np.ndarray, tree: cKDTree, samples: np.ndarray, normals: np.ndarray,
-               limit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``points`` (M, 3) moved onto the input surface: onto the mean of the nearest points of the tangent planes
-    of those of their ``AROUND`` nearest ``samples`` (P, 3) whose unit ``normals`` (P, 3, outward) face within
-    ``FACING_COS`` of ``facing`` (M, 3), at most ``limit`` (M,) away (a point no sample faces stays); and (M,)
-    the length of those samples' mean normal (1 where the input is flat there, 0 where none faces)."""
-    k = min(AROUND, len(samples))
-    idx = tree.query(points, k=k)[1].reshape(len(points), k)
-    n = normals[idx]
-    agree = np.einsum("mki,mi->mk", n, facing) > FACING_COS
-    off = np.einsum("mki,mki->mk", points[:, None] - samples[idx], n)
-    count = agree.sum(1)
-    move = -((off * agree)[..., None] * n).sum(1) / np.maximum(count, 1)[:, None]
-    size = np.linalg.norm(move, axis=1)
-    scale = np.where(size > limit, limit / np.maximum(size, 1e-300), 1.0)
-    mean = np.linalg.norm((n * agree[..., None]).sum(1), axis=1) / np.maximum(count, 1)
-    return points + move * scale[:, None], mean
 
 
 def _chosen(deviation: np.ndarray, which: np.ndarray, third: np.ndarray, n_faces: int, tol: float) -> np.ndarray:
@@ -108,7 +89,8 @@ def refine(vertices: np.ndarray, faces: np.ndarray, samples: np.ndarray, normals
         edges, which = side_edges(f)
         lengths = np.linalg.norm(v[edges[:, 1]] - v[edges[:, 0]], axis=1)
         middle = 0.5 * (v[edges[:, 0]] + v[edges[:, 1]])
-        onto, mean = onto_input(middle, edge_normals(v, f, which, len(edges)), tree, pts, nrm, MAX_MOVE * lengths)
+        onto, mean = project(middle, tree, pts, nrm, MAX_MOVE * lengths, AROUND, edge_normals(v, f, which, len(edges)),
+                             FACING_COS)
         dev = np.linalg.norm(onto - middle, axis=1)
         dev[mean > np.cos(np.radians(BEND_DEGREES))] = 0.0  # the input is flat there
         chosen = _chosen(dev, which, f[:, [2, 0, 1]].T.reshape(-1), len(f), tol)
@@ -137,7 +119,7 @@ def _unfolded(vertices: np.ndarray, faces: np.ndarray, made: np.ndarray, first: 
     flat_v[first:] = middles
     flat = np.zeros(len(middles), dtype=bool)
     for _ in range(len(middles) + 1):
-        turned = (_normals(v, faces) * _normals(flat_v, faces)).sum(1) < 0
+        turned = (face_normals(v, faces) * face_normals(flat_v, faces)).sum(1) < 0
         bad = crossing_faces(v, faces, among=made) | turned
         new = faces[bad & made]
         new = np.unique(new[new >= first]) - first
@@ -148,7 +130,3 @@ def _unfolded(vertices: np.ndarray, faces: np.ndarray, made: np.ndarray, first: 
         v[first + new] = middles[new]
     return v
 
-
-def _normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    p = vertices[faces]
-    return np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .crossings import crossing_faces
-from .meshops import point_triangle_distance, triangle_areas
+from .meshops import face_normals, point_triangle_distance, triangle_areas
 from .support import barycentric_grid, face_samples
 
 ROUNDS = 6  # rounds of turns; each sees the turns of the one before (most pairs settle in two or three)
@@ -129,12 +129,8 @@ def _unfolded(vertices: np.ndarray, old: np.ndarray, new: np.ndarray) -> np.ndar
     """(E,) bool, the pairs whose turned triangles ``new`` (E, 2, 3) both face the way the pair did (``old``: the
     sum of its two normals): where the four corners do not bound a convex quad, one turned triangle lies folded
     back over the other, a sliver showing its back that crosses no face it does not share a corner with."""
-    def normals(tris: np.ndarray) -> np.ndarray:
-        p = vertices[tris]
-        return np.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :])
-
-    was = normals(old).sum(1)
-    return (np.einsum("eki,ei->ek", normals(new), was) > 0).all(1)
+    was = face_normals(vertices, old.reshape(-1, 3)).reshape(-1, 2, 3).sum(1)
+    return (np.einsum("eki,ei->ek", face_normals(vertices, new.reshape(-1, 3)).reshape(-1, 2, 3), was) > 0).all(1)
 
 
 def _nearest_face(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..faces.meshops import distance_to_triangles, face_sides, normalize_edges
+from ..faces.meshops import distance_to_triangles, distinct_corners, face_sides, normalize_edges
 from ..shapes.io import sample_triangles
 from ..shapes.shape import Normalization
 from ..tokenizer.grid import CELL  # one cell of the 7-bit grid, in units of the longest bounding-box side
@@ -234,7 +234,7 @@ def mesh_topology(vertices: np.ndarray, faces: np.ndarray, merge: bool = True) -
     if merge and len(f):
         _, ids = np.unique(np.asarray(vertices, dtype=np.float64), axis=0, return_inverse=True)
         f = ids.reshape(-1)[f]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    f = f[distinct_corners(f)]
     if len(f) == 0:
         return {"edge_manifold": True, "watertight": False, "pieces": 0}
     e = np.sort(face_sides(f), axis=1)

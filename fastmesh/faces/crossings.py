@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .meshops import welded_in_place
+from .meshops import distinct_corners, welded_in_place
 from .pieces import pull_in
 
 # Rounds of undoing the moves of vertices whose faces cross after ``pieces.pull_in`` (each round undoes every move
@@ -34,7 +34,7 @@ def crossing_faces(vertices: np.ndarray, faces: np.ndarray, among: np.ndarray | 
     tri = v[f]
     pairs = _candidate_pairs(tri)
     # A face welded flat (two corners one) crosses nothing.
-    live = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    live = distinct_corners(f)
     pairs = pairs[live[pairs].all(1)]
     if among is not None:
         pairs = pairs[np.asarray(among)[pairs].any(1)]

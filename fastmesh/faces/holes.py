@@ -13,7 +13,7 @@ import itertools
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .meshops import face_sides
+from .meshops import distinct_corners, face_sides
 from .selection import Selection
 from .support import SupportCache
 
@@ -209,7 +209,7 @@ def _allowed_triangles(loop: list[int], book: Selection, support: SupportCache, 
     # triangle covers rules the loop out before any triangle is checked against the selection.
     lo, mid, hi = ijm.T
     # A loop that passes a vertex twice (``closure.hole_loops``) has triangles on both of its visits: not faces.
-    on = (d <= limit) & (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])
+    on = (d <= limit) & distinct_corners(tris)
     covered = np.zeros(k, dtype=bool)  # edge (p, p + 1), and (k - 1, 0) as edge k - 1
     covered[lo[on & (mid == lo + 1)]] = True
     covered[mid[on & (hi == mid + 1)]] = True

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..shapes.arrangement import merge_points
 from ..shapes.planar import _closed, _triangulate
-from .meshops import face_sides, open_sides, triangle_areas, weld, wound_alike
+from .meshops import distinct_corners, face_sides, open_sides, triangle_areas, weld, wound_alike
 
 MAX_FACES = 500_000  # a denser mesh is a scan or a sculpt, not parts an artist placed (and its union takes seconds)
 MAX_PARTS = 256  # more welded pieces than this are scattered debris or a particle mesh, not parts of a prop
@@ -125,7 +125,7 @@ def _shrunk(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nda
     on the same corners) dropped.  None where that leaves no closed mesh."""
     v, index = merge_points(offset(vertices, faces, -OVERLAP), MERGE)
     f = index[faces]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+    f = f[distinct_corners(f)]
     # Two faces on the same three corners (a strip's two sides, once it has no width) face each other: both go.
     same = np.unique(np.sort(f, axis=1), axis=0, return_inverse=True, return_counts=True)
     f = f[same[2][same[1].reshape(-1)] == 1]

@@ -140,7 +140,13 @@ def weld(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6) -> tuple[np
     faces : (F', 3) int64
     """
     v, f = welded_in_place(vertices, faces, tol)
-    return v, f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    return v, f[distinct_corners(f)]
+
+
+def distinct_corners(faces: np.ndarray) -> np.ndarray:
+    """(F,) bool, the ``faces`` (F, 3) whose three corners are three vertices (not collapsed by a weld or a merge)."""
+    f = np.asarray(faces).reshape(-1, 3)
+    return (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
 
 
 def welded_in_place(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
@@ -162,7 +168,7 @@ def welded_fins(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-6) -> n
     if len(faces) == 0:
         return np.zeros(0, dtype=bool)
     one = welded_in_place(vertices, faces, tol)[1]
-    live = (one[:, 0] != one[:, 1]) & (one[:, 1] != one[:, 2]) & (one[:, 0] != one[:, 2])
+    live = distinct_corners(one)
     sides = np.sort(face_sides(one), axis=1)
     _, inverse, count = np.unique(sides, axis=0, return_inverse=True, return_counts=True)
     live_count = np.bincount(inverse.reshape(-1), weights=np.tile(live, 3).astype(float), minlength=len(count))

@@ -36,10 +36,7 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray, outward: bool = True) 
     f[flip] = f[flip][:, ::-1]
     if outward:
         v = np.asarray(vertices, dtype=np.float64)
-        t = v[f] - v[np.unique(f)].mean(0)
-        vol = np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2]))
-        part_vol = np.bincount(label, weights=vol)
-        inv = part_vol[label] < 0
+        inv = _volumes(v, f, label, v[np.unique(f)].mean(0))[label] < 0
         f[inv] = f[inv][:, ::-1]
     return f
 
@@ -133,7 +130,14 @@ def _sheets(v: np.ndarray, f: np.ndarray, label: np.ndarray, area_normal: np.nda
     corner = np.repeat(label, 3)
     np.add.at(centre, corner, v[f].reshape(-1, 3))
     centre /= np.maximum(np.bincount(corner, minlength=n), 1)[:, None]
-    t = v[f] - centre[label][:, None]
-    volume = np.bincount(label, np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])), n) / 6
+    volume = _volumes(v, f, label, centre[label])
     area = np.bincount(label, np.linalg.norm(area_normal, axis=1), n) / 2
     return open_piece & (np.abs(volume) < SHEET_VOLUME * area**1.5)
+
+
+def _volumes(v: np.ndarray, f: np.ndarray, label: np.ndarray, about: np.ndarray) -> np.ndarray:
+    """(pieces,) the signed volume of each piece (faces ``f`` (F, 3) labelled ``label`` (F,)) about ``about``: one
+    point (3,) for all, or one per face (F, 3); exact for a closed piece wherever the point, an open piece's
+    depends on it."""
+    t = v[f] - (about if np.ndim(about) == 1 else about[:, None])
+    return np.bincount(label, np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])), label.max() + 1) / 6

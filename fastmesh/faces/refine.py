@@ -99,7 +99,7 @@ def refine(vertices: np.ndarray, faces: np.ndarray, samples: np.ndarray, normals
         index = np.full(len(edges), -1, dtype=np.int64)
         index[chosen] = len(v) + np.arange(len(chosen))
         split, made = split_sides(f, which, index)
-        placed = _unfolded(np.concatenate([v, onto[chosen]]), split, made, len(v), middle[chosen])
+        placed = _placed_unfolded(np.concatenate([v, onto[chosen]]), split, made, len(v), middle[chosen])
         if placed is None:
             break  # a face made crosses even split flat: the round is not made
         v, f = placed, split
@@ -107,8 +107,8 @@ def refine(vertices: np.ndarray, faces: np.ndarray, samples: np.ndarray, normals
     return v, f, total
 
 
-def _unfolded(vertices: np.ndarray, faces: np.ndarray, made: np.ndarray, first: int, middles: np.ndarray
-              ) -> np.ndarray | None:
+def _placed_unfolded(vertices: np.ndarray, faces: np.ndarray, made: np.ndarray, first: int,
+                     middles: np.ndarray) -> np.ndarray | None:
     """``vertices`` with each new one (from index ``first``; ``middles`` (S, 3) their edges' middles) whose faces
     (among those ``made`` (F,) bool) turn over (face against the face they split) or cross another face put back
     at its edge's middle, until none do; None where a face made still crosses one with every vertex of it back

@@ -18,7 +18,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ..faces.crossings import adds_crossings
-from ..faces.meshops import edge_face_counts, face_sides, remove_unreferenced, triangle_areas, weld
+from ..faces.meshops import distinct_corners, edge_face_counts, face_sides, remove_unreferenced, triangle_areas, weld
 from ..faces.pieces import split_pinches
 from ..faces.surface_triangles import surface_from_faces
 from ..faces.triangles import TriangleConfig
@@ -65,7 +65,7 @@ def weld_seams(unit: np.ndarray, faces: np.ndarray, tol: float = SEAM_TOL) -> tu
     _, label = connected_components(graph, directed=False)
     _, first = np.unique(label, return_index=True)
     f = first[np.searchsorted(np.unique(label), label[f])]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+    f = f[distinct_corners(f)]
     f = f[np.unique(np.sort(f, axis=1), axis=0, return_index=True)[1]]
     return remove_unreferenced(v, f)[:2]
 

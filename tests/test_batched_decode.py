@@ -8,7 +8,7 @@ import torch
 from test_cells import _cell_grids
 
 from fastmesh.evaluation.primitives import point_cloud, primitive
-from fastmesh.faces.support import surface_fit
+from fastmesh.faces.support import weighed_fit
 from fastmesh.models.cells import flat_index
 from fastmesh.models.encoder import EncoderConfig
 from fastmesh.models.evidence import GAIN
@@ -150,7 +150,7 @@ def test_pipeline_candidates_are_each_seed_alone(monkeypatch):
     fits = []
     for k in range(2):
         alone = pipe.generate(shape, GenerateParams(seed=11 + k, candidates=1, **params))
-        fits.append(round(surface_fit(norm.apply(alone.vertices), alone.faces, reference, 11), 6))
+        fits.append(round(weighed_fit(norm.apply(alone.vertices), alone.faces, reference, 11), 6))
         if both.info["chosen_seed"] == 11 + k:
             assert np.allclose(both.vertices, alone.vertices) and np.array_equal(both.faces, alone.faces)
             assert both.tokens == alone.tokens

@@ -133,6 +133,31 @@ def test_rival_comes_back_where_the_cut_loses_the_shape():
     _assert_solid_boundary(v, f, 1.0)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_a_rival_nearer_the_input_but_folded_through_itself_loses_to_the_solid(seed):
+    """The rival is weighed by what a renderer shows (``support.weighed_fit``): against a sphere's coarse solid,
+    a rival lying nearer its input by more than the margin (the coarse sphere with a finer one turned through it,
+    faces crossing) at any pose and unit.  By distance alone the rival would come back; the solid does, and the
+    report holds the rival's weighed fit."""
+    from fastmesh.faces.support import surface_fit, weighed_fit
+
+    rng = np.random.default_rng(seed)
+    t = np.eye(4)
+    scale = 10.0 ** rng.uniform(-3, 3)
+    t[:3, :3] = Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix() * scale
+    t[:3, 3] = rng.uniform(-2, 2, 3) * scale
+    turn = trimesh.transformations.rotation_matrix(float(rng.uniform(0.2, 0.4)), rng.normal(size=3))
+    ball, coarse = trimesh.creation.icosphere(5).apply_transform(t), trimesh.creation.icosphere(1).apply_transform(t)
+    fine = trimesh.creation.icosphere(2).apply_transform(turn).apply_transform(t)
+    rival = (np.concatenate([coarse.vertices, fine.vertices]),
+             np.concatenate([coarse.faces, fine.faces + len(coarse.vertices)]))
+    pts, nrm = _sampled(ball)
+    assert surface_fit(*rival, pts) * 1.1 < surface_fit(coarse.vertices, coarse.faces, pts)
+    v, f, report = sd.solid_mesh(np.asarray(coarse.vertices), pts, nrm, None, None, rival, pts, 1.1)
+    assert report["faces_from"] == "solid" and report["fits"]["surface"] == round(weighed_fit(*rival, pts), 6)
+    _assert_solid_boundary(v, f)
+
+
 def test_face_network_probabilities_make_cuts_cheap():
     """With the network's logits (an (N, N) matrix over the given vertices only): a triangle of predicted edges
     costs little, one of edges the network rules out its whole area, and one on a corner of the added box too."""

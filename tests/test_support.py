@@ -7,7 +7,15 @@ from scipy.spatial import cKDTree
 
 from fastmesh.faces import mesh_from_adjacency
 from fastmesh.faces.meshops import edges_from_faces
-from fastmesh.faces.support import SupportCache, drop_unsupported, support_distance, surface_fit
+from fastmesh.faces.support import (
+    DEFECT_WEIGHT,
+    SupportCache,
+    defect_share,
+    drop_unsupported,
+    support_distance,
+    surface_fit,
+    weighed_fit,
+)
 from fastmesh.faces.triangles import TriangleConfig
 from fastmesh.shapes.io import input_surface, sample_triangles
 from fastmesh.shapes.shape import Shape
@@ -174,3 +182,36 @@ def test_the_limit_is_as_wide_on_denser_samples_and_wider_on_sparser_ones():
         pts = sample_triangles(v, f, SPACING_POINTS, rng)[0]
         nn = cKDTree(pts).query(pts, k=2)[0][:, 1]
         assert limit[1] / (SPACING_FACTOR * np.median(nn)) == pytest.approx(1.0, rel=0.05)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_rival_folded_through_itself_weighs_more_than_its_clean_twin(seed):
+    """At any pose and unit a clean sphere weighs its fit alone; the same sphere with a copy turned a little
+    through it (nearly every face crossing) lies as near the input yet weighs ~1 + DEFECT_WEIGHT times as much,
+    more than a much coarser clean sphere; a Moebius band weighs the share of its faces along its twist."""
+    rng = np.random.default_rng(seed)
+    rot = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
+    scale, offset = 10.0 ** rng.uniform(-3, 3), rng.normal(size=3)
+    place = lambda v: (np.asarray(v) @ rot.T + offset) * scale  # noqa: E731
+    fine, coarse = trimesh.creation.icosphere(3), trimesh.creation.icosphere(1)
+    points = place(trimesh.creation.icosphere(5).vertices)
+    turned = fine.vertices @ trimesh.transformations.rotation_matrix(0.05, [0, 0, 1])[:3, :3].T
+    folded_v = place(np.concatenate([fine.vertices, turned]))
+    folded_f = np.concatenate([fine.faces, fine.faces + len(fine.vertices)])
+    clean = weighed_fit(place(fine.vertices), fine.faces, points, seed)
+    assert clean == surface_fit(place(fine.vertices), fine.faces, points, seed)
+    share = defect_share(folded_v, folded_f)  # all but the faces at the turn's axis, whose corners stay put
+    assert share > 0.95
+    folded = weighed_fit(folded_v, folded_f, points, seed)
+    assert folded == pytest.approx((1 + DEFECT_WEIGHT * share) * surface_fit(folded_v, folded_f, points, seed))
+    assert surface_fit(folded_v, folded_f, points, seed) < 1.1 * clean
+    assert folded > weighed_fit(place(coarse.vertices), coarse.faces, points, seed) > clean
+    t = np.linspace(0, 2 * np.pi, 13)[:-1]
+    across = np.c_[np.cos(t / 2) * np.cos(t), np.cos(t / 2) * np.sin(t), np.sin(t / 2)] * 0.3
+    ring = np.c_[np.cos(t), np.sin(t), np.zeros(12)]
+    band = place(np.concatenate([ring + across, ring - across]))
+    top = lambda i: i % 12 if i < 12 else 12 + i % 12  # noqa: E731  past the join top and bottom swap
+    bottom = lambda i: 12 + i if i < 12 else i % 12  # noqa: E731
+    f = np.array([tri for i in range(12) for tri in ((top(i), bottom(i), bottom(i + 1)),
+                                                      (top(i), bottom(i + 1), top(i + 1)))])
+    assert defect_share(band, f) == pytest.approx(2 / 24)

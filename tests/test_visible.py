@@ -10,7 +10,14 @@ from scipy.spatial.transform import Rotation
 
 from fastmesh.evaluation.exact import distance_to_mesh
 from fastmesh.evaluation.visible import VIEWS, back_face_share, cameras, render_views, visible_report
-from fastmesh.faces.defects import defects, self_intersections, triangles_cross, unwelded_vertices, winding
+from fastmesh.faces.defects import (
+    defects,
+    self_intersections,
+    triangles_cross,
+    unorientable_faces,
+    unwelded_vertices,
+    winding,
+)
 from fastmesh.faces.meshops import point_triangle_distance
 
 SIDES = VIEWS[:4]  # the four horizontal views
@@ -234,3 +241,29 @@ def test_a_band_no_turning_makes_agree_still_reads_its_flipped_part():
     # area reads one of the two (the tree's choice), never nothing.
     assert w["misoriented_edges"] == 3
     assert area[8:14].sum() / area.sum() - 1e-9 <= w["misoriented_area"] <= area[14:].sum() / area.sum() + 1e-9
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_faces_no_turning_makes_agree_are_those_of_a_twist_only(seed):
+    """A Moebius band at any pose and unit has one edge no turning makes agree: its two faces, however its quads
+    are wound and whether its vertices are split at every face (as a file's seams) or not.  Pieces that some
+    turning makes agree (a sheet wound half one way, a convex shape with faces turned at random, a sphere folded
+    through itself) have none."""
+    rng = np.random.default_rng(seed)
+    frame = _random_frame(rng)
+    m = int(rng.integers(8, 20))
+    start = int(rng.integers(0, m - 3))
+    for flipped in (range(0), range(start, start + int(rng.integers(1, 3)))):
+        v, f = _moebius(m, flipped)
+        v = frame(v)
+        assert unorientable_faces(v, f).sum() == 2
+        soup = np.arange(3 * len(f)).reshape(-1, 3)
+        assert unorientable_faces(v[f].reshape(-1, 3), soup).sum() == 2
+    n = int(rng.integers(2, 10))
+    assert not unorientable_faces(frame(_sheet(n, int(rng.integers(0, n)))[0]), _sheet(n, 0)[1]).any()
+    v, f = _convex(rng)
+    turned = f.copy()
+    pick = rng.random(len(f)) < 0.3
+    turned[pick] = turned[pick][:, ::-1]
+    assert not unorientable_faces(frame(v), turned).any()
+    assert not unorientable_faces(*_folded_sphere()).any()

@@ -20,7 +20,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .meshops import face_sides, remove_unreferenced, triangle_areas, weld
+from .meshops import distinct_corners, face_sides, remove_unreferenced, triangle_areas, weld, welded_in_place
 
 TOUCH = 1e-7  # overlaps thinner than this share of the longest side are touching, not crossing
 PAIR_CHUNK = 50_000  # face pairs tested per vectorised step (~2 kB each)
@@ -56,6 +56,35 @@ def winding(vertices: np.ndarray, faces: np.ndarray) -> dict:
     v, f = weld(vertices, faces)
     if len(f) == 0:
         return {"misoriented_edges": 0, "misoriented_area": 0.0}
+    a, b, same, piece, turned, _ = _classes(f)
+    area = triangle_areas(v, f)
+    one = np.bincount(piece, weights=np.where(turned, 0.0, area), minlength=2 * len(f))
+    other = np.bincount(piece, weights=np.where(turned, area, 0.0), minlength=2 * len(f))
+    wrong = float(np.minimum(one, other).sum())
+    return {"misoriented_edges": int(same.sum()), "misoriented_area": wrong / max(float(area.sum()), 1e-300)}
+
+
+def unorientable_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) bool, the ``faces`` (F, 3) along an edge that no turning of faces makes agree (welded as
+    :func:`winding` welds): in a piece twisted like a Moebius band or folded through itself along a strip, the
+    edges still wound the same way by both their faces once the piece is turned along :func:`_tree_classes`'
+    tree.  A renderer shows the back of one side of such an edge whichever way the piece is turned."""
+    bad = np.zeros(len(faces), dtype=bool)
+    v, f = welded_in_place(vertices, faces)
+    live = np.flatnonzero(distinct_corners(f))
+    if len(live) == 0:
+        return bad
+    a, b, same, piece, turned, knotted = _classes(f[live])
+    stuck = (same ^ (turned[a] != turned[b])) & np.isin(piece[a], knotted)
+    bad[live[np.r_[a[stuck], b[stuck]]]] = True
+    return bad
+
+
+def _classes(f: np.ndarray) -> tuple:
+    """Each face's orientation class on a mesh's ``f`` (F, 3): the faces ``a``, ``b`` (K,) across each edge of two
+    faces and ``same`` (K,) whether both run it the same way (:func:`_interior_pairs`); ``piece`` (F,) an id of each
+    face's edge-connected piece; ``turned`` (F,) bool, the faces to turn for each piece to agree (for the
+    ``knotted`` pieces, which no turning makes agree, along :func:`_tree_classes`' tree)."""
     a, b, same = _interior_pairs(f)
     # Orientation classes on the double cover: node (face, +) is face, (face, -) is face + F.  Agreeing
     # neighbours join + to + and - to -, disagreeing ones + to -; in an orientable piece the faces whose +
@@ -71,11 +100,7 @@ def winding(vertices: np.ndarray, faces: np.ndarray) -> dict:
     knotted = np.unique(piece[plus == minus])  # pieces no turning makes agree (a fold, a Moebius band)
     if len(knotted):
         turned = _tree_classes(a, b, same, piece, knotted, turned)
-    area = triangle_areas(v, f)
-    one = np.bincount(piece, weights=np.where(turned, 0.0, area), minlength=2 * n)
-    other = np.bincount(piece, weights=np.where(turned, area, 0.0), minlength=2 * n)
-    wrong = float(np.minimum(one, other).sum())
-    return {"misoriented_edges": int(same.sum()), "misoriented_area": wrong / max(float(area.sum()), 1e-300)}
+    return a, b, same, piece, turned, knotted
 
 
 def _tree_classes(a: np.ndarray, b: np.ndarray, same: np.ndarray, piece: np.ndarray, knotted: np.ndarray,

@@ -34,7 +34,7 @@ from .labels import interface, made_manifold
 from .meshops import edge_face_counts, remove_unreferenced, triangle_areas, welded_fins
 from .pieces import far_limit, pull_in
 from .slabs import thickened
-from .support import support_limit, surface_fit
+from .support import support_limit, weighed_fit
 from .surface_triangles import edge_log_prob
 from .thin import THIN_REACH, facing_away, lost_samples, thin_picks
 from .winding import cell_winding
@@ -177,7 +177,7 @@ def with_thin_parts(vertices: np.ndarray, points: np.ndarray, normals: np.ndarra
                            known=known, thin_reach=THIN_REACH * spacing)
     # Kept where it loses fewer samples and lies no farther from them (a cell it filled past the part would).
     if not len(tf) or lost_samples(pts, tv, tf, LOST_LIMITS * limit).sum() >= lost.sum() or (
-            len(f) and surface_fit(tv, tf, pts, seed) > surface_fit(v, f, pts, seed)):
+            len(f) and weighed_fit(tv, tf, pts, seed) > weighed_fit(v, f, pts, seed)):
         return v, f, 0
     used = int((cKDTree(extra).query(tv)[0] == 0).sum())
     return tv, tf, used
@@ -215,7 +215,7 @@ def solid_mesh(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, ed
     surface selection's mesh on the same vertices).
 
     Where the decoder's vertices cannot enclose a part of the input (a wing or a boom one vertex thick), the cut
-    loses it and lies farther from the input: the rival comes back where the solid's ``support.surface_fit`` is over
+    loses it and lies farther from the input: the rival comes back where the solid's ``support.weighed_fit`` is over
     ``margin`` times the rival's, and the report says which came back.
 
     Parameters
@@ -252,7 +252,7 @@ def solid_mesh(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, ed
         v, f = _without_flat(v, f, flat_tol)
     counts = {"patched_faces": 0, "slabs": 0, "thin_vertices": added}
     # The rival's fit, read once: the solid as cut and the solid patched are both weighed against it.
-    theirs = round(surface_fit(*rival, reference, seed), 6) if len(rival[1]) else float("inf")
+    theirs = round(weighed_fit(*rival, reference, seed), 6) if len(rival[1]) else float("inf")
     whole = _weighed(v, f, rival, theirs, reference, margin, seed, counts)
     # The solid as the cut made it, closed, where it fits; else with the parts it lost from the rival.
     if whole[2]["faces_from"] == "solid" or not (patch and len(f) and len(rival[1])):
@@ -304,10 +304,10 @@ def _patched(vertices: np.ndarray, faces: np.ndarray, rival: tuple[np.ndarray, n
 
 def _weighed(vertices: np.ndarray, faces: np.ndarray, rival: tuple[np.ndarray, np.ndarray], theirs: float,
              reference: np.ndarray, margin: float, seed: int, counts: dict) -> tuple[np.ndarray, np.ndarray, dict]:
-    """The solid, or the ``rival`` where the solid is empty or its ``support.surface_fit`` to ``reference`` is over
+    """The solid, or the ``rival`` where the solid is empty or its ``support.weighed_fit`` to ``reference`` is over
     ``margin`` times ``theirs`` (the rival's); with :func:`solid_mesh`'s report (``counts``: ``patched_faces``,
     ``slabs``, ``thin_vertices``)."""
-    ours = round(surface_fit(vertices, faces, reference, seed), 6) if len(faces) else None
+    ours = round(weighed_fit(vertices, faces, reference, seed), 6) if len(faces) else None
     report = {"fits": {"solid": ours, "surface": theirs}, **counts}
     if ours is None or ours > margin * theirs:
         return rival[0], rival[1], {**report, "faces_from": "surface"}

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..tokenizer.grid import CELL
 from .cliques import cliques4
-from .meshops import triangle_areas
+from .meshops import distinct_corners, triangle_areas
 
 
 @dataclass
@@ -112,7 +112,7 @@ class TriangleConfig:
     solid : float or None
         The pipeline, per candidate: the surface as the boundary of a solid (:func:`fastmesh.faces.solid.solid_mesh`:
         Delaunay cells of the vertices labelled inside or outside by a minimum cut of the input's winding numbers
-        and the edge probabilities) comes back where its ``support.surface_fit`` is at most this many times the
+        and the edge probabilities) comes back where its ``support.weighed_fit`` is at most this many times the
         surface selection's (``info.solid_fits``), for point-cloud inputs.  None: not made.  What ships keeps it
         within 1.1 times.
     solid_patch : bool
@@ -170,7 +170,7 @@ def drop_degenerate(vertices: np.ndarray, faces: np.ndarray, area_tol: float = 1
     """Drop faces with a repeated index or an area at most ``area_tol * L**2``; then duplicates
     (the same vertex set, whatever the winding; the first one is kept)."""
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    ok = distinct_corners(f)
     f = f[ok]
     if len(f) == 0:
         return f

@@ -16,7 +16,7 @@ rivals in ``weighing``):
               chosen by the edge logits, kept a surface, holes closed, the
               vertices of flat regions removed (``faces.mesh_from_adjacency``,
               ``surface_triangles``, ``simplify``)
-          ──► the candidate nearest the input surface (``support.surface_fit``), weighing
+          ──► the candidate nearest the input surface (``support.weighed_fit``), weighing
               and the rivals of the chosen one
           ──► back to the input's frame, made whole, closed where it must be   faces
               (``closing``)
@@ -212,7 +212,7 @@ class Pipeline(FrameSteps):
         With ``params.candidates`` = K > 1 (and a temperature above 0) the meshes of seeds ``seed``
         ... ``seed + K - 1`` are made (their vertex tokens decoded together, as one batch) and the
         one closest to the input surface is returned
-        (:func:`fastmesh.faces.support.surface_fit`): a sampled mesh sometimes leaves out a part or fills
+        (:func:`fastmesh.faces.support.weighed_fit`): a sampled mesh sometimes leaves out a part or fills
         a flat region with vertices, and the input tells which.
 
         Parameters

@@ -20,7 +20,7 @@ from ..faces.filtering import predict_edges
 from ..faces.meshops import weld
 from ..faces.missed import missed_points
 from ..faces.solid import solid_mesh
-from ..faces.support import surface_fit
+from ..faces.support import weighed_fit
 from ..fitting import distinct, fit_radius, fit_samples, fit_to_planes
 from ..models.cells import raise_cells, snap_to_cells, vertex_probabilities
 from ..models.generate import GenerationError
@@ -36,7 +36,7 @@ CELL_SEED = 0  # of the input sample the cell evidence reads
 # An input point added as a vertex moves to the best-scored cell around it (``_missed_cells``): on 14 held-out
 # characters and aircraft, vertex precision 0.40 -> 0.46 and CD 0.99 -> 0.97 against the point's own cell.
 MISSED_SNAP = 0.0
-# ... and the mesh made with them comes back only where its surface_fit is under this share of the model's own:
+# ... and the mesh made with them comes back only where its weighed_fit is under this share of the model's own:
 # the vertices cost faces (up to half as many again), and smooth shapes the decoder made well gain 6-7 % for
 # them (a torus, a wavy sheet) where the slabs and cut-off wings of characters and aircraft gain 11-59 %.
 MISSED_MARGIN = 0.9
@@ -250,7 +250,7 @@ class CandidateSteps:
         there are several) made again with the input points it leaves out among its vertices
         (``missed.missed_points``: at most ``TriangleConfig.add_missed`` x its vertices, each farther than
         ``missed_tol`` from it; ``_missed_cells``), where that mesh lies nearer the input by ``MISSED_MARGIN``
-        (``support.surface_fit``).  The mesh kept, with ``added_vertices`` (how many of its vertices came from
+        (``support.weighed_fit``).  The mesh kept, with ``added_vertices`` (how many of its vertices came from
         the input) and, where weighed, ``missed_fits`` (both fits); ``best`` where none is missed or the request
         tells the decoder a face count (the count it aimed for).  The vertices stay within the request's
         ``max_vertices``."""
@@ -286,7 +286,7 @@ class CandidateSteps:
         """A mesh input's chosen mesh ``best`` (candidate ``best["k"]``, its ``fit`` against ``frame.reference``
         where there are several) against the mesh the face stage makes on the vertices of the input's quadric
         decimation to ``best``'s face count (``decimation.quadric_decimation``): the one nearer the input
-        (``support.surface_fit``), with ``vertices_from`` ("decoder" or "quadrics") and, where weighed,
+        (``support.weighed_fit``), with ``vertices_from`` ("decoder" or "quadrics") and, where weighed,
         ``quadric_fits`` (both fits).  A dense mesh's quadrics put its vertices on its corners and creases,
         where an artist's lie; the face stage still makes the mesh an asset (closed, one piece, manifold).
         Before ``_with_missed``, which adds to whichever is kept."""
@@ -311,11 +311,11 @@ class CandidateSteps:
                 "vertices_from": "quadrics", "quadric_fits": fits}
 
     def _weighed(self, frame: Frame, seed: int, best: dict, made: dict, names: tuple[str, str]) -> dict[str, float]:
-        """``support.surface_fit`` of the frame's chosen mesh ``best`` and of its rival ``made`` against the input's
+        """``support.weighed_fit`` of the frame's chosen mesh ``best`` and of its rival ``made`` against the input's
         sample of ``TriangleConfig.support_points`` at ``seed``, under ``names``, to 6 places.  The candidates were
         weighed against this same draw (``frame.reference``, where there are several): the chosen one's fit is
         known."""
         reference = frame.surface(self.triangle_config.support_points, seed)
         known = best["fit"] if frame.reference is not None else None
-        return {name: round(surface_fit(m["vertices"], m["faces"], reference, seed) if fit is None else fit, 6)
+        return {name: round(weighed_fit(m["vertices"], m["faces"], reference, seed) if fit is None else fit, 6)
                 for name, m, fit in zip(names, (best, made), (known, None), strict=True)}

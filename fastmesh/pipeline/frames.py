@@ -11,13 +11,13 @@ import torch
 
 from ..batch import DecodeRequest
 from ..faces.facecount import count_rule
-from ..faces.support import surface_fit
+from ..faces.support import weighed_fit
 from ..models.generate import GenerationError
 from ..request import Frame, Request
 from .candidate import CandidateSteps
 from .runtime import stage
 
-# A result made in the canonical frame (``canonical``) is kept unless its surface_fit exceeds the input frame's
+# A result made in the canonical frame (``canonical``) is kept unless its weighed_fit exceeds the input frame's
 # by more than this factor.
 FRAME_MARGIN = 1.1
 
@@ -27,7 +27,7 @@ class FrameSteps(CandidateSteps):
 
     def _nearest_frame(self, req: Request, made: list[dict]) -> dict:
         """Of the results ``made`` in the input's frame and (last) in its canonical one, the canonical one
-        unless its surface_fit exceeds the other's by more than ``FRAME_MARGIN``: on a box both lie on its
+        unless its weighed_fit exceeds the other's by more than ``FRAME_MARGIN``: on a box both lie on its
         planes, but the turned one has its eight corners where the input's frame has a staircase of vertices
         along each wall."""
         if len(made) == 1:
@@ -35,7 +35,7 @@ class FrameSteps(CandidateSteps):
         seed = req.params.seed
         with stage("weighing", req.timings):
             reference = req.frame.surface(self.triangle_config.support_points, seed)
-            fits = [surface_fit(req.frame.norm.apply(m["vertices"]), m["faces"], reference, seed) for m in made]
+            fits = [weighed_fit(req.frame.norm.apply(m["vertices"]), m["faces"], reference, seed) for m in made]
         return made[-1] if fits[-1] <= FRAME_MARGIN * fits[0] else made[0]
 
     def _in_frames(self, req: Request, rotations: list[np.ndarray]
@@ -111,7 +111,7 @@ class FrameSteps(CandidateSteps):
         return fit / self.triangle_config.solid if solid and self.triangle_config.solid else fit
 
     def _choose(self, req: Request, frame: Frame) -> dict:
-        """The frame's candidate nearest its input surface (``support.surface_fit``, a solid's with its margin:
+        """The frame's candidate nearest its input surface (``support.weighed_fit``, a solid's with its margin:
         :meth:`_allowed`), turned back to the input's frame; raises the first candidate's GenerationError when
         none made a mesh."""
         n_cand, seed = req.candidates, req.params.seed
@@ -122,7 +122,7 @@ class FrameSteps(CandidateSteps):
                 fits.append(None)
                 continue
             with stage("weighing", req.timings):  # choosing among candidates
-                fit = surface_fit(cand["vertices"], cand["faces"], frame.reference, seed) if n_cand > 1 else 0.0
+                fit = weighed_fit(cand["vertices"], cand["faces"], frame.reference, seed) if n_cand > 1 else 0.0
             fits.append(round(float(fit), 6))
             if best is None or self._allowed(cand, fit) < self._allowed(best, best["fit"]):
                 cells, positions, _ = frame.positions[k]
@@ -136,6 +136,6 @@ class FrameSteps(CandidateSteps):
                 "vertices_from": best["vertices_from"]}
         info.update({name: best[name] for name in ("missed_fits", "quadric_fits", "solid_fits") if name in best})
         if n_cand > 1:
-            info["fits"] = fits  # per candidate: its surface_fit in the unit cube, None if it made no mesh
+            info["fits"] = fits  # per candidate: its weighed_fit in the unit cube, None if it made no mesh
         return {"vertices": frame.norm.invert(best["vertices"]) @ frame.rotation, "faces": best["faces"],
                 "tokens": best["tokens"], "info": info, "rotation": frame.rotation, "evidence": evidence}

@@ -30,7 +30,7 @@ from ..faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_
 from ..faces.plane_cells import plane_cells
 from ..faces.redistribute import redistribute
 from ..faces.refine import refine
-from ..faces.support import surface_fit
+from ..faces.support import weighed_fit
 from ..faces.swap import swap_edges
 from ..faces.triangles import TriangleConfig
 from ..models.generate import GenerationError
@@ -201,7 +201,7 @@ def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, config: Tri
     """A mesh input decimated to the result's face count (``decimation.asset_decimation``: as much an asset as
     the result, its count within ``decimation.COUNT_SLACK``; where the plain decimation is none but lies nearer,
     it repaired by ``config``'s face stage, :func:`_repaired`) where it lies nearer the input surface than the
-    result, in the input's frame; and both fits (``support.surface_fit`` against the candidates' sample of
+    result, in the input's frame; and both fits (``support.weighed_fit`` against the candidates' sample of
     ``config.support_points`` at the request's seed; empty where not weighed).  None where the input is a point
     cloud, the decimation is not an asset, or the result is nearer (or, open where it must be closed, not
     ``CLOSED_MARGIN`` farther): what comes back is never farther from a mesh input than its decimation to the same
@@ -243,7 +243,7 @@ def redistributed(req: Request, vertices: np.ndarray, faces: np.ndarray, factor:
                   ) -> tuple[tuple[np.ndarray, np.ndarray] | None, dict]:
     """A point cloud's result with its faces spread over the input surface at its face count
     (``redistribute.redistribute``) where that lies nearer the input than the result and is as closed, in the
-    input's frame; and both fits (``support.surface_fit`` against the candidates' sample of ``support_points`` at
+    input's frame; and both fits (``support.weighed_fit`` against the candidates' sample of ``support_points`` at
     the request's seed; empty where not weighed).  None where the input is a mesh (weighed against its own
     decimation instead, :func:`decimated`) or the result is nearer: the split vertices are not the artist's, so
     they come back only where the input shows the result cut across its curves."""
@@ -326,11 +326,11 @@ def swapped(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.n
 
 
 def _fits(req: Request, support_points: int, **meshes: tuple[np.ndarray, np.ndarray]) -> dict[str, float]:
-    """``support.surface_fit`` of each named mesh (unit-cube vertices, faces) against the candidates' sample of
+    """``support.weighed_fit`` of each named mesh (unit-cube vertices, faces) against the candidates' sample of
     ``support_points`` of the input at the request's seed, to 6 places: the measure a rival is weighed by."""
     seed = req.params.seed
     reference = req.frame.surface(support_points, seed)
-    return {name: round(surface_fit(v, f, reference, seed), 6) for name, (v, f) in meshes.items()}
+    return {name: round(weighed_fit(v, f, reference, seed), 6) for name, (v, f) in meshes.items()}
 
 
 def facing(req: Request, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

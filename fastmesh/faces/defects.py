@@ -66,9 +66,10 @@ def winding(vertices: np.ndarray, faces: np.ndarray) -> dict:
 
 def unorientable_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(F,) bool, the ``faces`` (F, 3) along an edge that no turning of faces makes agree (welded as
-    :func:`winding` welds): in a piece twisted like a Moebius band or folded through itself along a strip, the
-    edges still wound the same way by both their faces once the piece is turned along :func:`_tree_classes`'
-    tree.  A renderer shows the back of one side of such an edge whichever way the piece is turned."""
+    :func:`winding` welds): in a piece twisted like a Moebius band (a strip of faces turned half over and
+    joined), the edges still wound the same way by both their faces once the piece is turned along
+    :func:`_tree_classes`' tree.  A renderer shows the back of one side of such an edge whichever way the piece is
+    turned.  A closed piece folded through itself is wound one way and has none (its faces cross instead)."""
     bad = np.zeros(len(faces), dtype=bool)
     v, f = welded_in_place(vertices, faces)
     live = np.flatnonzero(distinct_corners(f))

@@ -235,8 +235,8 @@ def surface_fit(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, see
 
 def defect_share(vertices: np.ndarray, faces: np.ndarray) -> float:
     """The share of ``faces`` (F, 3) that cross another face (``crossings.crossing_faces``) or lie along an edge no
-    turning makes agree (``defects.unorientable_faces``: a strip twisted like a Moebius band, a fold): what no
-    later step turns right and a renderer shows as a back face or a face through another."""
+    turning makes agree (``defects.unorientable_faces``: a strip twisted like a Moebius band): what no later step
+    turns right and a renderer shows as a face through another or the back of a face."""
     if len(faces) == 0:
         return 0.0
     return float((crossing_faces(vertices, faces) | unorientable_faces(vertices, faces)).mean())

@@ -12,6 +12,7 @@ import trimesh
 from testdata import committed_meshes
 
 import fastmesh.export.output
+import fastmesh.faces.support
 from fastmesh.export.output import finish
 from fastmesh.export.quads import EdgeEvidence, QuadConfig, flat_cliques, pair_triangles, quad_corners
 from fastmesh.params import GenerateParams
@@ -130,6 +131,9 @@ def test_the_face_stages_evidence_reaches_the_pairing(monkeypatch, redistribute,
     # solid: step 8 neither redistributes nor turns its edges, and its thin-part vertices have no evidence.
     pipe.triangle_config = replace(pipe.triangle_config, redistribute=redistribute, swap_edges=swap, add_missed=None,
                                    solid=None)
+    # Weighed by distance alone: the redistributed mesh this case is for has more faces crossing or twisted than
+    # the model's here (18 % against 11 %, without the solid), which the shipped weighing counts against it.
+    monkeypatch.setattr(fastmesh.faces.support, "DEFECT_WEIGHT", 0.0)
     res = pipe.generate(shape, GenerateParams(topology="quad", seed=0))
     assert res.info["result_from"] == "model" and len(seen) == 1
     vertices, faces, evidence = seen[0]

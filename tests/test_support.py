@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 from scipy.spatial import cKDTree
+from test_visible import _moebius
 
 from fastmesh.faces import mesh_from_adjacency
 from fastmesh.faces.meshops import edges_from_faces
@@ -206,12 +207,5 @@ def test_a_rival_folded_through_itself_weighs_more_than_its_clean_twin(seed):
     assert folded == pytest.approx((1 + DEFECT_WEIGHT * share) * surface_fit(folded_v, folded_f, points, seed))
     assert surface_fit(folded_v, folded_f, points, seed) < 1.1 * clean
     assert folded > weighed_fit(place(coarse.vertices), coarse.faces, points, seed) > clean
-    t = np.linspace(0, 2 * np.pi, 13)[:-1]
-    across = np.c_[np.cos(t / 2) * np.cos(t), np.cos(t / 2) * np.sin(t), np.sin(t / 2)] * 0.3
-    ring = np.c_[np.cos(t), np.sin(t), np.zeros(12)]
-    band = place(np.concatenate([ring + across, ring - across]))
-    top = lambda i: i % 12 if i < 12 else 12 + i % 12  # noqa: E731  past the join top and bottom swap
-    bottom = lambda i: 12 + i if i < 12 else i % 12  # noqa: E731
-    f = np.array([tri for i in range(12) for tri in ((top(i), bottom(i), bottom(i + 1)),
-                                                      (top(i), bottom(i + 1), top(i + 1)))])
-    assert defect_share(band, f) == pytest.approx(2 / 24)
+    band, f = _moebius(12, range(0))
+    assert defect_share(place(band), f) == pytest.approx(2 / 24)

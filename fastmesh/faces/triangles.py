@@ -123,6 +123,10 @@ class TriangleConfig:
         With ``solid``: an open input (``close`` False) gets the solid stage too, cut as a closed input's: what it
         encloses comes back as a solid, the parts that enclose nothing (a wing, a sheet) patched in from the
         selection's mesh; else only a closed input does.
+    outline : bool
+        The pipeline, last: a generated result's flat regions triangulated from their outlines
+        (:func:`fastmesh.faces.outline.outlined`), kept where no face then crosses another and it lies near the
+        input as the result does (``pipeline.finish.OUTLINE_MARGIN``).  Not with a ``target_faces``.
     """
 
     selection: str = "surface"
@@ -153,6 +157,7 @@ class TriangleConfig:
     solid: float | None = 1.1
     solid_patch: bool = True
     solid_open: bool = True
+    outline: bool = True
 
     def __post_init__(self):
         if self.selection not in ("cliques", "surface"):

@@ -180,7 +180,8 @@ class Pipeline(FrameSteps):
                    threads=threads, triangle_config=TriangleConfig(surface_tol=RANDOM_SURFACE_TOL,
                                                                  weigh_decimation=False, redistribute=None,
                                                                  refine=None, swap_edges=False, add_missed=None,
-                                                                 quadric_vertices=False, reach_extent=False))
+                                                                 quadric_vertices=False, reach_extent=False,
+                                                                 outline=False))
 
     def save(self, directory: str | os.PathLike) -> None:
         """Write the networks and ``pipeline.json`` (every setting of the face stage and the fit, whole) so

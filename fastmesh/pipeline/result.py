@@ -219,7 +219,7 @@ def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, config: Tri
             rival = _repaired(req, model, margin, config)
         if rival is None:
             return None, {}
-        fits = _fits(req, config.support_points, model=model, decimated=rival)
+        fits = rival_fits(req, config.support_points, model=model, decimated=rival)
     return (frame.norm.invert(rival[0]), rival[1]) if fits["decimated"] < margin * fits["model"] else None, fits
 
 
@@ -231,7 +231,7 @@ def _repaired(req: Request, model: tuple[np.ndarray, np.ndarray], margin: float,
     selection it runs costs a second or more on a character)."""
     frame = req.frame
     plain = quadric_decimation(frame.unit, req.shape.faces, len(model[1]))
-    fits = _fits(req, config.support_points, model=model, plain=plain)
+    fits = rival_fits(req, config.support_points, model=model, plain=plain)
     if fits["plain"] >= margin * fits["model"]:
         return None
     reference = frame.surface(config.support_points, req.params.seed)
@@ -254,7 +254,7 @@ def redistributed(req: Request, vertices: np.ndarray, faces: np.ndarray, factor:
         if rival is None:
             return None, {}
         norm = req.frame.norm
-        fits = _fits(req, support_points, model=(norm.apply(vertices), faces),
+        fits = rival_fits(req, support_points, model=(norm.apply(vertices), faces),
                      redistributed=(norm.apply(rival[0]), rival[1]))
     return (rival if fits["redistributed"] < fits["model"] else None), fits
 
@@ -309,7 +309,7 @@ def refined(req: Request, vertices: np.ndarray, faces: np.ndarray, tol: float, s
         unit, f, splits = refine(norm.apply(v), f, unit_points, outward(unit_points, normals), tol)
         if splits == 0:
             return None, {}, 0
-        fits = _fits(req, support_points, model=(norm.apply(vertices), faces), refined=(unit, f))
+        fits = rival_fits(req, support_points, model=(norm.apply(vertices), faces), refined=(unit, f))
     rival = split_pinches(norm.invert(unit), f)
     return (rival if fits["refined"] < fits["model"] else None), fits, splits
 
@@ -325,7 +325,7 @@ def swapped(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.n
         return (*split_pinches(v, f), turned) if turned else (vertices, faces, 0)
 
 
-def _fits(req: Request, support_points: int, **meshes: tuple[np.ndarray, np.ndarray]) -> dict[str, float]:
+def rival_fits(req: Request, support_points: int, **meshes: tuple[np.ndarray, np.ndarray]) -> dict[str, float]:
     """``support.weighed_fit`` of each named mesh (unit-cube vertices, faces) against the candidates' sample of
     ``support_points`` of the input at the request's seed, to 6 places: the measure a rival is weighed by."""
     seed = req.params.seed

@@ -15,9 +15,9 @@ from .runtime import stage
 
 # A result with its flat regions cut from their outlines is kept up to this factor farther from the input (by
 # ``support.weighed_fit``) than as it was: the vertices it loses lie within a cell of their region's plane, and
-# fewer faces on a flat side is what the artist's mesh has.  On the 60 held-out results saved (code 0bca80f) 53
-# kept within 1.1 and 50 within 1.05 (faces per reference face 1.25 and 1.27 on average, from 1.39), the fits of
-# those kept 1.003 and 1.000 times the results' on average (``faces.outline.OutlineConfig``).
+# fewer faces on a flat side is what the artist's mesh has.  On the 60 held-out results of the code before
+# (``benchmarks/outline_sweep.py``) 59 were kept within 1.1 and 56 within 1.05 (faces per reference face 1.23 and
+# 1.25 on average, from 1.39; their fits 1.006 and 1.003 times the results' on average).
 OUTLINE_MARGIN = 1.1
 
 

@@ -54,14 +54,14 @@ class OutlineConfig:
 
 
 def regions_within(vertices: np.ndarray, faces: np.ndarray, degrees: float, tol: float
-                 ) -> tuple[np.ndarray, np.ndarray]:
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Faces grouped into flat regions, largest faces first, across edges of two faces wound alike.
 
     Parameters
     ----------
     vertices : (N, 3) float
     faces : (F, 3) int
-    degrees : float, a face's normal within this angle of its region's
+    degrees : float, a face's normal within this angle of its region's (a sliver's further: ``SLIVER``)
     tol : float, every corner of a face within this distance of its region's plane (in the vertices' units)
 
     Returns

@@ -255,7 +255,7 @@ def redistributed(req: Request, vertices: np.ndarray, faces: np.ndarray, factor:
             return None, {}
         norm = req.frame.norm
         fits = rival_fits(req, support_points, model=(norm.apply(vertices), faces),
-                     redistributed=(norm.apply(rival[0]), rival[1]))
+                          redistributed=(norm.apply(rival[0]), rival[1]))
     return (rival if fits["redistributed"] < fits["model"] else None), fits
 
 

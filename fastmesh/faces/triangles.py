@@ -124,7 +124,7 @@ class TriangleConfig:
         encloses comes back as a solid, the parts that enclose nothing (a wing, a sheet) patched in from the
         selection's mesh; else only a closed input does.
     outline : bool
-        The pipeline, last: a generated result's flat regions triangulated from their outlines
+        The pipeline, before ``reach_extent``: a generated result's flat regions triangulated from their outlines
         (:func:`fastmesh.faces.outline.outlined`), kept where no face then crosses another and it lies near the
         input as the result does (``pipeline.finish.OUTLINE_MARGIN``).  Not with a ``target_faces``.
     """

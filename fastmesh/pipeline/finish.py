@@ -30,11 +30,10 @@ def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
     ``info["edges_turned"]``), a mesh input's weighed against its decimation to its face count
     (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go into ``info``), a point cloud's
     weighed against its edges split where the input bends away from them (``step8.refined``, with
-    ``TriangleConfig.refine``; ``info["edges_split"]`` those kept), its box brought to the input's
-    (``step8.extended``, with ``TriangleConfig.reach_extent``; ``info["extent_sides"]``), and last its flat regions
-    cut from their outlines (:func:`outlined_flat`, with ``TriangleConfig.outline``;
-    ``info["flat_vertices_removed"]``): vertices, faces, where they come from ("model", "input" or "decimated")
-    and the count step."""
+    ``TriangleConfig.refine``; ``info["edges_split"]`` those kept), its flat regions cut from their outlines
+    (:func:`outlined_flat`, with ``TriangleConfig.outline``; ``info["flat_vertices_removed"]``), and last its box
+    brought to the input's (``step8.extended``, with ``TriangleConfig.reach_extent``; ``info["extent_sides"]``):
+    vertices, faces, where they come from ("model", "input" or "decimated") and the count step."""
     step = None
     if req.count.hold:
         info["faces_before_count"] = int(len(faces))
@@ -63,11 +62,6 @@ def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
         info["edges_split"] = splits if rival is not None else 0
         if rival is not None:
             vertices, faces = rival
-    if result_from != "input" and config.reach_extent:
-        before = vertices, faces
-        vertices, faces, info["extent_sides"] = step8.extended(req, vertices, faces)
-        if result_from == "model" and not patched and adds_crossings(before, (vertices, faces)):
-            (vertices, faces), info["extent_sides"] = before, 0  # a vertex moved out folds the solid
     if result_from == "model" and config.outline and not req.count.hold:
         rival, fits, removed = outlined_flat(req, vertices, faces, config.support_points)
         if fits:
@@ -75,6 +69,12 @@ def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
         info["flat_vertices_removed"] = removed if rival is not None else 0
         if rival is not None:
             vertices, faces = rival
+    # Last: the outlines take vertices inside flat sides and along straight edges, as the box's are.
+    if result_from != "input" and config.reach_extent:
+        before = vertices, faces
+        vertices, faces, info["extent_sides"] = step8.extended(req, vertices, faces)
+        if result_from == "model" and not patched and adds_crossings(before, (vertices, faces)):
+            (vertices, faces), info["extent_sides"] = before, 0  # a vertex moved out folds the solid
     return vertices, faces, result_from, step
 
 

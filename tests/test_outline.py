@@ -69,7 +69,7 @@ def _farthest(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]
 @pytest.mark.parametrize("seed", range(6))
 def test_a_dense_box_comes_back_as_its_twelve_faces(seed):
     """A box of any proportions, pose and unit, cut into hundreds of faces with its vertices off its planes,
-    comes back as 8 vertices and 12 faces, closed, wound as it was (outward), within the tolerance of itself."""
+    comes back as 8 vertices and 12 faces, closed, wound as it was (outward), within two tolerances of itself."""
     rng = np.random.default_rng(seed)
     box = trimesh.creation.box(rng.uniform(0.2, 1.0, 3))
     v, f = _dense(box, rng, _pose(rng), splits=int(rng.integers(1, 4)))
@@ -84,7 +84,7 @@ def test_a_dense_box_comes_back_as_its_twelve_faces(seed):
 def test_a_kitbashed_prop_keeps_its_insets_and_steps_with_no_more_faces_than_its_union(seed):
     """A union of overlapping boxes, with or without a bay cut into it (insets, steps, bays), cut into many faces
     and posed: its flat sides come back from their outlines, with no more faces than the union itself has (as
-    ``manifold3d`` makes it), closed and wound alike, every corner where it was."""
+    ``manifold3d`` makes it), closed and wound alike, within two tolerances of the union and of its volume."""
     rng = np.random.default_rng(100 + seed)
     union = _kitbashed(rng)
     pose = _pose(rng)
@@ -117,7 +117,7 @@ def test_a_round_part_keeps_its_facets_and_meets_the_flat_part_without_a_gap(see
 
 def test_an_open_sheet_keeps_its_border_and_a_sphere_its_shape():
     """A flat square sheet cut into a grid comes back as two faces with its four open edges; a sphere, curved
-    everywhere, stays within the tolerance of itself, closed."""
+    everywhere, stays within two tolerances of itself, closed."""
     rng = np.random.default_rng(7)
     grid = trimesh.creation.box((1.0, 1.0, 1.0))
     top = grid.faces[grid.face_normals[:, 2] > 0.5]

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import manifold3d
 import numpy as np
 
+from ..shapes.planar import signed_area
 from ..tokenizer.grid import CELL
 from .crossings import crossing_faces
 from .meshops import face_normals, face_sides, remove_unreferenced
@@ -148,7 +149,7 @@ def outlined(vertices: np.ndarray, faces: np.ndarray, cfg: OutlineConfig = Outli
     while True:
         made, failed, restored = regions.triangulated(gone)
         if not failed and not restored:
-            out, failed = _assembled(v, f, labels, made)
+            out, failed = _assembled(v, f, labels, made, regions.count)
             if not failed:
                 break
         for r in failed:  # its whole outline first, then its faces as they are
@@ -158,12 +159,12 @@ def outlined(vertices: np.ndarray, faces: np.ndarray, cfg: OutlineConfig = Outli
     return v2, f2, int(len(np.unique(f)) - len(np.unique(out)))
 
 
-def _assembled(v: np.ndarray, f: np.ndarray, labels: np.ndarray, made: dict[int, np.ndarray]
-               ) -> tuple[np.ndarray, list[int]]:
+def _assembled(v: np.ndarray, f: np.ndarray, labels: np.ndarray, made: dict[int, np.ndarray],
+               was: dict[tuple[int, int], int]) -> tuple[np.ndarray, list[int]]:
     """The faces ``f`` (F, 3) with those of each region in ``made`` ({region: (T, 3) faces}) in place of its own,
-    and the regions whose new faces cross another face (``crossings.crossing_faces``) or give an edge a third face
-    (a diagonal that another face already has as a side): a region cut again must leave the surface as free of
-    folds and as manifold as it was."""
+    and the regions whose new faces cross another face (``crossings.crossing_faces``) or give an edge more faces
+    than it had in ``f`` (``was``: {(i, j), i < j: faces}) and more than two (a diagonal that another face already
+    has as a side): a region cut again must leave the surface as free of folds and as manifold as it was."""
     old = f[~np.isin(labels, list(made))]
     new = np.concatenate([old[:0], *made.values()]).astype(np.int64).reshape(-1, 3)
     owner = np.concatenate([np.zeros(0, dtype=np.int64)] + [np.full(len(t), r) for r, t in made.items()])
@@ -171,7 +172,6 @@ def _assembled(v: np.ndarray, f: np.ndarray, labels: np.ndarray, made: dict[int,
     fresh = np.r_[np.zeros(len(old), dtype=bool), np.ones(len(new), dtype=bool)]
     bad = crossing_faces(v, out, among=fresh)
     sides, owner_of_side, count = _sides(out)
-    was = dict(zip(map(tuple, np.sort(face_sides(f), axis=1).tolist()), _sides(f)[2].tolist(), strict=False))
     crowded = np.array([c > max(2, was.get(e, 0)) for e, c in
                         zip(map(tuple, np.sort(sides, axis=1).tolist()), count.tolist(), strict=True)], dtype=bool)
     bad[owner_of_side[crowded]] = True
@@ -246,12 +246,12 @@ class _Regions:
         for r, loops in self.loops.items():
             if not gone[self.f[self.labels == r]].any():
                 continue
-            back = _crossed(self.v, loops, gone, self.normals[r])
+            back, crossing = _crossed(self.v, loops, gone, self.normals[r])
             if len(back):
                 gone[back], restored = False, True
                 continue
             kept = [loop[~gone[loop]] for loop in loops]
-            faces = _triangulate(self.v, kept, self.normals[r]) if min(map(len, kept)) >= 3 else None
+            faces = None if crossing or min(map(len, kept)) < 3 else _triangulate(self.v, kept, self.normals[r])
             if faces is None:
                 failed.append(r)
             else:
@@ -259,12 +259,13 @@ class _Regions:
         return made, failed, restored
 
 
-def _crossed(v: np.ndarray, loops: list[np.ndarray], gone: np.ndarray, normal: np.ndarray) -> np.ndarray:
+def _crossed(v: np.ndarray, loops: list[np.ndarray], gone: np.ndarray, normal: np.ndarray
+             ) -> tuple[np.ndarray, bool]:
     """The ``gone`` vertices of the outline ``loops`` that a side crossing another side skips, once the loops
-    without the ``gone`` vertices (N,) are seen along ``normal``."""
+    without the ``gone`` vertices (N,) are seen along ``normal``; and whether any side crosses another."""
     at = [np.flatnonzero(~gone[loop]) for loop in loops]
     if min(map(len, at)) < 3:
-        return np.zeros(0, dtype=np.int64)
+        return np.zeros(0, dtype=np.int64), False
     sides = _crossing_sides([v[loop[k]] @ plane_basis(normal) for loop, k in zip(loops, at, strict=True)])
     starts = np.cumsum([0] + [len(k) for k in at])
     back = []
@@ -273,7 +274,7 @@ def _crossed(v: np.ndarray, loops: list[np.ndarray], gone: np.ndarray, normal: n
         loop, k, i = loops[j], at[j], s - starts[j]
         a, b = k[i], k[(i + 1) % len(k)]
         back.append(loop[a + 1:b] if b > a else np.r_[loop[a + 1:], loop[:b]])
-    return np.concatenate(back) if back else np.zeros(0, dtype=np.int64)
+    return (np.concatenate(back) if back else np.zeros(0, dtype=np.int64)), len(sides) > 0
 
 
 def _loops(sides: np.ndarray) -> list[np.ndarray] | None:
@@ -347,10 +348,11 @@ def _off_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _triangulate(v: np.ndarray, loops: list[np.ndarray], normal: np.ndarray) -> np.ndarray | None:
     """(T, 3) the triangles of a polygon with holes given as loops of vertex ids (outer one way round ``normal``,
-    holes the other), in the plane of ``normal``; None where the loops, seen along it, are no simple polygon."""
+    holes the other) whose sides cross none of each other (:func:`_crossed`), in the plane of ``normal``; None where
+    the loops, seen along it, are no polygon with holes (not one outer loop) or the triangles not its own."""
     flat = [v[loop] @ plane_basis(normal) for loop in loops]
-    areas = np.array([_signed(p) for p in flat])
-    if (areas > 0).sum() != 1 or len(_crossing_sides(flat)):
+    areas = np.array([signed_area(p) for p in flat])
+    if (areas > 0).sum() != 1:
         return None
     tri = np.asarray(manifold3d.triangulate(flat), dtype=np.int64).reshape(-1, 3)
     ids, pts = np.concatenate(loops), np.concatenate(flat)
@@ -361,10 +363,6 @@ def _triangulate(v: np.ndarray, loops: list[np.ndarray], normal: np.ndarray) -> 
     if len(tri) != expected or (signed <= 0).any() or not np.isclose(signed.sum(), areas.sum(), rtol=1e-6):
         return None
     return ids[tri]
-
-
-def _signed(p: np.ndarray) -> float:
-    return 0.5 * float(np.sum(p[:, 0] * np.roll(p[:, 1], -1) - np.roll(p[:, 0], -1) * p[:, 1]))
 
 
 def _crossing_sides(flat: list[np.ndarray], chunk: int = 256) -> np.ndarray:

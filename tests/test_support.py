@@ -13,6 +13,7 @@ from fastmesh.faces.support import (
     SupportCache,
     defect_share,
     drop_unsupported,
+    hole_faces,
     support_distance,
     surface_fit,
     weighed_fit,
@@ -209,3 +210,30 @@ def test_a_rival_folded_through_itself_weighs_more_than_its_clean_twin(seed):
     assert folded > weighed_fit(place(coarse.vertices), coarse.faces, points, seed) > clean
     band, f = _moebius(12, range(0))
     assert defect_share(place(band), f) == pytest.approx(2 / 24)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_hole_where_the_input_goes_on_weighs_and_the_inputs_own_border_does_not(seed):
+    """At any pose and unit: a sphere with a random cap of faces taken out, against samples of the whole sphere,
+    has the faces along the hole flagged (at least 90 % of them, no other), and weighs that share; the whole sphere
+    has none, and the capped sphere against samples of itself (an open input: the opening is the input's own) at
+    most a quarter of those along its rim (where the rim's teeth stand across a notch, the input goes on there)."""
+    from fastmesh.faces.meshops import open_sides
+
+    rng = np.random.default_rng(seed)
+    rot = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
+    scale, offset = 10.0 ** rng.uniform(-3, 3), rng.normal(size=3)
+    place = lambda v: (np.asarray(v) @ rot.T + offset) * scale  # noqa: E731
+    sphere = trimesh.creation.icosphere(3)
+    v, f = place(sphere.vertices), np.asarray(sphere.faces)
+    axis = rng.normal(size=3)
+    cap = sphere.triangles_center @ (axis / np.linalg.norm(axis)) > rng.uniform(0.6, 0.9)
+    holed = f[~cap]
+    whole_input = place(trimesh.sample.sample_surface(sphere, 6000, seed=seed)[0])
+    own_input = place(trimesh.sample.sample_surface(trimesh.Trimesh(sphere.vertices, holed), 6000, seed=seed)[0])
+    flagged = hole_faces(v, holed, whole_input)
+    along = open_sides(holed).reshape(3, -1).any(0)
+    assert along.sum() >= 6 and not (flagged & ~along).any() and flagged.sum() >= 0.9 * along.sum()
+    assert defect_share(v, holed, whole_input) == pytest.approx(flagged.mean())
+    assert hole_faces(v, holed, own_input).sum() <= 0.25 * along.sum()
+    assert not hole_faces(v, f, whole_input).any()

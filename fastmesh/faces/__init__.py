@@ -23,8 +23,8 @@ from .triangles import TriangleConfig, drop_coplanar_diagonals, drop_degenerate,
 
 
 def mesh_from_adjacency(vertices: np.ndarray, adj, config: TriangleConfig | None = None,
-                        points: np.ndarray | None = None, logits: np.ndarray | None = None
-                        ) -> tuple[np.ndarray, np.ndarray]:
+                        points: np.ndarray | None = None, logits: np.ndarray | None = None,
+                        oriented: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and a predicted adjacency -> a cleaned, oriented triangle mesh.
 
     Parameters
@@ -39,6 +39,9 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: TriangleConfig | None
         best-supported faces first.  Needed by ``config.selection == "surface"``.
     logits : (N, N) float, optional
         The model's edge logits, to score candidates with ``selection == "surface"``.
+    oriented : (points (Q, 3), normals (Q, 3)), optional
+        The input's samples with their normals, in the frame of ``vertices``: with ``selection == "surface"`` no
+        piece of the result joins faces they ask to face opposite ways (``surface_triangles.surface_mesh``).
 
     Returns
     -------
@@ -51,7 +54,7 @@ def mesh_from_adjacency(vertices: np.ndarray, adj, config: TriangleConfig | None
     if cfg.selection == "surface":
         if points is None:
             raise ValueError("selection 'surface' needs samples of the input surface (points)")
-        v, f = surface_mesh(v, as_edges(adj, len(v))[0], points, cfg, logits)
+        v, f = surface_mesh(v, as_edges(adj, len(v))[0], points, cfg, logits, oriented)
         f = _flat_removed(v, f, cfg)
         return remove_unreferenced(v, f)[:2] if cfg.remove_unreferenced else (v, f)
     f = triangles_from_adjacency(adj, len(v))

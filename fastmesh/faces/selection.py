@@ -1,6 +1,7 @@
 """The surface selection's bookkeeping (:class:`Selection`): which faces are on each edge, the sector each face
-covers around each corner in the tangent plane there, and the boundary, so that a face is tested against the
-selection in constant time (:meth:`Selection.fits`) by the selection and by hole filling alike."""
+covers around each corner in the tangent plane there, the boundary, and which way each face must be wound to agree
+with its piece (:class:`Windings`), so that a face is tested against the selection in near-constant time
+(:meth:`Selection.fits`) by the selection and by hole filling alike."""
 
 from __future__ import annotations
 
@@ -68,6 +69,76 @@ def _arcs_overlap(s0: float, w0: float, s1: float, w1: float) -> bool:
     return inter > _SECTOR_SLACK * min(w0, w1)
 
 
+def _runs_down(face: tuple[int, int, int], x: int, y: int) -> int:
+    """1 where ``face`` (a, b, c), as wound, runs its edge from the larger of ``x``, ``y`` to the smaller, else 0."""
+    lo, hi = (x, y) if x < y else (y, x)
+    a, b, c = face
+    return int((a, b) == (hi, lo) or (b, c) == (hi, lo) or (c, a) == (hi, lo))
+
+
+Key = tuple[int, int, int]  # a face named by its sorted corners
+
+
+class Windings:
+    """Which way each selected face must turn for its edge-connected piece to be wound one way, and which way the
+    input's normals ask each piece to face: a union-find over the faces whose parity says whether a face is turned
+    against its parent, and for each root the turning that makes the piece face along the input (None where none of
+    its faces says).  Two faces across an edge agree when they run it opposite ways.  A face whose neighbours ask
+    both windings of it would close a strip twisted like a Moebius band, which no turning mends; one that would join
+    pieces the input asks to face opposite ways (a sheet folded back over itself, a leg's outside joined to another's
+    inside) would make a piece no turning shows from the front: a renderer shows the back of part of either.
+    :meth:`Selection.fits` refuses both.  A union-find cannot split, so removing a face leaves the classes to be
+    built again (:meth:`Selection.windings`)."""
+
+    def __init__(self):
+        self.wound: dict[Key, Key] = {}  # the face as added, under its key
+        self.prefer: dict[Key, int | None] = {}  # 1: its winding as added faces against the input, 0: along it
+        self.parent: dict[Key, Key] = {}
+        self.parity: dict[Key, int] = {}  # 1: turned against its parent
+        self.need: dict[Key, int | None] = {}  # per root: 1 where it must turn for its piece to face the input
+
+    def find(self, key: Key) -> tuple[Key, int]:
+        """(root of ``key``'s piece, 1 where ``key`` is turned against it); the path walked is pointed at the root."""
+        path = []
+        while self.parent[key] != key:
+            path.append(key)
+            key = self.parent[key]
+        turned = 0
+        for node in reversed(path):  # nearest the root first: each node's parity to the root
+            turned ^= self.parity[node]
+            self.parent[node], self.parity[node] = key, turned
+        return key, turned
+
+    def asked(self, face: Key, neighbours: list[tuple[Key, int, int]], prefer: int | None = None
+              ) -> tuple[dict[Key, int], int | None, bool]:
+        """For ``face`` (a, b, c) beside the selected ``neighbours`` (key, x, y: across edge x-y), the turning of
+        ``face`` against each neighbour's root that agrees with it, the turning the input asks of ``face`` (its own
+        ``prefer``, or its neighbours' pieces'), and whether no root asks both windings and the pieces it joins can
+        all face the input."""
+        out: dict[Key, int] = {}
+        agree = True
+        for key, x, y in neighbours:
+            root, turned = self.find(key)
+            want = turned ^ _runs_down(self.wound[key], x, y) ^ _runs_down(face, x, y) ^ 1
+            agree &= out.setdefault(root, want) == want
+        side = prefer
+        for root, want in out.items():
+            need = self.need[root]
+            if need is not None:  # the root turns by ``need``, the face by that and ``want``
+                agree &= side is None or side == need ^ want
+                side = need ^ want
+        return out, side, agree
+
+    def add(self, key: Key, face: Key, neighbours: list[tuple[Key, int, int]], prefer: int | None = None) -> None:
+        """Take ``face`` under ``key``, its neighbours' pieces joined to it turned to agree with it (where two ask
+        both windings of it, the first's)."""
+        roots, side, _ = self.asked(face, neighbours, prefer)
+        self.wound[key], self.prefer[key], self.parent[key], self.parity[key] = face, prefer, key, 0
+        self.need[key] = side
+        for root, want in roots.items():
+            self.parent[root], self.parity[root] = key, want
+
+
 class Selection:
     """The selected faces' bookkeeping: third vertices on each edge, and the angular sector each face
     covers around each of its corners in the tangent plane there (faces around a vertex must not
@@ -86,6 +157,7 @@ class Selection:
         self.sectors: dict[int, dict[tuple[int, int, int], tuple[float, float]]] = {}
         self.face_normals: dict[tuple[int, int, int], list[float]] = {}
         self.open: dict[int, set[int]] = {}
+        self._windings, self._stale = Windings(), False
 
     def add_vertex(self, position: np.ndarray) -> None:
         """A vertex after the others (the closure's), with no tangent plane: its corners have no sector."""
@@ -131,15 +203,39 @@ class Selection:
                 return True
         return False
 
-    def fits(self, a: int, b: int, c: int) -> bool:
+    def fits(self, a: int, b: int, c: int, prefer: int | None = None) -> bool:
         """Face (a, b, c) keeps every edge in at most two faces, folds onto no neighbour across an
-        edge, and overlaps no selected face around any of its corners."""
+        edge, overlaps no selected face around any of its corners, and leaves every piece one that can be wound
+        one way facing the input (:class:`Windings`; ``prefer``: 1 where (a, b, c) as wound faces against the
+        input, 0 along it, None where the input does not say)."""
         for x, y, z in ((a, b, c), (b, c, a), (a, c, b)):
             others = self.third.get((x, y) if x < y else (y, x), ())
             if len(others) >= 2 or any(_folded(self.v, x, y, o, z, self.min_cos) for o in others):
                 return False
         n = _normal(self.v, a, b, c)  # the same for every corner: they turn the same way
-        return not any(self._overlaps(x, y, z, n) for x, y, z in ((a, b, c), (b, c, a), (c, a, b)))
+        if any(self._overlaps(x, y, z, n) for x, y, z in ((a, b, c), (b, c, a), (c, a, b))):
+            return False
+        return self.windings().asked((a, b, c), self._neighbours(a, b, c), prefer)[2]
+
+    def _neighbours(self, a: int, b: int, c: int) -> list[tuple[Key, int, int]]:
+        """The selected faces across each edge of face (a, b, c): (key, x, y) for edge x-y."""
+        own = tuple(sorted((a, b, c)))
+        out = []
+        for x, y in ((a, b), (b, c), (a, c)):
+            for o in self.third.get((x, y) if x < y else (y, x), ()):
+                key = tuple(sorted((x, y, o)))
+                if key != own:
+                    out.append((key, x, y))
+        return out
+
+    def windings(self) -> Windings:
+        """The faces' winding classes (:class:`Windings`), built again from the faces left after a removal."""
+        if self._stale:
+            old, self._windings, self._stale = self._windings, Windings(), False
+            for key, face in old.wound.items():
+                self._windings.add(key, face, [n for n in self._neighbours(*face) if n[0] in self._windings.wound],
+                                   old.prefer.get(key))
+        return self._windings
 
     def _edge_count_changed(self, x: int, y: int, n: int) -> None:
         """Edge (x, y) is now in ``n`` faces: on the boundary exactly when n is 1."""
@@ -150,7 +246,12 @@ class Selection:
             self.open.get(x, set()).discard(y)
             self.open.get(y, set()).discard(x)
 
-    def add(self, a: int, b: int, c: int) -> None:
+    def add(self, a: int, b: int, c: int, prefer: int | None = None) -> None:
+        key = tuple(sorted((a, b, c)))
+        if self._stale:  # taken in when the classes are built again
+            self._windings.wound[key], self._windings.prefer[key] = (a, b, c), prefer
+        else:
+            self._windings.add(key, (a, b, c), self._neighbours(a, b, c), prefer)
         for x, y, z in ((a, b, c), (b, c, a), (a, c, b)):
             others = self.third.setdefault((x, y) if x < y else (y, x), [])
             others.append(z)
@@ -167,5 +268,8 @@ class Selection:
             self._edge_count_changed(x, y, len(others))
         key = tuple(sorted((a, b, c)))
         del self.face_normals[key]
+        self._windings.wound.pop(key, None)
+        self._windings.prefer.pop(key, None)
+        self._stale = True
         for x in (a, b, c):
             del self.sectors[x][key]

@@ -20,8 +20,8 @@ triangles and each vertex one fan.  :func:`solid_mesh` is the pipeline's entry, 
 alike: a part thinner than the vertices can enclose is cut again with the input's samples on it among the
 vertices (``fastmesh.faces.thin``); where the solid lies farther from the input than the rival (the surface
 selection's mesh), the parts the cut still loses (a wing, a sheet of an open input) come from the rival, made
-thin closed parts where the input lies on both their sides (``fastmesh.faces.slabs``), and the rival comes back
-whole where even that lies farther.
+thin closed parts united with the solid where the input lies on both their sides (``fastmesh.faces.slabs``), and
+the rival comes back whole where even that lies farther.
 """
 
 from __future__ import annotations
@@ -231,9 +231,9 @@ def solid_mesh(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, ed
     patch : bool
         Where the solid alone lies over ``margin`` times the rival's fit, the rival's faces that carry a part of
         the input the cut lost are added to it, as pieces of their own (:func:`lost_parts`; ``patched_faces``
-        counts them), and that is weighed instead: the result is then no longer closed there, but where a piece
-        stands for a thin solid part (the input on both its sides), it is made a thin closed part (``slabs``
-        counts them).
+        counts them), and that is weighed instead: where a piece stands for a thin solid part (the input on both
+        its sides), it is made a thin closed part united with the solid (``slabs`` counts them); the other pieces
+        stay sheets, and the result is no longer closed there.
     thin : bool
         Where the cut loses parts of the input, it is cut again with the input's samples there among the vertices
         (``fastmesh.faces.thin``; ``thin_vertices`` counts those the surface uses), kept where it loses fewer.
@@ -285,21 +285,22 @@ def _without_flat(vertices: np.ndarray, faces: np.ndarray, flat_tol: float) -> t
 def _patched(vertices: np.ndarray, faces: np.ndarray, rival: tuple[np.ndarray, np.ndarray], reference: np.ndarray,
              points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
     """The solid with the ``rival``'s faces that carry a part of the input (``reference`` (R, 3)) it lost
-    (:func:`lost_parts`), cross none of its own (:func:`_not_crossing`) and put no third face on its sides once
-    welded (``meshops.welded_fins``), each piece of them that stands for a
-    thin solid part (the input's samples, ``points`` and ``normals`` (P, 3), on both its sides) made a thin closed
-    part (``slabs.thickened``); and the counts ``patched_faces`` (faces taken) and ``slabs``."""
+    (:func:`lost_parts`): each piece of them that stands for a thin solid part (the input's samples, ``points`` and
+    ``normals`` (P, 3), on both its sides) made a thin closed part and united with the solid (``slabs.thickened``),
+    the others kept as sheets where they cross none of its faces (:func:`_not_crossing`) and put no third face on
+    its sides once welded (``meshops.welded_fins``); and the counts ``patched_faces`` (faces taken) and ``slabs``."""
     take = lost_parts(vertices, faces, *rival, reference)
     if not take.any():
         return vertices, faces, {"patched_faces": 0, "slabs": 0}
     both = np.concatenate([vertices, rival[0]])
-    extra = _not_crossing(both, faces, rival[1][take] + len(vertices))
+    pts = np.asarray(points, dtype=np.float64)
+    both, faces, rest, slabs = thickened(both, faces, rival[1][take] + len(vertices), pts, normals,
+                                         LOST_LIMITS * support_limit(pts, 0.0))
+    extra = _not_crossing(both, faces, rest)
     # A face along the solid's side, its corners the solid's own but not shared, is a fin once welded.
     extra = extra[~welded_fins(both, np.concatenate([faces, extra]))[len(faces):]]
-    pts = np.asarray(points, dtype=np.float64)
-    both, f, slabs = thickened(both, faces, extra, pts, normals, LOST_LIMITS * support_limit(pts, 0.0))
-    v, f, _ = remove_unreferenced(both, f)
-    return v, f, {"patched_faces": len(extra), "slabs": slabs}
+    v, f, _ = remove_unreferenced(both, np.concatenate([faces, extra]))
+    return v, f, {"patched_faces": int(take.sum()) - len(rest) + len(extra), "slabs": slabs}
 
 
 def _weighed(vertices: np.ndarray, faces: np.ndarray, rival: tuple[np.ndarray, np.ndarray], theirs: float,

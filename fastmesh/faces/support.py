@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from ..shapes.io import sample_triangles
 from .crossings import crossing_faces
 from .defects import unorientable_faces
+from .meshops import open_sides, welded_in_place
 
 SPACING_FACTOR = 3.0  # the limit is never below this many median point spacings
 # The spacing the limit reads is that of this many samples of the surface, the density of the point clouds it was
@@ -233,19 +234,51 @@ def surface_fit(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, see
     return float(stray.mean() + missed.mean()) / 2 + hausdorff_weight * float(max(stray.max(), missed.max()))
 
 
-def defect_share(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """The share of ``faces`` (F, 3) that cross another face (``crossings.crossing_faces``) or lie along an edge no
-    turning makes agree (``defects.unorientable_faces``: a strip twisted like a Moebius band): what no later step
-    turns right and a renderer shows as a face through another or the back of a face."""
+def hole_faces(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(F,) bool, the ``faces`` (F, 3) along an open edge (vertices welded) across which the input goes on: a hole
+    or a slit, through which a renderer shows the inside or the back of the far side, not the input's own border.
+    The input goes on across an edge where one of its samples (``points`` (P, 3)) lies within a support limit
+    (:func:`support_limit`) of the point two limits beyond the edge's middle, in its face's plane: where the input
+    stops at the edge, its last samples lie about two limits from there."""
+    v, f = welded_in_place(vertices, faces)
+    out = np.zeros(len(f), dtype=bool)
+    open_ = np.flatnonzero(open_sides(f))
+    if len(open_) == 0 or len(points) < 2:
+        return out
+    face, corner = open_ % len(f), open_ // len(f)
+    t = v[f[face]]  # (K, 3, 3)
+    a, b = t[np.arange(len(face)), corner], t[np.arange(len(face)), (corner + 1) % 3]
+    c = t[np.arange(len(face)), (corner + 2) % 3]
+    mid, along = (a + b) / 2, b - a
+    along /= np.maximum(np.linalg.norm(along, axis=1, keepdims=True), 1e-300)
+    inward = c - mid
+    away = -(inward - np.einsum("kd,kd->k", inward, along)[:, None] * along)
+    away /= np.maximum(np.linalg.norm(away, axis=1, keepdims=True), 1e-300)
+    tree = cKDTree(np.asarray(points, dtype=np.float64))
+    limit = support_limit(points, 0.0, tree)
+    beyond = tree.query(mid + 2 * limit * away, distance_upper_bound=limit)[0] < np.inf
+    out[face[beyond]] = True
+    return out
+
+
+def defect_share(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray | None = None) -> float:
+    """The share of ``faces`` (F, 3) that cross another face (``crossings.crossing_faces``), lie along an edge no
+    turning makes agree (``defects.unorientable_faces``: a strip twisted like a Moebius band) or, with the input's
+    samples ``points``, along a hole (:func:`hole_faces`): what a renderer shows as a face through another, the
+    back of a face, or the inside through a hole."""
     if len(faces) == 0:
         return 0.0
-    return float((crossing_faces(vertices, faces) | unorientable_faces(vertices, faces)).mean())
+    bad = crossing_faces(vertices, faces) | unorientable_faces(vertices, faces)
+    if points is not None:
+        bad |= hole_faces(vertices, faces, points)
+    return float(bad.mean())
 
 
 def weighed_fit(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, seed: int = 0) -> float:
     """What a rival is weighed by (lower is better): :func:`surface_fit` times 1 + ``DEFECT_WEIGHT`` x
-    :func:`defect_share`.  A distance alone prefers a sheet folded through itself, or twisted where a thin part
-    should be a solid, over the clean boundary of a solid a little farther from the input.
+    :func:`defect_share`.  A distance alone prefers a sheet folded through itself, twisted where a thin part
+    should be a solid, or holed where the input goes on, over the clean boundary of a solid a little farther from
+    the input.
 
     Parameters
     ----------
@@ -254,4 +287,4 @@ def weighed_fit(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, see
     points : (P, 3) float, samples of the input surface in the frame of ``vertices``
     seed : int, of the samples drawn on the mesh
     """
-    return surface_fit(vertices, faces, points, seed) * (1.0 + DEFECT_WEIGHT * defect_share(vertices, faces))
+    return surface_fit(vertices, faces, points, seed) * (1.0 + DEFECT_WEIGHT * defect_share(vertices, faces, points))

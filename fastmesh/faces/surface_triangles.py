@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 
 from .closure import close_loops, orientable
 from .holes import fill_holes
-from .orient import orient_faces
+from .orient import orient_faces, sides_asked
 from .selection import Selection
 from .support import support_distance, support_limit
 from .triangles import TriangleConfig, drop_degenerate, limit_faces_per_edge
@@ -166,13 +166,15 @@ def vertex_frames(vertices: np.ndarray, points: np.ndarray, tree: cKDTree | None
 
 
 def select_faces(vertices: np.ndarray, faces: np.ndarray, score: np.ndarray, frames: np.ndarray,
-                 fold_angle: float = 30.0) -> tuple[np.ndarray, Selection]:
+                 fold_angle: float = 30.0, side: np.ndarray | None = None) -> tuple[np.ndarray, Selection]:
     """Faces best first (highest ``score``) while the result stays a surface.
 
     A face is taken when none of its edges already has two faces and it folds onto no selected face
     it shares an edge with (angle between the two around the edge under ``fold_angle`` degrees: the
     two would overlap, as both diagonal splits of a quad do), nor overlaps a selected face around a
-    shared corner in the tangent plane there (``frames``: (N, 2, 3) from :func:`vertex_frames`).
+    shared corner in the tangent plane there (``frames``: (N, 2, 3) from :func:`vertex_frames`), and every
+    piece stays one that can be wound one way facing the input (``side`` (F,): :func:`orient.sides_asked` of
+    ``faces``; ``selection.Windings``).
 
     Returns
     -------
@@ -181,16 +183,20 @@ def select_faces(vertices: np.ndarray, faces: np.ndarray, score: np.ndarray, fra
     """
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     book = Selection(vertices, frames, fold_angle)
+    order = np.argsort(-np.asarray(score), kind="stable")
+    asked = np.full(len(f), -1) if side is None else np.asarray(side)
     out = []
-    for a, b, c in f[np.argsort(-np.asarray(score), kind="stable")].tolist():
-        if book.fits(a, b, c):
-            book.add(a, b, c)
+    for (a, b, c), s in zip(f[order].tolist(), asked[order].tolist(), strict=True):
+        prefer = None if s < 0 else s
+        if book.fits(a, b, c, prefer):
+            book.add(a, b, c, prefer)
             out.append((a, b, c))
     return np.asarray(out, dtype=np.int64).reshape(-1, 3), book
 
 
 def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, config: TriangleConfig | None = None,
-                 logits: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 logits: np.ndarray | None = None, oriented: tuple[np.ndarray, np.ndarray] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Faces among the surface candidates, chosen by the model, kept a surface, holes closed.
 
     Parameters
@@ -204,6 +210,9 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
         The model's edge logits: a triangle scores ``model_weight`` times the mean log-probability of
         its edges minus its support distance in units of the limit.  Without them the
         best-supported triangles come first.
+    oriented : (points (Q, 3), normals (Q, 3)), optional
+        The input's samples with their normals: no piece joins faces they ask to face opposite ways
+        (:func:`select_faces`).
 
     Returns
     -------
@@ -223,7 +232,8 @@ def surface_mesh(vertices: np.ndarray, edges: np.ndarray, points: np.ndarray, co
     if logits is not None and len(f):
         lp = edge_log_prob(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [0, 2]]]), logits, edges)
         score = score + cfg.model_weight * lp.reshape(3, -1).mean(0)
-    return _kept_surface(v, f, score, pts, tree, limit, cfg)
+    side = None if oriented is None else sides_asked(v, f, *oriented)
+    return _kept_surface(v, f, score, pts, tree, limit, cfg, side=side)
 
 
 def surface_from_faces(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
@@ -257,11 +267,12 @@ def surface_from_faces(vertices: np.ndarray, faces: np.ndarray, points: np.ndarr
 
 
 def _kept_surface(v: np.ndarray, f: np.ndarray, score: np.ndarray, pts: np.ndarray, tree: cKDTree, limit: float,
-                  cfg: TriangleConfig, twisted: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Faces ``f`` best ``score`` first while they stay a surface (:func:`select_faces`), oriented (``twisted``:
-    less the faces that keep them from it, ``closure.orientable``), holes filled and (``cfg.close``) closed within
-    the support ``limit``: (vertices, faces)."""
-    f, book = select_faces(v, f, score, vertex_frames(v, pts, tree), cfg.fold_angle)
+                  cfg: TriangleConfig, twisted: bool = False, side: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Faces ``f`` best ``score`` first while they stay a surface (:func:`select_faces`, with the ``side`` the
+    input asks of each), oriented (``twisted``: less the faces that keep them from it, ``closure.orientable``),
+    holes filled and (``cfg.close``) closed within the support ``limit``: (vertices, faces)."""
+    f, book = select_faces(v, f, score, vertex_frames(v, pts, tree), cfg.fold_angle, side)
     f = orientable(v, f, book) if twisted else orient_faces(v, f)  # boundary loops follow the windings
     if cfg.fill_max_loop:
         f = orient_faces(v, fill_holes(v, f, book, pts, limit, tree, cfg.fill_max_loop))

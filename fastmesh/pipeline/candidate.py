@@ -219,7 +219,7 @@ class CandidateSteps:
             surface = None
             if tc.support_tol is not None or tc.max_faces_per_edge is not None or tc.selection == "surface":
                 surface = frame.surface(tc.support_points, req.params.seed + k)
-            verts, faces = mesh_from_adjacency(positions, edges, tc, points=surface, logits=logits)
+            verts, faces = mesh_from_adjacency(positions, edges, tc, points=surface, logits=logits, oriented=(pts, nrm))
             solid = {}
             # The boundary of a solid, weighed against the selection's mesh (an open input's with ``solid_open``:
             # what it encloses, cut as a closed input's, the parts that enclose nothing patched in from the mesh).

@@ -146,7 +146,8 @@ def test_the_face_stages_evidence_reaches_the_pairing(monkeypatch, redistribute,
     else:
         fits = res.info["redistribution_fits"]
         assert fits["redistributed"] < fits["model"] and res.info["edges_turned"] > 0  # the case this is here for
-        stage = cKDTree(evidence.points).query(vertices)[0] < 1e-9  # the face stage's vertices, where they were
-        assert stage.mean() > 0.8 and known[stage[edges].all(1)].mean() > 0.6
+        # The face stage's vertices, where they were: most of them (the spread moves about a quarter here).
+        stage = cKDTree(evidence.points).query(vertices)[0] < 1e-9
+        assert stage.mean() > 0.7 and known[stage[edges].all(1)].mean() > 0.6
     pairs = pair_triangles(vertices, faces, evidence=evidence)
     assert res.quality["quads"] == len(pairs) > 0

@@ -46,7 +46,8 @@ def _jobs() -> list[tuple[Shape, GenerateParams]]:
         (point_cloud(primitive("torus"), 2000), GenerateParams(seed=7, max_vertices=24)),  # same sampling as 0
         (point_cloud(_sphere(1.5), 2000, seed=3),
          GenerateParams(seed=3, max_vertices=20, temperature=0.8, candidates=3)),  # other sampling: its own rows
-        (_turned_box(), GenerateParams(seed=0, max_vertices=24, candidates=1, closed="false")),  # two decodings
+        # Two decodings, the turned frame's kept (at this seed: which frame a random network's mesh wins varies).
+        (_turned_box(), GenerateParams(seed=2, max_vertices=24, candidates=1, closed="false")),
         (_sphere(2.0), GenerateParams(seed=2, max_vertices=24, target_faces=40)),
         (point_cloud(primitive("box"), 2000), GenerateParams(seed=5, max_vertices=24)),  # planes: no decoding
         (_sphere(), GenerateParams(seed=0, max_vertices=10**6)),  # refused, as alone

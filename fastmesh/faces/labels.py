@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .meshops import corner_fans
+from .meshops import corner_fans, crowded_edges
 
 # Rounds of filling or emptying the cells around non-manifold edges and vertices, the first CHOOSING_ROUNDS the
 # cheaper of the two, the rest emptying: filling spreads (a filled cell touches others at an edge), and on a part
@@ -40,7 +40,7 @@ def made_manifold(tets: np.ndarray, neighbours: np.ndarray, tri: np.ndarray, a: 
         f = interface(tri, a, b, inside)
         if not len(f):
             break
-        simplices = [[int(u), int(w)] for u, w in _crowded_edges(f)]
+        simplices = [[int(u), int(w)] for u, w in crowded_edges(f)]
         simplices += [[int(u)] for u in np.flatnonzero(_pinched_vertices(f, n_vertices))]
         if not simplices:
             break
@@ -94,13 +94,6 @@ def cost_of_all_but_dearest(label: np.ndarray, cost: np.ndarray, groups: list) -
         return np.inf
     sums = sorted(float(cost[label == g].sum()) for g in groups)
     return float(np.sum(sums[:-1]))
-
-
-def _crowded_edges(faces: np.ndarray) -> np.ndarray:
-    """(C, 2) the edges in more than two of ``faces`` (F, 3)."""
-    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    keys, counts = np.unique(e, axis=0, return_counts=True)
-    return keys[counts > 2]
 
 
 def _pinched_vertices(faces: np.ndarray, n_vertices: int) -> np.ndarray:

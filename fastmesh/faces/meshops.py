@@ -75,6 +75,12 @@ def edge_face_counts(faces: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0, return_counts=True)[1].astype(np.int64)
 
 
+def crowded_edges(faces: np.ndarray) -> np.ndarray:
+    """(C, 2) the edges (sorted ends) in more than two of ``faces`` (F, 3)."""
+    keys, counts = np.unique(np.sort(face_sides(faces), axis=1), axis=0, return_counts=True)
+    return keys[counts > 2]
+
+
 def open_sides(faces: np.ndarray) -> np.ndarray:
     """(3F,) bool, per side of :func:`face_sides`: its edge is in no other face (an open edge)."""
     sides = np.sort(face_sides(faces), axis=1)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .meshops import face_sides, open_sides, piece_labels, welded_in_place, wound_alike
+from .meshops import crowded_edges, face_sides, open_sides, piece_labels, welded_in_place, wound_alike
 from .orient import orient_faces
 
 # A sample faces a side of the sheet where its normal is within this cosine of the sheet's normal, either way.
@@ -156,8 +156,7 @@ def _united(solid, parts: list) -> tuple[np.ndarray, np.ndarray, set] | None:
         out_f = np.asarray(mesh.tri_verts, dtype=np.int64).reshape(-1, 3)
         # manifold3d keeps two copies of a vertex where parts touch along an edge: welded, that edge has four faces.
         welded_v, welded_f = welded_in_place(out_v, out_f)
-        edge, count = np.unique(np.sort(face_sides(welded_f), axis=1), axis=0, return_counts=True)
-        crowded = welded_v[edge[count > 2]]  # (K, 2, 3) the ends of each crowded edge
+        crowded = welded_v[crowded_edges(welded_f)]  # (K, 2, 3) the ends of each crowded edge
         if len(crowded) == 0:
             return out_v, out_f, {p[2] for p in parts}
         kept = [p for p in parts if not _near_edge(p[1], crowded)]

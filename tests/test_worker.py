@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 
 import httpx
@@ -250,6 +251,23 @@ def test_sigterm_hands_the_running_job_back(env):
     assert wait_final(app.url, job_id)["status"] == "succeeded"  # finished by the next worker
     # The worker logs the success after storing it: under load the line can trail the status.
     wait_for(lambda: f"{job_id} succeeded" in nxt.log(), 10, what="the next worker's log line")
+
+
+def test_a_worker_stops_listening_at_once(redis_url):
+    """The exit of a worker whose listener thread took its unsubscribe reply before being told to stop (the race a
+    busy machine loses) does not wait for the listener's 60 s."""
+    from worker.main import FastMeshWorker
+
+    w = FastMeshWorker(["t-unsubscribe"], connection=redis.Redis.from_url(redis_url), name=f"t-unsub-{os.getpid()}")
+    w.subscribe()
+    wait_for(lambda: w.pubsub.subscribed, 10, what="the subscription")
+    w.pubsub.unsubscribe()  # the reply reaches the listener, which then waits for a subscription
+    wait_for(lambda: not w.pubsub.subscribed, 10, what="the unsubscribe reply")
+    time.sleep(0.2)
+    leaving = threading.Thread(target=w.unsubscribe, daemon=True)
+    leaving.start()
+    leaving.join(10)
+    assert not leaving.is_alive(), "the worker's unsubscribe waits for its listener"
 
 
 def test_jobs_queued_under_the_former_function_name_still_run():

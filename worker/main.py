@@ -19,6 +19,7 @@ Configuration: the ``FASTMESH_*`` environment (see ``fastmesh_jobs.settings.Sett
 from __future__ import annotations
 
 import argparse
+import inspect
 import logging
 import sys
 import threading
@@ -57,6 +58,22 @@ class FastMeshWorker(SimpleWorker):
             self.log.error("Worker %s: a GPU error left this process's CUDA context unusable; exiting with "
                            "status %d for a clean restart", self.name, WORKER_EXIT_DEVICE_ERROR)
             raise StopRequested()
+
+    def unsubscribe(self):
+        """RQ's unsubscribe, with its listener told to stop before it is woken, and waited for at most 1 s.
+
+        RQ unsubscribes, then stops its listener thread, and redis-py 8.2's stop waits for the thread with no
+        limit.  A listener that takes the unsubscribe reply before it is told to stop waits for a subscription
+        (RQ's 60 s) before it looks again, and the worker's exit waits with it.  Told first, the thread ends on the
+        reply; it is a daemon, so a worker never waits for it longer than the join's second."""
+        thread = self.pubsub_thread
+        if thread is None:
+            return
+        self.log.info("Worker %s: unsubscribing from channel %s", self.name, self.pubsub_channel_name)
+        # redis-py before 8.2: stop() only clears the thread's flag (no timeout).
+        thread.stop(**({"timeout": 0} if "timeout" in inspect.signature(thread.stop).parameters else {}))
+        self.pubsub.unsubscribe()
+        thread.join(timeout=1)  # the thread closes its connection as it ends
 
 
 def _heartbeat(store: Store, stop: threading.Event) -> None:

@@ -4,7 +4,7 @@ Reads the results ``fastmesh eval --save DIR`` wrote (``DIR/<name>.ply``, in the
 and the references of the eval set, and for each setting cuts every result's flat regions from their outlines (in
 the unit cube of the input's points, as the pipeline does): faces per reference face (mean; over 1.5x), the
 outlined mesh's ``support.weighed_fit`` over the result's against the input's points, and, for each margin, the
-results the pipeline would keep (``pipeline.finish.OUTLINE_MARGIN``) and what they give.
+results the pipeline would keep (``pipeline.finish.FEWER_FACES_MARGIN``) and what they give.
 
     python benchmarks/outline_sweep.py --data data/eval-oop SAVED_DIR [SAVED_DIR ...]
 """

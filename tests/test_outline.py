@@ -159,14 +159,14 @@ def test_the_pipeline_weighs_the_outlined_result_and_reports_it(monkeypatch):
     shape = Shape(vertices=np.asarray(points), normals=np.asarray(normals))
     res = pipe.generate(shape, GenerateParams(max_vertices=48, seed=1))
     fits = res.info["outline_fits"]
-    assert seen and fits["model"] * finish.OUTLINE_MARGIN < fits["outlined"]
+    assert seen and fits["model"] * finish.FEWER_FACES_MARGIN < fits["outlined"]
     assert res.info["flat_vertices_removed"] == 0 and len(res.faces) == seen[0]
     # A rival as near (the result's faces listed the other way round; the result less a face would have a hole the
     # weighing counts): it comes back, its removed vertices reported.
     monkeypatch.setattr(finish, "outlined", lambda v, f: (v, f[::-1], 3))
     kept = pipe.generate(shape, GenerateParams(max_vertices=48, seed=1))
     fits = kept.info["outline_fits"]
-    assert kept.info["flat_vertices_removed"] == 3 and fits["outlined"] <= fits["model"] * finish.OUTLINE_MARGIN
+    assert kept.info["flat_vertices_removed"] == 3 and fits["outlined"] <= fits["model"] * finish.FEWER_FACES_MARGIN
 
 
 def _square_with_centre(turn: int) -> tuple[np.ndarray, np.ndarray]:

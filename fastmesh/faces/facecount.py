@@ -171,7 +171,7 @@ def _quadrics(mesh: _Mesh) -> list[list[float]]:
 
 
 def decimate(vertices: np.ndarray, faces: np.ndarray, target: int, area_tol: float = 1e-10,
-             max_move: float | None = None) -> np.ndarray:
+             max_move: float | None = None, keep: np.ndarray | None = None) -> np.ndarray:
     """Half-edge collapses ``v -> u`` of least quadric error until at most ``target`` faces are left (or no
     collapse keeps the surface a surface, or none stays within ``max_move``).
 
@@ -185,6 +185,7 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, target: int, area_tol: flo
     max_move : float or None
         Only collapses that put the merged vertex within this distance of the planes it stands for (the
         root of its quadric's error over the quadric's weight: their area-weighted RMS distance) are made.
+    keep : (N,) bool or None, vertices never collapsed away (others may still collapse onto them)
 
     Returns
     -------
@@ -193,7 +194,7 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, target: int, area_tol: flo
     pos = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     length = float(np.ptp(pos, axis=0).max()) if len(pos) else 0.0
     mesh = _Mesh(pos, np.asarray(faces, dtype=np.int64).reshape(-1, 3), 2 * area_tol * length**2)
-    queue = _Collapses(mesh, max_move)
+    queue = _Collapses(mesh, max_move, keep)
     alive = sum(mesh.alive)
     # A collapse changes the link condition up to two rings away: passes over every vertex repeat until the
     # target is reached or a pass collapses nothing (the next would be the same pass).
@@ -218,8 +219,9 @@ class _Collapses:
     """The half-edge collapses of :func:`decimate` waiting in a heap, least quadric error first; a vertex's
     entry counts only while its ``version`` is the one it was queued with."""
 
-    def __init__(self, mesh: _Mesh, max_move: float | None = None):
+    def __init__(self, mesh: _Mesh, max_move: float | None = None, keep: np.ndarray | None = None):
         self.mesh, self.bound = mesh, None if max_move is None else max_move * max_move
+        self.keep = None if keep is None else np.asarray(keep, dtype=bool)
         self.quadric = _quadrics(mesh)
         self.own = [_quadric_error(q, p) for q, p in zip(self.quadric, mesh.p, strict=True)]  # each at itself
         self.version = [0] * len(mesh.p)
@@ -231,6 +233,8 @@ class _Collapses:
         costs ten times the error."""
         mesh = self.mesh
         self.version[v] += 1
+        if self.keep is not None and self.keep[v]:
+            return False
         fan = mesh.link(v) if mesh.around[v] else None
         if fan is None:
             return False

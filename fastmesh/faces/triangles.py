@@ -126,7 +126,12 @@ class TriangleConfig:
     outline : bool
         The pipeline, before ``reach_extent``: a generated result's flat regions triangulated from their outlines
         (:func:`fastmesh.faces.outline.outlined`), kept where no face then crosses another and it lies near the
-        input as the result does (``pipeline.finish.OUTLINE_MARGIN``).  Not with a ``target_faces``.
+        input as the result does (``pipeline.finish.FEWER_FACES_MARGIN``).  Not with a ``target_faces``.
+    coarsen : float or None
+        The pipeline, after ``outline``: a generated result's vertices collapsed while each stays within this
+        distance (unit cube) of the planes it stands for (:func:`fastmesh.pipeline.finish.coarsened`), kept where it
+        adds no open, crowded or crossing edge and lies near the input as the result does.  None: not collapsed;
+        not with a ``target_faces`` (brought to it instead).
     """
 
     selection: str = "surface"
@@ -158,6 +163,7 @@ class TriangleConfig:
     solid_patch: bool = True
     solid_open: bool = True
     outline: bool = True
+    coarsen: float | None = 0.25 * CELL
 
     def __post_init__(self):
         if self.selection not in ("cliques", "surface"):

@@ -157,8 +157,8 @@ class Pipeline(FrameSteps):
         the input by the input's size (``surface_tol`` 1.0); and a mesh input's decimation and the vertices of its
         quadrics are not weighed (``weigh_decimation``, ``quadric_vertices``: they would replace every such mesh),
         nor a point cloud's result redistributed or its edges split, nor edges turned, nor input points added to its
-        vertices, nor its box brought to the input's (``redistribute``, ``refine``, ``swap_edges``, ``add_missed``,
-        ``reach_extent``: its
+        vertices, nor its box brought to the input's, nor its flat regions outlined or its vertices collapsed
+        (``redistribute``, ``refine``, ``swap_edges``, ``add_missed``, ``reach_extent``, ``outline``, ``coarsen``: its
         meshes mean nothing, tests would pay for it, and a result stays its chosen candidate's mesh).
         Keep ``max_vertices`` small with it.
         """
@@ -181,7 +181,7 @@ class Pipeline(FrameSteps):
                                                                  weigh_decimation=False, redistribute=None,
                                                                  refine=None, swap_edges=False, add_missed=None,
                                                                  quadric_vertices=False, reach_extent=False,
-                                                                 outline=False))
+                                                                 outline=False, coarsen=None))
 
     def save(self, directory: str | os.PathLike) -> None:
         """Write the networks and ``pipeline.json`` (every setting of the face stage and the fit, whole) so

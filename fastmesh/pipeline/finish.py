@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..faces.crossings import adds_crossings
+from ..faces.crossings import adds_crossings, crossing_faces
+from ..faces.facecount import decimate
+from ..faces.meshops import edge_face_counts, remove_unreferenced, weld
 from ..faces.outline import outlined
 from ..faces.pieces import split_pinches
 from ..faces.triangles import TriangleConfig
@@ -13,12 +15,16 @@ from ..request import Request
 from . import result as step8
 from .runtime import stage
 
-# A result with its flat regions cut from their outlines is kept up to this factor farther from the input (by
-# ``support.weighed_fit``) than as it was: the vertices it loses lie within a cell of their region's plane, and
-# fewer faces on a flat side is what the artist's mesh has.  On the 60 held-out results of the code before
-# (``benchmarks/outline_sweep.py``) 59 were kept within 1.1 and 56 within 1.05 (faces per reference face 1.23 and
-# 1.25 on average, from 1.39; their fits 1.006 and 1.003 times the results' on average).
-OUTLINE_MARGIN = 1.1
+# A result with fewer faces (its flat regions cut from their outlines, its collapses within a share of a cell) is
+# kept up to this factor farther from the input (by ``support.weighed_fit``) than as it was: the vertices it loses
+# lie within a cell of the planes they stand for, and fewer faces where the shape does not turn is what the artist's
+# mesh has.  On the 60 held-out results of an earlier code (``benchmarks/outline_sweep.py``) 59 outlined results
+# were kept within 1.1 and 56 within 1.05 (faces per reference face 1.23 and 1.25 on average, from 1.39; their fits
+# 1.006 and 1.003 times the results' on average).
+FEWER_FACES_MARGIN = 1.1
+# Rounds of :func:`coarsened`'s collapses, each keeping the vertices around the faces the last one folded through
+# others; a result still folded after them is not coarsened.
+COARSEN_ROUNDS = 3
 
 
 def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict, result_from: str,
@@ -69,6 +75,13 @@ def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
         info["flat_vertices_removed"] = removed if rival is not None else 0
         if rival is not None:
             vertices, faces = rival
+    if result_from == "model" and config.coarsen is not None and not req.count.hold:
+        rival, fits, removed = coarsened(req, vertices, faces, config.coarsen, config.support_points)
+        if fits:
+            info["coarsen_fits"] = fits
+        info["faces_coarsened"] = removed if rival is not None else 0
+        if rival is not None:
+            vertices, faces = rival
     # Last: the outlines take vertices inside flat sides and along straight edges, as the box's are.
     if result_from != "input" and config.reach_extent:
         before = vertices, faces
@@ -82,7 +95,7 @@ def outlined_flat(req: Request, vertices: np.ndarray, faces: np.ndarray, support
                   ) -> tuple[tuple[np.ndarray, np.ndarray] | None, dict, int]:
     """The result with its flat regions triangulated from their outlines (``outline.outlined``, in the unit cube:
     no new face crosses another or gives an edge a third face; pinched copies made one first and split again
-    after) where it lies within ``OUTLINE_MARGIN`` of the result's ``support.weighed_fit``; both fits (empty where
+    after) where it lies within ``FEWER_FACES_MARGIN`` of the result's ``support.weighed_fit``; both fits (empty where
     not weighed) and the vertices removed.  None where none is removed or the rival is not kept."""
     with stage("weighing", req.timings):
         norm = req.frame.norm
@@ -91,5 +104,62 @@ def outlined_flat(req: Request, vertices: np.ndarray, faces: np.ndarray, support
         if removed == 0:
             return None, {}, 0
         fits = step8.rival_fits(req, support_points, model=(norm.apply(vertices), faces), outlined=(out_v, out_f))
-    kept = fits["outlined"] <= OUTLINE_MARGIN * fits["model"]
+    kept = fits["outlined"] <= FEWER_FACES_MARGIN * fits["model"]
     return (split_pinches(norm.invert(out_v), out_f) if kept else None), fits, removed
+
+
+def coarsened(req: Request, vertices: np.ndarray, faces: np.ndarray, move: float, support_points: int
+              ) -> tuple[tuple[np.ndarray, np.ndarray] | None, dict, int]:
+    """The result with the vertices its shape does not need collapsed: half-edge collapses of least quadric error
+    while each keeps its vertex within ``move`` (unit cube) of the planes it stands for (``facecount.decimate`` to
+    no count, :func:`_collapsed`), in the unit cube, pinched copies made one first and split again after.  Kept where
+    it opens and crowds no edge more than the result does and lies within ``FEWER_FACES_MARGIN`` of its
+    ``support.weighed_fit``; both fits (empty where not weighed) and the faces removed.  None where none is removed or
+    the rival is not kept.
+
+    The collapses see the planes of the faces around a vertex: a curved region keeps the vertices its curvature needs
+    at that distance, a region the decoder tessellated finer than its shape loses the rest."""
+    with stage("weighing", req.timings):
+        norm = req.frame.norm
+        v, f = step8.unsplit(vertices, faces)
+        unit = norm.apply(v)
+        fewer = _collapsed(unit, f, move)
+        removed = 0 if fewer is None else len(f) - len(fewer)
+        if removed == 0 or _opens_or_crowds((unit, f), (unit, fewer)):
+            return None, {}, 0
+        fits = step8.rival_fits(req, support_points, model=(norm.apply(vertices), faces), coarsened=(unit, fewer))
+    if fits["coarsened"] > FEWER_FACES_MARGIN * fits["model"]:
+        return None, fits, removed
+    return split_pinches(*remove_unreferenced(v, fewer)[:2]), fits, removed
+
+
+def _collapsed(unit: np.ndarray, faces: np.ndarray, move: float) -> np.ndarray | None:
+    """``facecount.decimate``'s collapses within ``move`` of ``unit`` (N, 3) and ``faces`` (F, 3), the vertices on
+    the sides of their box kept (the box stays the input's); where they fold a face through another (a collapse
+    sees no faces but its vertex's own), made again with the vertices within ``move`` of the box of each such face
+    kept, up to ``COARSEN_ROUNDS`` times.  (G, 3) faces that cross no more than ``faces`` do, or None."""
+    lo, hi = unit.min(0), unit.max(0)
+    keep = ((unit <= lo + move) | (unit >= hi - move)).any(1)
+    crossed_before = int(crossing_faces(unit, faces).sum())
+    for _ in range(COARSEN_ROUNDS):
+        fewer = decimate(unit, faces, 0, max_move=move, keep=keep)
+        crossed = crossing_faces(unit, fewer)
+        if int(crossed.sum()) <= crossed_before:
+            return fewer
+        tri = unit[fewer[crossed]]
+        near = ((unit[:, None] >= tri.min(1) - move) & (unit[:, None] <= tri.max(1) + move)).all(2).any(1)
+        if not (near & ~keep).any():
+            return None
+        keep |= near
+    return None
+
+
+def _opens_or_crowds(before: tuple[np.ndarray, np.ndarray], after: tuple[np.ndarray, np.ndarray]) -> bool:
+    """Whether mesh ``after`` has more open edges or more edges of three or more faces than ``before``, both once
+    welded: a collapse next to a piece's coincident copy can close onto it."""
+    def edges(v: np.ndarray, f: np.ndarray) -> tuple[int, int]:
+        counts = edge_face_counts(weld(v, f)[1])
+        return int((counts == 1).sum()), int((counts > 2).sum())
+
+    (open_before, crowded_before), (open_after, crowded_after) = edges(*before), edges(*after)
+    return open_after > open_before or crowded_after > crowded_before

@@ -19,7 +19,8 @@ rivals in ``weighing``):
           ──► the candidate nearest the input surface (``support.weighed_fit``), weighing
               and the rivals of the chosen one
           ──► back to the input's frame, made whole, closed where it must be   faces
-              (``closing``)
+              (``closing``), then the vertices that stand for no turn of   weighing
+              its shape collapsed (``finish.coarsened_closed``)
           ──► with target_faces: brought to that count (``facecount``)     faces
 
 This is the Python API the CLI, the worker and the evaluation call::
@@ -60,7 +61,7 @@ from ..shapes.shape import Shape
 from . import result as step8
 from .candidate import CELL_SEED
 from .closing import closed_result
-from .finish import last_steps
+from .finish import coarsened_closed, last_steps
 from .frames import FrameSteps
 from .result import GenerateResult
 from .runtime import CPU_THREADS, STAGE_THREADS, auto_device, choose_threads, stage
@@ -359,7 +360,8 @@ class Pipeline(FrameSteps):
 
     def _finished(self, req: Request, best: dict) -> GenerateResult:
         """The result of the frame ``best`` (:meth:`_nearest_frame`): made whole, weighed against its rivals and
-        brought to a count (``finish.last_steps``), closed and finished."""
+        brought to a count (``finish.last_steps``), closed, coarsened where it has more faces than its shape needs
+        (``finish.coarsened_closed``) and finished."""
         req.timings.enter("faces")
         # The boundary of a solid is free of folds: the steps after it keep it so (``crossings``).
         solid = best["info"].get("solid_fits", {}).get("faces_from") == "solid"
@@ -371,6 +373,8 @@ class Pipeline(FrameSteps):
         with stage("faces", req.timings):
             vertices, faces, note = closed_result(req, vertices, faces, self.triangle_config,
                                                   uncrossed=solid and result_from == "model")
+        if result_from == "model" and not req.count.hold:
+            vertices, faces = coarsened_closed(req, vertices, faces, info, self.triangle_config)
         faces = step8.facing(req, vertices, faces)
         result = step8.finished(req, vertices, faces, tokens=best["tokens"], info={**info, "result_from": result_from},
                                 evidence=best["evidence"] if result_from == "model" else None, count_step=step,

@@ -7,7 +7,7 @@ import numpy as np
 
 from ..faces.crossings import adds_crossings, crossing_faces
 from ..faces.facecount import decimate
-from ..faces.meshops import edge_face_counts, remove_unreferenced, weld
+from ..faces.meshops import edge_face_counts, face_sides, open_sides, remove_unreferenced, weld
 from ..faces.outline import outlined
 from ..faces.pieces import split_pinches
 from ..faces.triangles import TriangleConfig
@@ -34,12 +34,10 @@ def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
     spread over the input (``step8.redistributed``, with ``TriangleConfig.redistribute``), its edges turned
     where the input lies along the other diagonal (``step8.swapped``, with ``TriangleConfig.swap_edges``;
     ``info["edges_turned"]``), a mesh input's weighed against its decimation to its face count
-    (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go into ``info``), a point cloud's
-    weighed against its edges split where the input bends away from them (``step8.refined``, with
-    ``TriangleConfig.refine``; ``info["edges_split"]`` those kept), its flat regions cut from their outlines
-    (:func:`outlined_flat`, with ``TriangleConfig.outline``; ``info["flat_vertices_removed"]``), and last its box
-    brought to the input's (``step8.extended``, with ``TriangleConfig.reach_extent``; ``info["extent_sides"]``):
-    vertices, faces, where they come from ("model", "input" or "decimated") and the count step."""
+    (``step8.decimated``, with ``TriangleConfig.weigh_decimation``; both fits go into ``info``), then against its
+    rivals of no face count (:func:`fewer_or_nearer`), and last its box brought to the input's (``step8.extended``,
+    with ``TriangleConfig.reach_extent``; ``info["extent_sides"]``): vertices, faces, where they come from ("model",
+    "input" or "decimated") and the count step."""
     step = None
     if req.count.hold:
         info["faces_before_count"] = int(len(faces))
@@ -61,27 +59,8 @@ def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
             info["decimation_fits"] = fits
         if rival is not None:
             vertices, faces, result_from, step = *rival, "decimated", None if step is None else "decimated"
-    if result_from == "model" and config.refine is not None and not req.count.hold:
-        rival, fits, splits = step8.refined(req, vertices, faces, config.refine, config.support_points)
-        if fits:
-            info["refine_fits"] = fits
-        info["edges_split"] = splits if rival is not None else 0
-        if rival is not None:
-            vertices, faces = rival
-    if result_from == "model" and config.outline and not req.count.hold:
-        rival, fits, removed = outlined_flat(req, vertices, faces, config.support_points)
-        if fits:
-            info["outline_fits"] = fits
-        info["flat_vertices_removed"] = removed if rival is not None else 0
-        if rival is not None:
-            vertices, faces = rival
-    if result_from == "model" and config.coarsen is not None and not req.count.hold:
-        rival, fits, removed = coarsened(req, vertices, faces, config.coarsen, config.support_points)
-        if fits:
-            info["coarsen_fits"] = fits
-        info["faces_coarsened"] = removed if rival is not None else 0
-        if rival is not None:
-            vertices, faces = rival
+    if result_from == "model" and not req.count.hold:
+        vertices, faces = fewer_or_nearer(req, vertices, faces, info, config)
     # Last: the outlines take vertices inside flat sides and along straight edges, as the box's are.
     if result_from != "input" and config.reach_extent:
         before = vertices, faces
@@ -89,6 +68,48 @@ def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict
         if result_from == "model" and not patched and adds_crossings(before, (vertices, faces)):
             (vertices, faces), info["extent_sides"] = before, 0  # a vertex moved out folds the solid
     return vertices, faces, result_from, step
+
+
+def fewer_or_nearer(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict, config: TriangleConfig
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """A generated result without a ``target_faces`` weighed in turn against the rivals ``config`` turns on, each made
+    from the one kept before it: its edges split where the input bends away from them (``step8.refined``,
+    ``TriangleConfig.refine``) and its flat regions cut from their outlines (:func:`outlined_flat`,
+    ``TriangleConfig.outline``).  Each puts its fits in ``info`` where it was weighed and what it changed where it
+    was kept (0 where not): ``edges_split``, ``flat_vertices_removed``."""
+    points = config.support_points
+    rivals = [(config.refine is not None, "refine_fits", "edges_split",
+               lambda v, f: step8.refined(req, v, f, config.refine, points)),
+              (config.outline, "outline_fits", "flat_vertices_removed", lambda v, f: outlined_flat(req, v, f, points))]
+    return _weighed_in_turn(vertices, faces, info, rivals)
+
+
+def coarsened_closed(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict, config: TriangleConfig
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """A generated result without a ``target_faces``, once closed (``closing``: it fills a hole from the faces
+    around it, and coarser faces there may leave it no fill that crosses nothing), weighed against its vertices that
+    stand for no turn of its shape collapsed (:func:`coarsened`, ``TriangleConfig.coarsen``; ``info``'s
+    ``coarsen_fits`` where weighed, ``faces_coarsened``)."""
+    points = config.support_points
+    rivals = [(config.coarsen is not None, "coarsen_fits", "faces_coarsened",
+               lambda v, f: coarsened(req, v, f, config.coarsen, points))]
+    return _weighed_in_turn(vertices, faces, info, rivals)
+
+
+def _weighed_in_turn(vertices: np.ndarray, faces: np.ndarray, info: dict, rivals: list
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh replaced in turn by each rival that comes back: ``rivals`` of (on, the ``info`` key of its fits, the
+    key of what it changed, a function of (vertices, faces) giving (rival or None, fits, count))."""
+    for on, fits_key, count_key, make in rivals:
+        if not on:
+            continue
+        rival, fits, count = make(vertices, faces)
+        if fits:
+            info[fits_key] = fits
+        info[count_key] = count if rival is not None else 0
+        if rival is not None:
+            vertices, faces = rival
+    return vertices, faces
 
 
 def outlined_flat(req: Request, vertices: np.ndarray, faces: np.ndarray, support_points: int
@@ -135,11 +156,14 @@ def coarsened(req: Request, vertices: np.ndarray, faces: np.ndarray, move: float
 
 def _collapsed(unit: np.ndarray, faces: np.ndarray, move: float) -> np.ndarray | None:
     """``facecount.decimate``'s collapses within ``move`` of ``unit`` (N, 3) and ``faces`` (F, 3), the vertices on
-    the sides of their box kept (the box stays the input's); where they fold a face through another (a collapse
-    sees no faces but its vertex's own), made again with the vertices within ``move`` of the box of each such face
-    kept, up to ``COARSEN_ROUNDS`` times.  (G, 3) faces that cross no more than ``faces`` do, or None."""
+    the sides of their box kept (the box stays the input's) and those on open edges (a piece's border often runs
+    along another piece's unwelded copy of it: a collapse there opens a slit); where they fold a face through
+    another (a collapse sees no faces but its vertex's own), made again with the vertices within ``move`` of the box
+    of each such face kept, up to ``COARSEN_ROUNDS`` times.  (G, 3) faces that cross no more than ``faces`` do, or
+    None."""
     lo, hi = unit.min(0), unit.max(0)
     keep = ((unit <= lo + move) | (unit >= hi - move)).any(1)
+    keep[face_sides(faces)[open_sides(faces)]] = True
     crossed_before = int(crossing_faces(unit, faces).sum())
     for _ in range(COARSEN_ROUNDS):
         fewer = decimate(unit, faces, 0, max_move=move, keep=keep)

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import trimesh
 
+import fastmesh.pipeline as pipeline_module
 from fastmesh.evaluation.quality import topology
 from fastmesh.faces.crossings import crossing_faces
 from fastmesh.faces.facecount import decimate
@@ -122,20 +123,25 @@ def test_collapses_that_fold_a_wing_through_another_part_are_made_again_around_i
 
 
 def test_the_pipeline_coarsens_a_result_only_without_a_face_count(monkeypatch):
-    """With ``TriangleConfig.coarsen`` a generated result is weighed against its collapsed self: ``info`` holds the
-    faces removed (0 where the rival is refused) and, where weighed, both fits; a ``target_faces`` brings the result
-    to its count instead and nothing is collapsed."""
+    """With ``TriangleConfig.coarsen`` a generated result, once closed, is weighed against its collapsed self:
+    ``info`` holds the faces removed (0 where the rival is refused) and, where weighed, both fits; a ``target_faces``
+    brings the result to its count instead and nothing is collapsed."""
     pipe = Pipeline.random(seed=0)
     assert pipe.triangle_config.coarsen is None and MOVE == 0.25 * CELL
     monkeypatch.setattr(pipe, "triangle_config", replace(pipe.triangle_config, coarsen=MOVE))
-    seen = []
+    seen, order = [], []
     real = finish.decimate
     monkeypatch.setattr(finish, "decimate", lambda *a, **k: seen.append(len(a[1])) or real(*a, **k))
+    # After the closing: it fills a hole from the faces around it, which the collapses would have made coarser.
+    closing = pipeline_module.closed_result
+    monkeypatch.setattr(pipeline_module, "closed_result", lambda *a, **k: order.append("closed") or closing(*a, **k))
+    coarsen = finish.coarsened
+    monkeypatch.setattr(finish, "coarsened", lambda *a, **k: order.append("coarsened") or coarsen(*a, **k))
     sphere = trimesh.creation.icosphere(3)
     points, index = sphere.sample(2048, return_index=True, seed=0)
     shape = Shape(vertices=np.asarray(points), normals=np.asarray(sphere.face_normals[index]))
     res = pipe.generate(shape, GenerateParams(max_vertices=48, seed=1))
-    assert seen and "faces_coarsened" in res.info
+    assert seen and "faces_coarsened" in res.info and order == ["closed", "coarsened"]
     fits = res.info.get("coarsen_fits")
     if res.info["faces_coarsened"]:
         assert fits["coarsened"] <= finish.FEWER_FACES_MARGIN * fits["model"]

@@ -136,7 +136,7 @@ def test_what_ships_is_what_the_defaults_build(tmp_path):
     assert random.triangle_config == TriangleConfig(surface_tol=RANDOM_SURFACE_TOL, weigh_decimation=False,
                                                      redistribute=None, refine=None, swap_edges=False,
                                                      add_missed=None, quadric_vertices=False, reach_extent=False,
-                                                     outline=False)
+                                                     outline=False, coarsen=None)
     written = tmp_path / "pipeline.json"
     write_settings(written, **defaults)
     assert json.loads(written.read_text()) == json.loads((default_weights_dir() / "pipeline.json").read_text())

@@ -128,7 +128,7 @@ class TriangleConfig:
         (:func:`fastmesh.faces.outline.outlined`), kept where no face then crosses another and it lies near the
         input as the result does (``pipeline.finish.FEWER_FACES_MARGIN``).  Not with a ``target_faces``.
     coarsen : float or None
-        The pipeline, after ``outline``: a generated result's vertices collapsed while each stays within this
+        The pipeline, once the result is closed: a generated result's vertices collapsed while each stays within this
         distance (unit cube) of the planes it stands for (:func:`fastmesh.pipeline.finish.coarsened`), kept where it
         adds no open, crowded or crossing edge and lies near the input as the result does.  None: not collapsed;
         not with a ``target_faces`` (brought to it instead).

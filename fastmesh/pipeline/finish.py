@@ -7,12 +7,13 @@ import numpy as np
 
 from ..faces.crossings import adds_crossings, crossing_faces
 from ..faces.facecount import decimate
-from ..faces.meshops import edge_face_counts, face_sides, open_sides, remove_unreferenced, weld
+from ..faces.meshops import face_sides, open_sides, remove_unreferenced, weld
 from ..faces.outline import outlined
 from ..faces.pieces import split_pinches
 from ..faces.triangles import TriangleConfig
 from ..request import Request
 from . import result as step8
+from .closing import edge_defects
 from .runtime import stage
 
 # A result with fewer faces (its flat regions cut from their outlines, its collapses within a share of a cell) is
@@ -180,10 +181,6 @@ def _collapsed(unit: np.ndarray, faces: np.ndarray, move: float) -> np.ndarray |
 
 def _opens_or_crowds(before: tuple[np.ndarray, np.ndarray], after: tuple[np.ndarray, np.ndarray]) -> bool:
     """Whether mesh ``after`` has more open edges or more edges of three or more faces than ``before``, both once
-    welded: a collapse next to a piece's coincident copy can close onto it."""
-    def edges(v: np.ndarray, f: np.ndarray) -> tuple[int, int]:
-        counts = edge_face_counts(weld(v, f)[1])
-        return int((counts == 1).sum()), int((counts > 2).sum())
-
-    (open_before, crowded_before), (open_after, crowded_after) = edges(*before), edges(*after)
+    welded (``closing.edge_defects``): a collapse next to a piece's coincident copy can close onto it."""
+    (open_before, crowded_before), (open_after, crowded_after) = (edge_defects(weld(*m)[1]) for m in (before, after))
     return open_after > open_before or crowded_after > crowded_before

@@ -354,8 +354,8 @@ def test_a_solid_candidate_keeps_its_margin_against_the_other_candidates():
 @pytest.mark.parametrize("solid_open", [False, True])
 def test_an_open_input_gets_the_solid_stage_with_solid_open(monkeypatch, solid_open):
     """``solid_open``: an input decided open (a half sphere: it encloses nothing) gets the solid stage too, each
-    candidate weighed against its selection (``info.solid_fits``); without it, the stage is not made for an open
-    input."""
+    candidate weighed against its selection (``info.solid_fits``) and told the input is open; without it, the
+    stage is not made for an open input."""
     import torch
 
     from fastmesh.params import GenerateParams
@@ -365,7 +365,7 @@ def test_an_open_input_gets_the_solid_stage_with_solid_open(monkeypatch, solid_o
     torch.set_num_threads(1)
     calls = []
     real = candidate.solid_mesh
-    monkeypatch.setattr(candidate, "solid_mesh", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(candidate, "solid_mesh", lambda *a, **k: calls.append(k.get("open_")) or real(*a, **k))
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(3000, 3))
     pts = pts / np.linalg.norm(pts, axis=1, keepdims=True)
@@ -376,3 +376,4 @@ def test_an_open_input_gets_the_solid_stage_with_solid_open(monkeypatch, solid_o
     out = pipe.generate(cloud, GenerateParams(seed=0))
     assert not out.info["closed_decision"]["close"] and len(out.faces)
     assert (len(calls) > 0) == solid_open == ("solid_fits" in out.info)
+    assert all(calls)  # cut as a closed input's, then opened where the input is open (``uncapped``)

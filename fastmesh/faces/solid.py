@@ -37,6 +37,7 @@ from .slabs import thickened
 from .support import support_limit, weighed_fit
 from .surface_triangles import edge_log_prob
 from .thin import THIN_REACH, facing_away, lost_samples, thin_picks
+from .uncapped import uncapped
 from .winding import cell_winding
 
 # The winding number reads 1 inside a closed input and 0 outside: a cell is inside where its number exceeds this.
@@ -209,8 +210,8 @@ def is_closed_surface(faces: np.ndarray) -> bool:
 
 def solid_mesh(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, edges: np.ndarray | None,
                logits: np.ndarray | None, rival: tuple[np.ndarray, np.ndarray], reference: np.ndarray,
-               margin: float, flat_tol: float | None = None, seed: int = 0, patch: bool = True, thin: bool = True
-               ) -> tuple[np.ndarray, np.ndarray, dict]:
+               margin: float, flat_tol: float | None = None, seed: int = 0, patch: bool = True, thin: bool = True,
+               open_: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
     """The face stage's solid: :func:`solid_surface`, its flat vertices removed, weighed against ``rival`` (the
     surface selection's mesh on the same vertices).
 
@@ -237,12 +238,15 @@ def solid_mesh(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, ed
     thin : bool
         Where the cut loses parts of the input, it is cut again with the input's samples there among the vertices
         (``fastmesh.faces.thin``; ``thin_vertices`` counts those the surface uses), kept where it loses fewer.
+    open_ : bool
+        The input is open: the solid that comes back loses its faces across the input's openings
+        (``uncapped.uncapped``; ``uncapped_faces`` counts them), once weighed and patched as a closed one.
 
     Returns
     -------
     vertices, faces : the mesh that came back
     report : dict, ``fits`` {"solid", "surface"} (None where the cut left nothing inside), ``patched_faces``,
-        ``slabs``, ``thin_vertices`` and ``faces_from``
+        ``slabs``, ``thin_vertices``, ``uncapped_faces`` and ``faces_from``
     """
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     f, added = np.zeros((0, 3), dtype=np.int64), 0
@@ -250,15 +254,19 @@ def solid_mesh(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, ed
         v, f, added = with_thin_parts(v, points, normals, edges, logits, seed, thin)
     if len(f) and flat_tol is not None:
         v, f = _without_flat(v, f, flat_tol)
-    counts = {"patched_faces": 0, "slabs": 0, "thin_vertices": added}
+    counts = {"patched_faces": 0, "slabs": 0, "thin_vertices": added, "uncapped_faces": 0}
     # The rival's fit, read once: the solid as cut and the solid patched are both weighed against it.
     theirs = round(weighed_fit(*rival, reference, seed), 6) if len(rival[1]) else float("inf")
-    whole = _weighed(v, f, rival, theirs, reference, margin, seed, counts)
+    out = _weighed(v, f, rival, theirs, reference, margin, seed, counts)
     # The solid as the cut made it, closed, where it fits; else with the parts it lost from the rival.
-    if whole[2]["faces_from"] == "solid" or not (patch and len(f) and len(rival[1])):
-        return whole
-    v, f, patched = _patched(v, f, rival, np.asarray(reference, dtype=np.float64), points, normals)
-    return _weighed(v, f, rival, theirs, reference, margin, seed, {**counts, **patched})
+    if out[2]["faces_from"] != "solid" and patch and len(f) and len(rival[1]):
+        v, f, patched = _patched(v, f, rival, np.asarray(reference, dtype=np.float64), points, normals)
+        out = _weighed(v, f, rival, theirs, reference, margin, seed, {**counts, **patched})
+    # Closed while it is weighed and patched (the thin parts are united with a closed solid), then opened.
+    if open_ and out[2]["faces_from"] == "solid":
+        v, f, out[2]["uncapped_faces"] = uncapped(*out[:2], points, normals, seed)
+        out = v, f, out[2]
+    return out
 
 
 def _spans_space(vertices: np.ndarray) -> bool:

@@ -222,12 +222,14 @@ class CandidateSteps:
             verts, faces = mesh_from_adjacency(positions, edges, tc, points=surface, logits=logits, oriented=(pts, nrm))
             solid = {}
             # The boundary of a solid, weighed against the selection's mesh (an open input's with ``solid_open``:
-            # what it encloses, cut as a closed input's, the parts that enclose nothing patched in from the mesh).
+            # what it encloses, cut as a closed input's, the parts that enclose nothing patched in from the mesh, then
+            # its faces across the input's openings taken off).
             # Point clouds only: on a mesh input's quadric vertices the cut rounds sharp rims (a faceted cylinder's
             # HD 0.4 -> 1.8 %), and its own decimation is the clean rival there (step 8).
             if tc.solid is not None and req.shape.faces is None and (req.close or req.sealed or tc.solid_open):
                 verts, faces, solid = solid_mesh(positions, pts, nrm, edges, logits, (verts, faces), surface,
-                                                 tc.solid, tc.flat_tol, req.params.seed + k, tc.solid_patch)
+                                                 tc.solid, tc.flat_tol, req.params.seed + k, tc.solid_patch,
+                                                 open_=not (req.close or req.sealed))
         if len(faces) == 0:
             return GenerationError("no_faces", f"the face model connected no triangles among {len(q)} vertices")
         return {"vertices": verts, "faces": faces, "tokens": int(len(tokens)), "edges": int(len(edges)),

@@ -62,6 +62,11 @@ def _finer(mesh: trimesh.Trimesh, rng: np.random.Generator, splits: int) -> tupl
     return v + rng.normal(0.0, 0.05 * CELL * size / np.sqrt(3), v.shape), f
 
 
+def _own_samples(vertices: np.ndarray, faces: np.ndarray, n: int = 4096) -> np.ndarray:
+    """(n, 3) samples of the mesh itself: its input, where the mesh is what the input was read as."""
+    return np.asarray(trimesh.Trimesh(vertices, faces, process=False).sample(n, seed=0))
+
+
 def _request(mesh: trimesh.Trimesh) -> Request:
     points, index = mesh.sample(4096, return_index=True, seed=0)
     return Request.start(Shape(vertices=np.asarray(points), normals=np.asarray(mesh.face_normals[index])),
@@ -117,9 +122,52 @@ def test_collapses_that_fold_a_wing_through_another_part_are_made_again_around_i
     assert not crossing_faces(v, f).any()
     plain = decimate(v, f, 0, max_move=MOVE)
     assert crossing_faces(v, plain).any()
-    fewer = finish._collapsed(v, f, MOVE)
+    fewer = finish._collapsed(v, f, MOVE, np.zeros((0, 3)))  # the rounds around folds alone
     assert fewer is not None and not crossing_faces(v, fewer).any()
     assert len(fewer) < len(f) - (len(f) - len(plain)) / 2, (len(f), len(plain), len(fewer))
+    # Read against its input (here its own samples), the rounds keep more: no sample is left a cell farther.
+    points = _own_samples(v, f)
+    near = finish._collapsed(v, f, MOVE, points)
+    assert near is not None and not crossing_faces(v, near).any() and len(fewer) <= len(near) < len(f)
+    assert (distance_to_triangles(points, v, near) <= distance_to_triangles(points, v, f) + finish.LEFT_TOL).all()
+
+
+def _spiky(rng: np.random.Generator) -> trimesh.Trimesh:
+    """A ball with three thin spikes (radius 0.01-0.02 of their length's 0.25-0.35, six-sided) pointing away from
+    its axes, so that their tips are no sides of its box."""
+    parts = [trimesh.creation.icosphere(3, radius=0.5)]
+    while len(parts) < 4:
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        if np.abs(d).max() >= 0.75:
+            continue
+        cone = trimesh.creation.cone(rng.uniform(0.01, 0.02), rng.uniform(0.25, 0.35), sections=6)
+        cone.apply_translation((0.0, 0.0, 0.3))
+        turn = trimesh.transformations.rotation_matrix(np.arccos(d[2]), np.cross((0.0, 0.0, 1.0), d))
+        parts.append(cone.apply_transform(turn))
+    return trimesh.boolean.union(parts, engine="manifold")
+
+
+def test_collapses_never_cut_a_thin_spike_short():
+    """A thin spike's faces weigh little in a collapse's quadric: plain collapses within a quarter cell of their
+    planes cut spikes short by up to 15 cells.  The rounds keep the vertices where an input sample would end more
+    than ``LEFT_TOL`` farther: on 6 random spiky balls, any pose and unit, cut finer than they need, no sample
+    does, for a few more faces than the plain collapses leave."""
+    from fastmesh.shapes.shape import Normalization
+
+    rng = np.random.default_rng(7)
+    cut_short = 0
+    for _ in range(6):
+        true = _posed(_spiky(rng), rng)
+        v, f = trimesh.remesh.subdivide_to_size(true.vertices, true.faces, 0.05 * float(np.ptp(true.vertices, 0).max()))
+        norm = Normalization.fit(v)
+        unit, points = norm.apply(v), norm.apply(np.asarray(true.sample(16384, seed=0)))
+        plain = decimate(unit, f, 0, max_move=MOVE)
+        cut_short += bool(finish._left(unit, f, plain, points).any())
+        fewer = finish._collapsed(unit, f, MOVE, points)
+        assert fewer is not None and len(fewer) <= 1.05 * len(plain), (len(plain), len(fewer))
+        assert not finish._left(unit, f, fewer, points).any()
+    assert cut_short >= 2  # the family has spikes the plain collapses cut short
 
 
 def test_the_pipeline_coarsens_a_result_only_without_a_face_count(monkeypatch):

@@ -4,14 +4,24 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..faces.crossings import adds_crossings, crossing_faces
 from ..faces.facecount import decimate
-from ..faces.meshops import face_sides, open_sides, remove_unreferenced, weld
+from ..faces.meshops import (
+    distance_to_triangles,
+    face_sides,
+    open_sides,
+    point_triangle_distance,
+    remove_unreferenced,
+    weld,
+)
 from ..faces.outline import outlined
 from ..faces.pieces import split_pinches
+from ..faces.thin import farther_than
 from ..faces.triangles import TriangleConfig
 from ..request import Request
+from ..tokenizer.grid import CELL
 from . import result as step8
 from .closing import edge_defects
 from .runtime import stage
@@ -24,8 +34,11 @@ from .runtime import stage
 # 1.006 and 1.003 times the results' on average).
 FEWER_FACES_MARGIN = 1.1
 # Rounds of :func:`coarsened`'s collapses, each keeping the vertices around the faces the last one folded through
-# others; a result still folded after them is not coarsened.
+# others and near the input it left; a result still folded or farther after them is not coarsened.
 COARSEN_ROUNDS = 3
+# A sample of the input this much farther (the unit cube) from the collapsed result than from the result is left by
+# the collapses: a thin tip's few small faces weigh little in a collapse's quadric; a cell is what the grid resolves.
+LEFT_TOL = CELL
 
 
 def last_steps(req: Request, vertices: np.ndarray, faces: np.ndarray, info: dict, result_from: str,
@@ -145,7 +158,7 @@ def coarsened(req: Request, vertices: np.ndarray, faces: np.ndarray, move: float
         norm = req.frame.norm
         v, f = step8.unsplit(vertices, faces)
         unit = norm.apply(v)
-        fewer = _collapsed(unit, f, move)
+        fewer = _collapsed(unit, f, move, req.frame.surface(support_points, req.params.seed))
         removed = 0 if fewer is None else len(f) - len(fewer)
         if removed == 0 or _opens_or_crowds((unit, f), (unit, fewer)):
             return None, {}, 0
@@ -155,13 +168,14 @@ def coarsened(req: Request, vertices: np.ndarray, faces: np.ndarray, move: float
     return split_pinches(*remove_unreferenced(v, fewer)[:2]), fits, removed
 
 
-def _collapsed(unit: np.ndarray, faces: np.ndarray, move: float) -> np.ndarray | None:
+def _collapsed(unit: np.ndarray, faces: np.ndarray, move: float, points: np.ndarray) -> np.ndarray | None:
     """``facecount.decimate``'s collapses within ``move`` of ``unit`` (N, 3) and ``faces`` (F, 3), the vertices on
     the sides of their box kept (the box stays the input's) and those on open edges (a piece's border often runs
-    along another piece's unwelded copy of it: a collapse there opens a slit); where they fold a face through
-    another (a collapse sees no faces but its vertex's own), made again with the vertices within ``move`` of the box
-    of each such face kept, up to ``COARSEN_ROUNDS`` times.  (G, 3) faces that cross no more than ``faces`` do, or
-    None."""
+    along another piece's unwelded copy of it: a collapse there opens a slit).  A collapse sees no faces but its
+    vertex's own: where they fold a face through another, or leave an input sample (``points`` (P, 3)) more than
+    ``LEFT_TOL`` farther from the mesh than it was (a thin tip cut off), they are made again with the vertices within
+    ``move`` of the box of each such face kept, and those of the face nearest each such sample, up to
+    ``COARSEN_ROUNDS`` times.  (G, 3) faces that cross no more than ``faces`` do and leave no sample, or None."""
     lo, hi = unit.min(0), unit.max(0)
     keep = ((unit <= lo + move) | (unit >= hi - move)).any(1)
     keep[face_sides(faces)[open_sides(faces)]] = True
@@ -169,14 +183,37 @@ def _collapsed(unit: np.ndarray, faces: np.ndarray, move: float) -> np.ndarray |
     for _ in range(COARSEN_ROUNDS):
         fewer = decimate(unit, faces, 0, max_move=move, keep=keep)
         crossed = crossing_faces(unit, fewer)
-        if int(crossed.sum()) <= crossed_before:
+        left = _left(unit, faces, fewer, points)
+        if int(crossed.sum()) <= crossed_before and not left.any():
             return fewer
         tri = unit[fewer[crossed]]
         near = ((unit[:, None] >= tri.min(1) - move) & (unit[:, None] <= tri.max(1) + move)).all(2).any(1)
+        near[faces[_nearest_faces(unit, faces, points[left])]] = True
         if not (near & ~keep).any():
             return None
         keep |= near
     return None
+
+
+def _left(unit: np.ndarray, faces: np.ndarray, fewer: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(P,) bool, the ``points`` more than ``LEFT_TOL`` farther from ``fewer`` than from ``faces`` (of ``unit``);
+    measured exactly only for those farther than it from ``fewer`` (``thin.farther_than``), the few it can be."""
+    maybe = farther_than(points, *remove_unreferenced(unit, fewer)[:2], LEFT_TOL)
+    if maybe.any():
+        p = points[maybe]
+        maybe[maybe] = distance_to_triangles(p, unit, fewer) > distance_to_triangles(p, unit, faces) + LEFT_TOL
+    return maybe
+
+
+def _nearest_faces(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, k: int = 8) -> np.ndarray:
+    """(P,) the face of ``faces`` (F, 3) nearest each of ``points`` (P, 3), among the ``k`` of nearest centroid."""
+    if not len(points):
+        return np.zeros(0, dtype=np.int64)
+    k = min(k, len(faces))
+    _, cand = cKDTree(vertices[faces].mean(1)).query(points, k=k)
+    cand = cand.reshape(len(points), k)
+    d = point_triangle_distance(np.repeat(points, k, axis=0), vertices[faces[cand.ravel()]]).reshape(-1, k)
+    return cand[np.arange(len(points)), d.argmin(1)]
 
 
 def _opens_or_crowds(before: tuple[np.ndarray, np.ndarray], after: tuple[np.ndarray, np.ndarray]) -> bool:

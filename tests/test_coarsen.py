@@ -150,7 +150,7 @@ def _spiky(rng: np.random.Generator) -> trimesh.Trimesh:
 
 def test_collapses_never_cut_a_thin_spike_short():
     """A thin spike's faces weigh little in a collapse's quadric: plain collapses within a quarter cell of their
-    planes cut spikes short by up to 15 cells.  The rounds keep the vertices where an input sample would end more
+    planes cut spikes short by up to 16 cells.  The rounds keep the vertices where an input sample would end more
     than ``LEFT_TOL`` farther: on 6 random spiky balls, any pose and unit, cut finer than they need, no sample
     does, for a few more faces than the plain collapses leave."""
     from fastmesh.shapes.shape import Normalization

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from poses import posed, random_pose
 
 from fastmesh.evaluation.quality import topology
 from fastmesh.faces.meshops import distance_to_triangles, wound_alike
@@ -23,13 +24,6 @@ torch.set_num_threads(1)
 TOL = OutlineConfig().tol
 
 
-def _pose(rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray]:
-    """A random turn, a scale of 10^-3 to 10^3 (millimetres to kilometres) and a shift of up to 100 sizes."""
-    turn = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
-    scale = 10 ** rng.uniform(-3, 3)
-    return turn, scale, rng.uniform(-100, 100, 3) * scale
-
-
 def _dense(mesh: trimesh.Trimesh, rng: np.random.Generator, pose: tuple, splits: int = 2
            ) -> tuple[np.ndarray, np.ndarray]:
     """``mesh`` cut into many faces (its longest edges split ``splits`` times over), posed, each vertex moved off
@@ -39,8 +33,7 @@ def _dense(mesh: trimesh.Trimesh, rng: np.random.Generator, pose: tuple, splits:
         v, f = trimesh.remesh.subdivide(v, f)
     size = float(np.ptp(v, axis=0).max())
     v = v + rng.uniform(-1, 1, v.shape) * TOL * size / 20
-    turn, scale, shift = pose
-    return v @ turn.T * scale + shift, f
+    return posed(v, pose), f
 
 
 def _box(rng: np.random.Generator, lo: int = 4, hi: int = 20) -> manifold3d.Manifold:
@@ -72,7 +65,7 @@ def test_a_dense_box_comes_back_as_its_twelve_faces(seed):
     comes back as 8 vertices and 12 faces, closed, wound as it was (outward), within two tolerances of itself."""
     rng = np.random.default_rng(seed)
     box = trimesh.creation.box(rng.uniform(0.2, 1.0, 3))
-    v, f = _dense(box, rng, _pose(rng), splits=int(rng.integers(1, 4)))
+    v, f = _dense(box, rng, random_pose(rng), splits=int(rng.integers(1, 4)))
     out_v, out_f, removed = outlined(v, f)
     assert (len(out_v), len(out_f)) == (8, 12) and removed == len(v) - 8
     assert topology(out_f)["watertight"] and wound_alike(out_f)
@@ -87,7 +80,7 @@ def test_a_kitbashed_prop_keeps_its_insets_and_steps_with_no_more_faces_than_its
     ``manifold3d`` makes it), closed and wound alike, within two tolerances of the union, its volume within 5 %."""
     rng = np.random.default_rng(100 + seed)
     union = _kitbashed(rng)
-    pose = _pose(rng)
+    pose = random_pose(rng)
     v, f = _dense(union, rng, pose, splits=2)
     out_v, out_f, _ = outlined(v, f)
     turn, scale, shift = pose
@@ -108,7 +101,7 @@ def test_a_round_part_keeps_its_facets_and_meets_the_flat_part_without_a_gap(see
     boss = manifold3d.Manifold.cylinder(0.6, 0.25, circular_segments=int(rng.integers(16, 41)))
     out = (manifold3d.Manifold.cube((1.0, 1.0, 0.4), center=True) + boss.translate((0.0, 0.0, 0.2))).to_mesh()
     mesh = trimesh.Trimesh(np.asarray(out.vert_properties)[:, :3], np.asarray(out.tri_verts))
-    v, f = _dense(mesh, rng, _pose(rng), splits=1)  # the shape's own vertices first, then the edges' midpoints
+    v, f = _dense(mesh, rng, random_pose(rng), splits=1)  # the shape's own vertices first, then the edges' midpoints
     out_v, out_f, removed = outlined(v, f)
     assert {tuple(x) for x in out_v} == {tuple(x) for x in v[:len(mesh.vertices)]}
     assert removed == len(v) - len(mesh.vertices) and len(out_f) <= len(mesh.faces)
@@ -122,7 +115,7 @@ def test_an_open_sheet_keeps_its_border_and_a_sphere_its_shape():
     grid = trimesh.creation.box((1.0, 1.0, 1.0))
     top = grid.faces[grid.face_normals[:, 2] > 0.5]
     sheet = trimesh.Trimesh(grid.vertices, top)
-    v, f = _dense(sheet, rng, _pose(rng), splits=3)
+    v, f = _dense(sheet, rng, random_pose(rng), splits=3)
     out_v, out_f, _ = outlined(v, f)
     assert len(out_f) == 2 and topology(out_f)["boundary_edges"] == 4
     sphere = trimesh.creation.icosphere(3)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from poses import posed, random_pose
 from scipy.spatial import cKDTree
 
 from fastmesh.evaluation.quality import topology
@@ -28,18 +29,6 @@ torch.set_num_threads(1)
 DATA = Path(__file__).parent / "data"
 
 
-def _pose(rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray]:
-    """A random turn, a scale of 10^-3 to 10^3 and a shift of up to 100 sizes."""
-    turn = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
-    scale = 10 ** rng.uniform(-3, 3)
-    return turn, scale, rng.uniform(-100, 100, 3) * scale
-
-
-def _posed(vertices: np.ndarray, pose: tuple) -> np.ndarray:
-    turn, scale, shift = pose
-    return np.asarray(vertices) @ turn.T * scale + shift
-
-
 def _arrays(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
@@ -56,22 +45,22 @@ def test_coarse_ellipsoids_of_a_random_family_gain_faces_on_their_curve_and_stay
     rng = np.random.default_rng(11)
     for _ in range(6):
         axes = rng.uniform(0.3, 1.0, 3)
-        pose = _pose(rng)
+        pose = random_pose(rng)
         fine = trimesh.creation.icosphere(5)
         fine.vertices *= axes
         coarse = trimesh.creation.icosphere(1)
         coarse.vertices *= axes
-        fine = trimesh.Trimesh(_posed(fine.vertices, pose), fine.faces, process=False)
+        fine = trimesh.Trimesh(posed(fine.vertices, pose), fine.faces, process=False)
         points, normals = _samples(fine)
         size = pose[1]
-        v, f, splits = refine(_posed(coarse.vertices, pose), coarse.faces, points, normals, 0.005 * size)
+        v, f, splits = refine(posed(coarse.vertices, pose), coarse.faces, points, normals, 0.005 * size)
         assert splits > 0 and len(f) == len(coarse.faces) + 2 * splits
         t = topology(f)
         assert t["watertight"] and t["non_manifold_edges"] == 0 and wound_alike(f)
         assert not crossing_faces(v, f).any()
         on = cKDTree(fine.vertices).query(v[len(coarse.vertices):])[0]
         assert on.max() < 0.02 * size
-        before = distance_to_triangles(_posed(coarse.vertices, pose)[coarse.faces].mean(1), *_arrays(fine)).mean()
+        before = distance_to_triangles(posed(coarse.vertices, pose)[coarse.faces].mean(1), *_arrays(fine)).mean()
         after = distance_to_triangles(v[f].mean(1), *_arrays(fine)).mean()
         assert after < 0.6 * before, (before, after)
 
@@ -81,9 +70,9 @@ def test_flat_shapes_are_never_split_however_lumpy():
     off the plane: the input is flat wherever an edge's middle lies off it, so nothing is split."""
     rng = np.random.default_rng(5)
     for _ in range(4):
-        pose = _pose(rng)
+        pose = random_pose(rng)
         box = trimesh.creation.box(rng.uniform(0.2, 1.0, 3))
-        box = trimesh.Trimesh(_posed(box.vertices, pose), box.faces, process=False)
+        box = trimesh.Trimesh(posed(box.vertices, pose), box.faces, process=False)
         v, f, splits = refine(box.vertices, box.faces, *_samples(box), 0.001 * pose[1])
         assert splits == 0 and np.array_equal(f, box.faces)
     grid = np.array([[x, y, 0.0] for y in range(3) for x in range(3)], dtype=np.float64) / 2

@@ -7,19 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from poses import posed, random_pose, turned
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from fastmesh.faces import solid as sd
 from fastmesh.faces.meshops import face_sides, open_sides, triangle_areas, wound_alike
 from fastmesh.faces.support import support_limit
 from fastmesh.faces.uncapped import across_openings, uncapped
-
-
-def _pose(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
-    """A random rotation (3, 3), shift (3,) and unit (millimetres to kilometres)."""
-    unit = 10.0 ** rng.uniform(-3, 3)
-    return Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix(), rng.uniform(-2, 2, 3) * unit, unit
 
 
 def _sampled(m: trimesh.Trimesh, keep: np.ndarray, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -29,19 +23,13 @@ def _sampled(m: trimesh.Trimesh, keep: np.ndarray, n: int, seed: int) -> tuple[n
     return np.asarray(pts), np.asarray(part.face_normals[fi])
 
 
-def _posed(v: np.ndarray, n: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    turn, shift, unit = _pose(rng)
-    return v @ turn.T * unit + shift, n @ turn.T
-
-
 def _floorless_box(rng: np.random.Generator):
     """A box of random proportions cut finer (its floor y = min), its samples without the floor, posed at random."""
     m = trimesh.creation.box(rng.uniform(0.3, 1.0, 3)).subdivide().subdivide()
     floor = m.face_normals[:, 1] < -0.99
     pts, nrm = _sampled(m, ~floor, 8192, int(rng.integers(1 << 31)))
-    turn, shift, unit = _pose(rng)
-    v = np.asarray(m.vertices) @ turn.T * unit + shift
-    return v, np.asarray(m.faces), floor, pts @ turn.T * unit + shift, nrm @ turn.T
+    pose = random_pose(rng)
+    return posed(m.vertices, pose), np.asarray(m.faces), floor, posed(pts, pose), turned(nrm, pose)
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -68,8 +56,8 @@ def test_a_closed_inputs_faces_and_a_bridged_concavity_stay(seed):
     rng = np.random.default_rng(seed)
     m = trimesh.creation.box(rng.uniform(0.3, 1.0, 3)).subdivide()
     pts, nrm = _sampled(m, np.ones(len(m.faces), bool), 8192, seed)
-    v, _ = _posed(np.asarray(m.vertices), np.zeros((1, 3)), np.random.default_rng(seed))
-    pts, nrm = _posed(pts, nrm, np.random.default_rng(seed))
+    pose = random_pose(rng)
+    v, pts, nrm = posed(m.vertices, pose), posed(pts, pose), turned(nrm, pose)
     assert not across_openings(v, np.asarray(m.faces), pts, nrm, seed).any()
     a, b = trimesh.creation.box((1.0, 0.4, 0.5)), trimesh.creation.box((0.4, 1.0, 0.5))
     a.apply_translation((0.5, 0.2, 0.0))
@@ -94,8 +82,8 @@ def _open_cup(rng: np.random.Generator):
     rings = [np.c_[radius * np.cos(t), radius * np.sin(t), np.full(sides, z)]
              for z in np.linspace(-height / 2, height / 2, 4)]
     v = np.concatenate([*rings, [[0.0, 0.0, height / 2]]])
-    turn, shift, unit = _pose(rng)
-    return v @ turn.T * unit + shift, pts @ turn.T * unit + shift, nrm @ turn.T, unit * np.array([radius, height])
+    pose = random_pose(rng)
+    return posed(v, pose), posed(pts, pose), turned(nrm, pose), pose[1] * np.array([radius, height])
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -122,15 +122,17 @@ class TriangleConfig:
     solid_open : bool
         With ``solid``: an open input (``close`` False) gets the solid stage too, cut as a closed input's: what it
         encloses comes back as a solid, the parts that enclose nothing (a wing, a sheet) patched in from the
-        selection's mesh; else only a closed input does.
+        selection's mesh, then its faces across the input's openings taken off (:mod:`fastmesh.faces.uncapped`);
+        else only a closed input does.
     outline : bool
         The pipeline, before ``reach_extent``: a generated result's flat regions triangulated from their outlines
         (:func:`fastmesh.faces.outline.outlined`), kept where no face then crosses another and it lies near the
         input as the result does (``pipeline.finish.FEWER_FACES_MARGIN``).  Not with a ``target_faces``.
     coarsen : float or None
         The pipeline, once the result is closed: a generated result's vertices collapsed while each stays within this
-        distance (unit cube) of the planes it stands for (:func:`fastmesh.pipeline.finish.coarsened`), kept where it
-        adds no open, crowded or crossing edge and lies near the input as the result does.  None: not collapsed;
+        distance (unit cube) of the planes it stands for and leaves no input sample a cell farther
+        (:func:`fastmesh.pipeline.finish.coarsened`), kept where it adds no open, crowded or crossing edge and lies
+        near the input as the result does.  None: not collapsed;
         not with a ``target_faces`` (brought to it instead).
     """
 

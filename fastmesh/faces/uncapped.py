@@ -12,11 +12,9 @@ them that lie nearly as far and read alike, are taken off; the rest keeps its wi
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .meshops import remove_unreferenced
+from .meshops import piece_labels, remove_unreferenced
 from .support import support_limit
 from .winding import winding_numbers
 
@@ -48,9 +46,10 @@ def across_openings(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
     pts = np.asarray(points, dtype=np.float64)
     if not len(f) or len(pts) < 2:
         return np.zeros(len(f), dtype=bool)
-    limit = support_limit(pts, 0.0)
+    tree = cKDTree(pts)
+    limit = support_limit(pts, 0.0, tree)
     samples = np.einsum("lc,fcd->fld", SAMPLE_WEIGHTS, v[f])
-    far = cKDTree(pts).query(samples.reshape(-1, 3))[0].reshape(len(f), -1)
+    far = tree.query(samples.reshape(-1, 3))[0].reshape(len(f), -1)
     may = far[:, 0] > GROW_LIMITS * limit
     if not (may & (far.min(1) > SEED_LIMITS * limit)).any():
         return np.zeros(len(f), dtype=bool)
@@ -62,16 +61,9 @@ def across_openings(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
 
 def _joined(faces: np.ndarray, may: np.ndarray, seeds: np.ndarray) -> np.ndarray:
     """(F,) bool, the faces of ``may`` (F,) joined through edges, among ``may`` only, to one of ``seeds`` (F,)."""
-    idx = np.flatnonzero(may)
-    sub = faces[idx]
-    sides = np.sort(np.concatenate([sub[:, [0, 1]], sub[:, [1, 2]], sub[:, [2, 0]]]), axis=1)
-    _, first, edge = np.unique(sides, axis=0, return_index=True, return_inverse=True)
-    owner = np.tile(np.arange(len(idx)), 3)
-    # Faces that share an edge: each face joined to the first face of each of its edges.
-    graph = coo_matrix((np.ones(len(owner)), (owner, owner[first][edge.ravel()])), shape=(len(idx), len(idx)))
-    _, label = connected_components(graph, directed=False)
+    label = piece_labels(faces[may])
     out = np.zeros(len(faces), dtype=bool)
-    out[idx] = np.isin(label, label[seeds[idx]])
+    out[may] = np.isin(label, label[seeds[may]])
     return out
 
 

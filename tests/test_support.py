@@ -7,7 +7,8 @@ from scipy.spatial import cKDTree
 from test_visible import _moebius
 
 from fastmesh.faces import mesh_from_adjacency
-from fastmesh.faces.meshops import edges_from_faces
+from fastmesh.faces.crossings import crossing_faces
+from fastmesh.faces.meshops import edges_from_faces, triangle_areas
 from fastmesh.faces.support import (
     DEFECT_WEIGHT,
     SupportCache,
@@ -210,6 +211,42 @@ def test_a_rival_folded_through_itself_weighs_more_than_its_clean_twin(seed):
     assert folded > weighed_fit(place(coarse.vertices), coarse.faces, points, seed) > clean
     band, f = _moebius(12, range(0))
     assert defect_share(place(band), f) == pytest.approx(2 / 24)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_rival_of_fewer_faces_weighs_its_defects_by_area(seed):
+    """At any pose and unit: a sphere less a random patch, the patch and a copy of it turned through it, with the
+    faces far from the patch cut into four or left as they are: by area the defect share is the same either way
+    (the crossing faces show as much) and the crossing faces' part of the area, so a rival that merges clean faces
+    (an outline, a collapse) is not weighed farther than the mesh it came from; by faces the finer mesh weighs
+    nearer.  ``weighed_fit`` reads the share by area when asked."""
+    rng = np.random.default_rng(seed)
+    rot = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
+    scale, offset = 10.0 ** rng.uniform(-3, 3), rng.normal(size=3)
+    place = lambda v: (np.asarray(v) @ rot.T + offset) * scale  # noqa: E731
+    sphere = trimesh.creation.icosphere(2)
+    axis = rng.normal(size=3)
+    along = sphere.triangles_center @ (axis / np.linalg.norm(axis))
+    patch = sphere.faces[along > 0.8]
+    turned = sphere.vertices @ trimesh.transformations.rotation_matrix(0.3, rng.normal(size=3))[:3, :3].T
+    coarse = trimesh.Trimesh(sphere.vertices, sphere.faces[along <= 0.8], process=False)
+    fine = coarse.subdivide(face_index=np.flatnonzero(coarse.triangles_center @ axis / np.linalg.norm(axis) < 0.3))
+    by_area, by_faces = [], []
+    points = place(trimesh.creation.icosphere(5).vertices)
+    for rest in (coarse, fine):  # the sphere's vertices first in both
+        v = place(np.concatenate([rest.vertices, turned]))
+        f = np.concatenate([rest.faces, patch, patch + len(rest.vertices)])
+        bad, area = crossing_faces(v, f), triangle_areas(v, f)
+        by_area.append(defect_share(v, f, by_area=True))
+        by_faces.append(defect_share(v, f))
+        weighed = weighed_fit(v, f, points, seed, by_area=True)
+        share = defect_share(v, f, points, by_area=True)  # the fine mesh's cracks are holes too
+        assert weighed == pytest.approx(surface_fit(v, f, points, seed) * (1 + DEFECT_WEIGHT * share))
+        assert bad.any() and by_area[-1] == pytest.approx(area[bad].sum() / area.sum())
+        assert by_faces[-1] == pytest.approx(bad.mean())
+    assert len(fine.faces) > 1.5 * len(coarse.faces)
+    assert by_area[1] == pytest.approx(by_area[0], rel=1e-6)
+    assert by_faces[1] < 0.8 * by_faces[0]
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 from ..shapes.io import sample_triangles
 from .crossings import crossing_faces
 from .defects import unorientable_faces
-from .meshops import open_sides, welded_in_place
+from .meshops import open_sides, triangle_areas, welded_in_place
 
 SPACING_FACTOR = 3.0  # the limit is never below this many median point spacings
 # The spacing the limit reads is that of this many samples of the surface, the density of the point clouds it was
@@ -29,8 +29,8 @@ SPACING_FACTOR = 3.0  # the limit is never below this many median point spacings
 SPACING_POINTS = 8192
 GRID = 6  # face samples per edge of the barycentric grid: 21 points inside each triangle
 BOUND_PAD = 1e-6  # relative margin of a bounded search (``support_distance``'s ``bound``) over its bound
-# A mesh's fit is weighed up by 1 + this times the share of its faces a renderer shows wrong whichever way they are
-# turned (``weighed_fit``): a mesh with a tenth of its faces crossing or twisted counts as 1.4x as far.
+# A mesh's fit is weighed up by 1 + this times the share of its faces (or area) a renderer shows wrong whichever way
+# they are turned (``weighed_fit``): a mesh with a tenth of its faces crossing or twisted counts as 1.4x as far.
 DEFECT_WEIGHT = 4.0
 
 
@@ -261,20 +261,32 @@ def hole_faces(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> n
     return out
 
 
-def defect_share(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray | None = None) -> float:
-    """The share of ``faces`` (F, 3) that cross another face (``crossings.crossing_faces``), lie along an edge no
-    turning makes agree (``defects.unorientable_faces``: a strip twisted like a Moebius band) or, with the input's
-    samples ``points``, along a hole (:func:`hole_faces`): what a renderer shows as a face through another, the
-    back of a face, or the inside through a hole."""
+def defect_share(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray | None = None,
+                 by_area: bool = False) -> float:
+    """The share of ``faces`` (F, 3), or with ``by_area`` of their area, in faces that cross another face
+    (``crossings.crossing_faces``), lie along an edge no turning makes agree (``defects.unorientable_faces``: a strip
+    twisted like a Moebius band) or, with the input's samples ``points``, along a hole (:func:`hole_faces`): what a
+    renderer shows as a face through another, the back of a face, or the inside through a hole.
+
+    A share of the faces grows where a mesh merges the clean faces around a defect and shows no more of it; a share
+    of the area does not, and is what weighs a rival of fewer faces made from a mesh against it (``by_area``).
+    Candidates and frames, which are other meshes altogether, are weighed by the share of faces: by area, a
+    candidate that left out a whole part (and its crossings) weighed nearer than one that kept it crossing in a
+    few large faces."""
     if len(faces) == 0:
         return 0.0
     bad = crossing_faces(vertices, faces) | unorientable_faces(vertices, faces)
     if points is not None:
         bad |= hole_faces(vertices, faces, points)
-    return float(bad.mean())
+    if not by_area:
+        return float(bad.mean())
+    area = triangle_areas(np.asarray(vertices, dtype=np.float64), faces)
+    total = float(area.sum())
+    return float(area[bad].sum()) / total if total > 0 else float(bad.mean())
 
 
-def weighed_fit(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, seed: int = 0) -> float:
+def weighed_fit(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, seed: int = 0,
+                by_area: bool = False) -> float:
     """What a rival is weighed by (lower is better): :func:`surface_fit` times 1 + ``DEFECT_WEIGHT`` x
     :func:`defect_share`.  A distance alone prefers a sheet folded through itself, twisted where a thin part
     should be a solid, or holed where the input goes on, over the clean boundary of a solid a little farther from
@@ -286,5 +298,7 @@ def weighed_fit(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, see
     faces : (F, 3) int, at least one
     points : (P, 3) float, samples of the input surface in the frame of ``vertices``
     seed : int, of the samples drawn on the mesh
+    by_area : bool, the defects' share of the area, not of the faces (:func:`defect_share`)
     """
-    return surface_fit(vertices, faces, points, seed) * (1.0 + DEFECT_WEIGHT * defect_share(vertices, faces, points))
+    share = defect_share(vertices, faces, points, by_area)
+    return surface_fit(vertices, faces, points, seed) * (1.0 + DEFECT_WEIGHT * share)

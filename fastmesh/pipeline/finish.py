@@ -138,7 +138,7 @@ def outlined_flat(req: Request, vertices: np.ndarray, faces: np.ndarray, support
         out_v, out_f, removed = outlined(norm.apply(v), f)
         if removed == 0:
             return None, {}, 0
-        fits = step8.rival_fits(req, support_points, model=(norm.apply(vertices), faces), outlined=(out_v, out_f))
+        fits = step8.rival_fits(req, support_points, True, model=(norm.apply(vertices), faces), outlined=(out_v, out_f))
     kept = fits["outlined"] <= FEWER_FACES_MARGIN * fits["model"]
     return (split_pinches(norm.invert(out_v), out_f) if kept else None), fits, removed
 
@@ -162,7 +162,7 @@ def coarsened(req: Request, vertices: np.ndarray, faces: np.ndarray, move: float
         removed = 0 if fewer is None else len(f) - len(fewer)
         if removed == 0 or _opens_or_crowds((unit, f), (unit, fewer)):
             return None, {}, 0
-        fits = step8.rival_fits(req, support_points, model=(norm.apply(vertices), faces), coarsened=(unit, fewer))
+        fits = step8.rival_fits(req, support_points, True, model=(norm.apply(vertices), faces), coarsened=(unit, fewer))
     if fits["coarsened"] > FEWER_FACES_MARGIN * fits["model"]:
         return None, fits, removed
     return split_pinches(*remove_unreferenced(v, fewer)[:2]), fits, removed

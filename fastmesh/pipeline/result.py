@@ -325,12 +325,14 @@ def swapped(req: Request, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.n
         return (*split_pinches(v, f), turned) if turned else (vertices, faces, 0)
 
 
-def rival_fits(req: Request, support_points: int, **meshes: tuple[np.ndarray, np.ndarray]) -> dict[str, float]:
+def rival_fits(req: Request, support_points: int, by_area: bool = False, **meshes: tuple[np.ndarray, np.ndarray]
+               ) -> dict[str, float]:
     """``support.weighed_fit`` of each named mesh (unit-cube vertices, faces) against the candidates' sample of
-    ``support_points`` of the input at the request's seed, to 6 places: the measure a rival is weighed by."""
+    ``support_points`` of the input at the request's seed, to 6 places: the measure a rival is weighed by (its
+    defects a share of the area with ``by_area``: a rival of fewer faces made from the mesh)."""
     seed = req.params.seed
     reference = req.frame.surface(support_points, seed)
-    return {name: round(weighed_fit(v, f, reference, seed), 6) for name, (v, f) in meshes.items()}
+    return {name: round(weighed_fit(v, f, reference, seed, by_area), 6) for name, (v, f) in meshes.items()}
 
 
 def facing(req: Request, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

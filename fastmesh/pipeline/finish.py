@@ -27,11 +27,12 @@ from .closing import edge_defects
 from .runtime import stage
 
 # A result with fewer faces (its flat regions cut from their outlines, its collapses within a share of a cell) is
-# kept up to this factor farther from the input (by ``support.weighed_fit``) than as it was: the vertices it loses
-# lie within a cell of the planes they stand for, and fewer faces where the shape does not turn is what the artist's
-# mesh has.  On the 60 held-out results of an earlier code (``benchmarks/outline_sweep.py``) 59 outlined results
-# were kept within 1.1 and 56 within 1.05 (faces per reference face 1.23 and 1.25 on average, from 1.39; their fits
-# 1.006 and 1.003 times the results' on average).
+# kept up to this factor farther from the input (by ``support.weighed_fit``, its defects a share of the area: of the
+# faces, the same defects weigh more among fewer faces) than as it was: the vertices it loses lie within a cell of
+# the planes they stand for, and fewer faces where the shape does not turn is what the artist's mesh has.  On the 60
+# held-out results of an earlier code (``benchmarks/outline_sweep.py``) 59 outlined results were kept within 1.1
+# and 56 within 1.05 (faces per reference face 1.23 and 1.25 on average, from 1.39; their fits 1.006 and 1.003 times
+# the results' on average).
 FEWER_FACES_MARGIN = 1.1
 # Rounds of :func:`coarsened`'s collapses, each keeping the vertices around the faces the last one folded through
 # others and near the input it left; a result still folded or farther after them is not coarsened.
@@ -138,7 +139,8 @@ def outlined_flat(req: Request, vertices: np.ndarray, faces: np.ndarray, support
         out_v, out_f, removed = outlined(norm.apply(v), f)
         if removed == 0:
             return None, {}, 0
-        fits = step8.rival_fits(req, support_points, True, model=(norm.apply(vertices), faces), outlined=(out_v, out_f))
+        fits = step8.rival_fits(req, support_points, by_area=True, model=(norm.apply(vertices), faces),
+                                outlined=(out_v, out_f))
     kept = fits["outlined"] <= FEWER_FACES_MARGIN * fits["model"]
     return (split_pinches(norm.invert(out_v), out_f) if kept else None), fits, removed
 
@@ -162,7 +164,8 @@ def coarsened(req: Request, vertices: np.ndarray, faces: np.ndarray, move: float
         removed = 0 if fewer is None else len(f) - len(fewer)
         if removed == 0 or _opens_or_crowds((unit, f), (unit, fewer)):
             return None, {}, 0
-        fits = step8.rival_fits(req, support_points, True, model=(norm.apply(vertices), faces), coarsened=(unit, fewer))
+        fits = step8.rival_fits(req, support_points, by_area=True, model=(norm.apply(vertices), faces),
+                                coarsened=(unit, fewer))
     if fits["coarsened"] > FEWER_FACES_MARGIN * fits["model"]:
         return None, fits, removed
     return split_pinches(*remove_unreferenced(v, fewer)[:2]), fits, removed

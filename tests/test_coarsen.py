@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from poses import posed, random_pose
+from test_visible import _moebius
 
 import fastmesh.pipeline as pipeline_module
 from fastmesh.evaluation.quality import topology
@@ -118,19 +120,15 @@ def test_a_defect_apart_from_the_collapses_does_not_weigh_them_farther(seed):
     """A box cut finer than it needs beside a small twisted band (a Moebius strip: two faces along its twist no
     turning makes agree), together at any pose and unit: the box's collapses come back, though the band's faces are
     then a larger share of the faces; the defect is weighed by its share of the area, which they leave as it was."""
-    from test_visible import _moebius
-
     rng = np.random.default_rng(seed)
     box = trimesh.creation.box(rng.uniform(0.3, 1.0, 3))
     v, f = _finer(box, rng, splits=2)
     band_v, band_f = _moebius(12, range(0))
     band_v = band_v * 0.15 + [1.2, 0.0, 0.0]
-    true = _posed(trimesh.Trimesh(np.r_[box.vertices, band_v], np.r_[box.faces, band_f + len(box.vertices)],
-                                  process=False), np.random.default_rng(seed + 10))
-    turn = np.linalg.lstsq(np.c_[np.r_[box.vertices, band_v], np.ones(len(box.vertices) + len(band_v))],
-                           np.asarray(true.vertices), rcond=None)[0]  # the pose, as an affine map
-    both_v = np.c_[np.r_[v, band_v], np.ones(len(v) + len(band_v))] @ turn
-    both_f = np.r_[f, band_f + len(v)]
+    pose = random_pose(rng)
+    true = trimesh.Trimesh(posed(np.r_[box.vertices, band_v], pose), np.r_[box.faces, band_f + len(box.vertices)],
+                           process=False)
+    both_v, both_f = posed(np.r_[v, band_v], pose), np.r_[f, band_f + len(v)]
     rival, fits, removed = finish.coarsened(_request(true), both_v, both_f, MOVE, 4096)
     assert rival is not None, fits
     assert len(rival[1]) <= 24 + len(band_f) < len(both_f) / 4, len(rival[1])

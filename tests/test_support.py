@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import trimesh
+from poses import posed, random_pose
 from scipy.spatial import cKDTree
 from test_visible import _moebius
 
@@ -221,9 +222,7 @@ def test_a_rival_of_fewer_faces_weighs_its_defects_by_area(seed):
     (an outline, a collapse) is not weighed farther than the mesh it came from; by faces the finer mesh weighs
     nearer.  ``weighed_fit`` reads the share by area when asked."""
     rng = np.random.default_rng(seed)
-    rot = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
-    scale, offset = 10.0 ** rng.uniform(-3, 3), rng.normal(size=3)
-    place = lambda v: (np.asarray(v) @ rot.T + offset) * scale  # noqa: E731
+    pose = random_pose(rng)
     sphere = trimesh.creation.icosphere(2)
     axis = rng.normal(size=3)
     along = sphere.triangles_center @ (axis / np.linalg.norm(axis))
@@ -232,9 +231,9 @@ def test_a_rival_of_fewer_faces_weighs_its_defects_by_area(seed):
     coarse = trimesh.Trimesh(sphere.vertices, sphere.faces[along <= 0.8], process=False)
     fine = coarse.subdivide(face_index=np.flatnonzero(coarse.triangles_center @ axis / np.linalg.norm(axis) < 0.3))
     by_area, by_faces = [], []
-    points = place(trimesh.creation.icosphere(5).vertices)
+    points = posed(trimesh.creation.icosphere(5).vertices, pose)
     for rest in (coarse, fine):  # the sphere's vertices first in both
-        v = place(np.concatenate([rest.vertices, turned]))
+        v = posed(np.concatenate([rest.vertices, turned]), pose)
         f = np.concatenate([rest.faces, patch, patch + len(rest.vertices)])
         bad, area = crossing_faces(v, f), triangle_areas(v, f)
         by_area.append(defect_share(v, f, by_area=True))

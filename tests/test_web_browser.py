@@ -70,18 +70,29 @@ WATCH_STATUS = """() => {
 }"""
 
 
-def box_cloud(n: int = 1500) -> bytes:
-    """Points on the surface of an off-origin box, as an ASCII PLY (what a scanner might give)."""
-    rng = np.random.default_rng(3)
-    p = rng.uniform(-1, 1, size=(n, 3))
-    axis = rng.integers(0, 3, n)
-    p[np.arange(n), axis] = np.sign(p[np.arange(n), axis])
-    p = p * [1.0, 0.6, 0.4] + [2.0, 1.0, -1.0]
-    header = (f"ply\nformat ascii 1.0\nelement vertex {n}\n"
+def ascii_ply(p: np.ndarray) -> bytes:
+    """Points ``(n, 3)`` as an ASCII PLY (what a scanner might give)."""
+    header = (f"ply\nformat ascii 1.0\nelement vertex {len(p)}\n"
               "property float x\nproperty float y\nproperty float z\nend_header\n")
     body = io.StringIO()
     np.savetxt(body, p, fmt="%.5f")
     return header.encode() + body.getvalue().encode()
+
+
+def box_cloud(n: int = 1500) -> bytes:
+    """Points on the surface of an off-origin box: flat-sided, so rebuilt from its planes without the networks."""
+    rng = np.random.default_rng(3)
+    p = rng.uniform(-1, 1, size=(n, 3))
+    axis = rng.integers(0, 3, n)
+    p[np.arange(n), axis] = np.sign(p[np.arange(n), axis])
+    return ascii_ply(p * [1.0, 0.6, 0.4] + [2.0, 1.0, -1.0])
+
+
+def pebble_cloud(n: int = 1500) -> bytes:
+    """Points on an off-origin ellipsoid: curved, so the networks decode it (every stage runs and reports)."""
+    p = np.random.default_rng(3).normal(size=(n, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    return ascii_ply(p * [1.0, 0.6, 0.4] + [2.0, 1.0, -1.0])
 
 
 @pytest.fixture(scope="module")
@@ -95,9 +106,9 @@ def redis_url():
 @pytest.fixture(scope="module")
 def stack(redis_url, weights, tmp_path_factory):
     """An open API (no keys) with one real worker."""
-    # Each progress call sleeps 0.1 s, so a tiny job runs for seconds and the page, polling every 0.4 s,
-    # sees it running.
-    s = settings_for(redis_url, "browser", weights=weights, debug_step_delay=0.1, **FAST)
+    # Each progress call sleeps 0.3 s: a decoded job reports about ten times, so it runs for seconds and the page,
+    # polling every 0.4 s, sees it running (a box rebuilt from its planes reports once).
+    s = settings_for(redis_url, "browser", weights=weights, debug_step_delay=0.3, **FAST)
     with served(s) as app:
         worker = WorkerProcess(s, s.queue_name + "-w1", tmp_path_factory.mktemp("logs") / "worker.log")
         try:
@@ -165,7 +176,7 @@ def test_from_a_point_cloud_to_a_downloaded_glb(stack, page, tmp_path, shots):
     # The defaults the server applies are shown in the form.
     defaults = httpx.get(stack.url + "/web/config.json").json()["defaults"]
     assert page.input_value("input[name=top_p]") == str(defaults["top_p"])
-    choose(page, tmp_path, "crate.ply", box_cloud())
+    choose(page, tmp_path, "pebble.ply", pebble_cloud())
     page.fill("input[name=seed]", "7")
     # A random model joins a few vertices into many overlapping faces (every triple of them): keep it small,
     # as software WebGL and the server's preview fill every one of them.
@@ -223,23 +234,23 @@ def test_from_a_point_cloud_to_a_downloaded_glb(stack, page, tmp_path, shots):
     # The GLB button downloads the job's mesh, named after the input.
     with page.expect_download() as dl:
         page.click("#dl-glb")
-    assert dl.value.suggested_filename == "crate.glb"
+    assert dl.value.suggested_filename == "pebble.glb"
     path = tmp_path / "out.glb"
     dl.value.save_as(path)
     mesh = trimesh.load(path, force="mesh")
     assert len(mesh.faces) == job["result"]["faces"] and len(mesh.vertices) > 0
     with page.expect_download() as dl:
         page.click("#dl-obj")
-    assert dl.value.suggested_filename == "crate.obj"
+    assert dl.value.suggested_filename == "pebble.obj"
     assert len(trimesh.load(dl.value.path(), file_type="obj", force="mesh").faces) == job["result"]["faces"]
     with page.expect_download() as dl:
         page.click("#dl-png")  # the server-side preview, as drawn with the wireframe off (as toggled)
-    assert dl.value.suggested_filename == "crate-preview.png"
+    assert dl.value.suggested_filename == "pebble-preview.png"
     assert Path(dl.value.path()).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     # The job is remembered by this browser, and a reload shows it again.
     assert page.locator("#recent li").count() == 1
-    assert "crate.ply" in page.text_content("#recent li") and "succeeded" in page.text_content("#recent li")
+    assert "pebble.ply" in page.text_content("#recent li") and "succeeded" in page.text_content("#recent li")
     page.reload()
     page.wait_for_selector("#status.succeeded", timeout=JOB_TIMEOUT_MS)
     assert page.text_content("#c-faces") == str(job["result"]["faces"])

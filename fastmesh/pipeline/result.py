@@ -160,8 +160,9 @@ def planar(req: Request, open_: bool = False, turn: np.ndarray | None = None
             points, normals = frame.samples(PLANAR_SAMPLES, 0)
         if not open_:  # the corners, else the cells of planes the corners cannot close (a step's overhang, legs)
             found = polyhedron(points, normals) or plane_cells(points, normals)
-        else:  # open where the points stop on their box, in their own frame or the canonical one
-            found = _framed(open_polyhedron, points, normals, turn)
+        else:  # open where the points stop on their box (or anywhere, where the input is open), in their own
+            # frame or the canonical one
+            found = _framed(partial(open_polyhedron, free=not req.close), points, normals, turn)
             if found is None and not req.close:  # a closed input's cells were weighed closed already
                 found = _framed(partial(plane_cells, open_=True), points, normals, turn)
                 found = found if found is not None and (edge_face_counts(found[1]) == 1).any() else None  # open

@@ -6,39 +6,59 @@ on a side of its bounding box (the floor under a ramp, the top of a tray), so th
 no points: it bounds the faces of the planes that reach it and gets no face of its own.  The result is kept only
 where every open edge lies on such a side and the surface and the points explain each other both ways, as for a
 closed one; anything else gives None.
+
+An input the pipeline has found open (``closure.decide_closed``) may also stop inside its box, as artists build
+flat props from sheets: a fin or a flange that ends in the air, a panel set into a frame that ends on the frame's
+walls.  With ``free`` such an edge is kept where the points stop at it: none lies a little beyond it in its face's
+plane.  A sheet that ends on a wall shares no edge with it (:func:`_detached`), so that every edge keeps at most two
+faces.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .planar import PlanarConfig, _explains, planar_mesh
 
 PARALLEL_COS = np.cos(np.radians(10))  # as ``planar.neighbour_planes``: planes closer than this never meet
 EDGE_SHARE = 0.3  # a plane's open edge on a box side spans at least this share of the plane's width along it
+# With ``free`` an open edge is kept where the points reach it and stop: at a quarter, half and three quarters of its
+# length, a point lies within half the cover radius of its face half a radius inside it, and none this far beyond it
+# in its face's plane (in cover radii): a plane that goes on past it has points about a third of a radius from any
+# such place, and a face cut off by a side of the box that the points do not reach has none.
+BEYOND = 1.0
+PROBES = 8
+REACHED = 0.6
 
 
-def open_polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = PlanarConfig()
+def open_polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = PlanarConfig(), free: bool = False
                     ) -> tuple[np.ndarray, np.ndarray] | None:
     """The open piecewise-planar surface of an oriented point cloud whose open edges lie on its bounding box's
-    sides, or None where it is not one.
+    sides (with ``free``, or where its points stop), or None where it is not one.
 
     Parameters
     ----------
     points : (N, 3) float, in the unit frame (``shape.Normalization``), the open sides along its axes
     normals : (N, 3) float, unit, on the side the faces face
     cfg : tolerances, as ``planar.polyhedron``
+    free : bool
+        Whether an open edge may also lie inside the box, where the points stop (see the module).
 
     Returns
     -------
     (V, 3) float64 vertices and (F, 3) int64 faces, edge-manifold and consistently oriented, with at least one
-    open edge and every open edge on a side of the points' bounding box; or None.
+    open edge and every open edge on a side of the points' bounding box (or where they stop); or None.
     """
     made = planar_mesh(points, normals, cfg, cut=_cut_at_box)
     if made is None:
         return None
     vertices, faces, pts, reach, sides = made
-    if not _open_on_sides(vertices, faces, sides, cfg.tolerance) or not _explains(vertices, faces, pts, reach):
+    if free:
+        vertices, faces = _detached(vertices, faces, cfg.tolerance, reach)
+    stops = _stops(pts, reach) if free else None
+    if not _open_where_it_stops(vertices, faces, sides, cfg.tolerance, stops) or not _explains(vertices, faces, pts,
+                                                                                                reach):
         return None
     return vertices, faces
 
@@ -47,26 +67,33 @@ def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near
                 ) -> tuple[np.ndarray | None, list[list[int]] | None]:
     """``planar.planar_mesh``'s ``cut``: the box sides no plane lies on, and for each plane those where it stops
     (``_open_sides``)."""
-    sides = box_sides(points, planes, reach)
+    sides = box_sides(points, planes, labels, reach)
     if not len(sides):
         return None, None
     return sides, [_open_sides(planes[k], sides, planes[sorted(near[k])], points[labels == k], reach)
                    for k in range(len(planes))]
 
 
-def box_sides(points: np.ndarray, planes: np.ndarray, reach: float) -> np.ndarray:
+def box_sides(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, reach: float) -> np.ndarray:
     """(S, 4) the sides of the points' axis-aligned bounding box (outward normal n, offset d: n.x = d) that no
-    plane of ``planes`` (K, 4) lies on: where an open surface may stop."""
+    plane of ``planes`` (K, 4) lies on: where an open surface may stop.  A plane lies on a side where it is parallel
+    to it and its own points (``labels``, (N,) the plane of each point) reach it within a quarter of ``reach``: a
+    panel set a little back from an open side stays off it."""
     lo, hi = points.min(0), points.max(0)
+    reached = np.full((len(planes), 6), -np.inf)  # each plane's points' furthest along each side's normal, less d
+    for k in range(len(planes)):
+        own = points[labels == k]
+        if len(own):
+            reached[k] = np.r_[lo - own.min(0), own.max(0) - hi][[0, 3, 1, 4, 2, 5]]
     out = []
     for axis in range(3):
         for sign, at in ((-1.0, lo[axis]), (1.0, hi[axis])):
             n = np.zeros(3)
             n[axis] = sign
-            d = sign * at
-            on = (np.abs(planes[:, :3] @ n) > PARALLEL_COS) & (np.abs(planes[:, :3] @ (n * d) - planes[:, 3]) < reach)
+            side = 2 * axis + (sign > 0)
+            on = (np.abs(planes[:, :3] @ n) > PARALLEL_COS) & (reached[:, side] > -0.25 * reach)
             if not on.any():
-                out.append(np.r_[n, d])
+                out.append(np.r_[n, sign * at])
     return np.array(out).reshape(-1, 4)
 
 
@@ -107,14 +134,118 @@ def _along(plane: np.ndarray, side: np.ndarray, near: np.ndarray, others: np.nda
     return bool((parallel & (np.abs(others[:, :3] @ p - others[:, 3]) < reach * sine)).any())
 
 
-def _open_on_sides(vertices: np.ndarray, faces: np.ndarray, sides: np.ndarray, tol: float) -> bool:
-    """Whether ``faces`` are edge-manifold and consistently oriented, with open edges, each on one of ``sides``."""
+def _open_where_it_stops(vertices: np.ndarray, faces: np.ndarray, sides: np.ndarray, tol: float, stops=None) -> bool:
+    """Whether ``faces`` are edge-manifold and consistently oriented, with open edges, each on one of ``sides`` or,
+    given ``stops`` (:func:`_stops`), where the points stop."""
     e = np.c_[faces.ravel(), faces[:, [1, 2, 0]].ravel()]
     if len(np.unique(e, axis=0)) != len(e):
         return False
     edges, count = np.unique(np.sort(e, axis=1), axis=0, return_counts=True)
     if (count > 2).any() or not (count == 1).any():
         return False
+    if stops is not None:  # every open edge, on a side or not: a side the points do not reach cuts nothing
+        key = len(vertices) * np.sort(e, axis=1)[:, 0] + np.sort(e, axis=1)[:, 1]
+        rims = edges[count == 1]
+        return stops(vertices, faces, e[np.isin(key, len(vertices) * rims[:, 0] + rims[:, 1])])
     ends = vertices[edges[count == 1]]  # (B, 2, 3)
     off = np.abs(ends @ sides[:, :3].T - sides[:, 3])  # (B, 2, S)
     return bool((off.max(1) < tol).any(1).all())
+
+
+def _stops(points: np.ndarray, reach: float):
+    """``stops(vertices, faces, edges)``: whether the ``points`` (N, 3) stop at every one of ``edges`` (E, 2), each
+    an open edge as its face winds it: at a quarter, half and three quarters of it, a point within half of ``reach``
+    of its face half a ``reach`` inside it, and none of its face's plane ``BEYOND`` x ``reach`` past it."""
+    tree = cKDTree(points)
+
+    def stops(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray) -> bool:
+        owner = {(int(a), int(b)): i for i, f in enumerate(faces) for a, b in zip(f, np.roll(f, -1), strict=True)}
+        a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
+        f = faces[[owner[(int(p), int(q))] for p, q in edges]]
+        n = np.cross(vertices[f[:, 1]] - vertices[f[:, 0]], vertices[f[:, 2]] - vertices[f[:, 0]])
+        out = np.cross(b - a, n)  # in the face's plane, away from it: the face winds counter-clockwise about n
+        out /= np.linalg.norm(out, axis=1, keepdims=True)
+        t = (np.arange(PROBES) + 0.5) / PROBES
+        on = (a[None] + t[:, None, None] * (b - a)[None]).reshape(-1, 3)  # (PROBES * E, 3), probe by probe
+        out = np.tile(out, (PROBES, 1))
+        reached = tree.query(on)[0].reshape(PROBES, -1).mean(0)
+        beyond = tree.query(on + BEYOND * reach * out)[0]
+        return bool((reached < REACHED * reach).all() and (beyond > 0.5 * reach).all())
+
+    return stops
+
+
+def _detached(vertices: np.ndarray, faces: np.ndarray, tol: float, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """``vertices`` and ``faces`` with each sheet that ends on a wall set apart from it, as an artist's panel set into
+    a frame touches the frame without sharing its edges: the sheet's faces around each end of such an edge take a
+    vertex of their own at the same place, and the wall's vertices there go where they lie on a straight edge
+    (:func:`_straightened`).  A sheet ends on a wall along an edge of three faces two of which share a plane (the
+    wall's triangulation runs a diagonal along it) or along an open edge at least ``length`` long that lies on faces
+    of other planes (within ``tol``, at a quarter, half and three quarters of it: not a sliver between two corners
+    a rounding apart).  An edge of three faces none of which share a plane is left: the check after refuses the
+    surface."""
+    n = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    offset = np.einsum("ij,ij->i", n, vertices[faces[:, 0]])
+    e = np.sort(np.c_[faces.ravel(), faces[:, [1, 2, 0]].ravel()], axis=1)
+    edges, inverse, count = np.unique(e, axis=0, return_inverse=True, return_counts=True)
+    ends = set()  # (vertex, a face of the sheet that ends there)
+    for j in np.nonzero(count != 2)[0]:
+        own = np.nonzero(inverse.ravel() == j)[0] // 3
+        if count[j] == 1:
+            sheet, (a, b) = int(own[0]), vertices[edges[j]]
+            if np.linalg.norm(b - a) < length or not all(
+                    (_on_faces(vertices, faces, n, offset, a + t * (b - a), tol) & (n @ n[sheet] < 1 - 1e-6)).any()
+                    for t in (0.25, 0.5, 0.75)):
+                continue
+        else:
+            wall = [(a, b) for a, b in ((0, 1), (0, 2), (1, 2)) if len(own) == 3 and n[own[a]] @ n[own[b]] > 1 - 1e-6]
+            if not wall:
+                continue
+            sheet = int(own[3 - sum(wall[0])])
+        ends |= {(int(v), sheet) for v in edges[j]}
+    out, faces = list(vertices), faces.copy()
+    for v, sheet in sorted(ends):
+        fan = (faces == v).any(1) & (n @ n[sheet] > 1 - 1e-6) & (np.abs(offset - offset[sheet]) < tol)
+        if fan.any():
+            faces[fan] = np.where(faces[fan] == v, len(out), faces[fan])
+            out.append(out[v])
+    faces = _straightened(np.array(out), faces, sorted({v for v, _ in ends}))
+    used = np.unique(faces)
+    return np.array(out)[used], np.searchsorted(used, faces)
+
+
+def _on_faces(vertices: np.ndarray, faces: np.ndarray, n: np.ndarray, offset: np.ndarray, point: np.ndarray,
+              tol: float) -> np.ndarray:
+    """(F,) whether ``point`` (3,) lies on each face (within ``tol`` of its plane, inside or on its edges); ``n`` and
+    ``offset`` the faces' unit normals and offsets."""
+    near = np.abs(n @ point - offset) < tol
+    corners = vertices[faces]  # (F, 3, 3)
+    inside = np.ones(len(faces), dtype=bool)
+    for k in range(3):
+        side = np.cross(corners[:, (k + 1) % 3] - corners[:, k], point - corners[:, k])
+        inside &= np.einsum("ij,ij->i", side, n) >= -tol * np.linalg.norm(corners[:, (k + 1) % 3] - corners[:, k],
+                                                                           axis=1)
+    return near & inside
+
+
+def _straightened(vertices: np.ndarray, faces: np.ndarray, ids: list[int]) -> np.ndarray:
+    """``faces`` with each vertex of ``ids`` that lies on a straight edge of its faces (between two of its neighbours,
+    along an open border or where two walls meet) moved onto one of those neighbours, where no face it keeps turns
+    over or loses its area: a wall a sheet ended on has its corners only, as before the sheet cut it."""
+    for v in ids:
+        ring = (faces == v).any(1)
+        others = np.setdiff1d(faces[ring], [v])
+        d = vertices[others] - vertices[v]
+        unit = d / np.linalg.norm(d, axis=1, keepdims=True)
+        cos = unit @ unit.T
+        for a in others[(cos < -1 + 1e-9).any(1)]:  # a neighbour with another straight across v
+            moved = np.where(faces[ring] == v, a, faces[ring])
+            kept = (moved != np.roll(moved, 1, axis=1)).all(1)
+            old = np.cross(*(vertices[faces[ring][:, k]] - vertices[faces[ring][:, 0]] for k in (1, 2)))
+            new = np.cross(*(vertices[moved[:, k]] - vertices[moved[:, 0]] for k in (1, 2)))
+            area = np.linalg.norm(new, axis=1)
+            if ((np.einsum("ij,ij->i", old, new) > 0) & (area > 1e-9 * area.max()))[kept].all():
+                faces = np.vstack([faces[~ring], moved[kept]])
+                break
+    return faces

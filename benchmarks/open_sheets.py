@@ -1,0 +1,51 @@
+"""Open flat props built from sheets that end inside their box, through the shipped pipeline (CPU, seed 0):
+tests/test_open_sheets.py's families (a panel set into a frame open at the back; a shelf open at the front with
+one to three boards), 8 of each, any pose, millimetres to kilometres, as oriented points.  Per prop: where the result
+comes from, its faces against the truth's, edges of more than two faces, faces wound against their neighbours, and
+the largest exact distance between result and truth both ways, in % of the size.
+
+    python benchmarks/open_sheets.py
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from fastmesh.evaluation.primitives import point_cloud
+from fastmesh.faces.defects import winding
+from fastmesh.faces.meshops import distance_to_triangles, edge_face_counts
+from fastmesh.params import GenerateParams
+from fastmesh.pipeline import Pipeline
+from fastmesh.shapes.shape import Shape
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from poses import posed, random_pose, turned  # noqa: E402
+from test_open_sheets import FAMILIES  # noqa: E402
+
+
+def main() -> None:
+    pipe = Pipeline.from_pretrained(device="cpu", threads=1)
+    rng = np.random.default_rng(73)
+    for family in sorted(FAMILIES):
+        for i in range(8):
+            truth = FAMILIES[family](rng)
+            pose = random_pose(rng)
+            cloud = point_cloud(truth, seed=i)
+            res = pipe.generate(Shape(vertices=posed(cloud.vertices, pose), normals=turned(cloud.normals, pose)),
+                                GenerateParams(seed=0))
+            v, f, corners = res.vertices, res.faces, posed(truth.vertices, pose)
+            size = float(np.ptp(corners, axis=0).max())
+            both = max(distance_to_triangles(trimesh.Trimesh(a, b, process=False).sample(4000, seed=0), c, d).max()
+                       for (a, b), (c, d) in (((v, f), (corners, truth.faces)), ((corners, truth.faces), (v, f))))
+            print(f"{family} {i}: {len(f)} faces ({res.info['result_from']}) for the truth's {len(truth.faces)}, "
+                  f"edges of 3+ faces {int((edge_face_counts(f) > 2).sum())}, wound against neighbours "
+                  f"{winding(v, f)['misoriented_edges']} edges, distance both ways {100 * both / size:.3f} %",
+                  flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,139 @@
+"""Open flat props built as artists build them, from sheets that end inside their box: a panel set into a frame open
+at the back (the panel's edges end on the frame's inner walls) and a shelf open at the front with boards inside
+(each ends on three walls and at the opening).  Drawn at random (proportions, depths, any pose, millimetres to
+kilometres), as oriented points: the pipeline's open planes path (``open_planar.open_polyhedron`` with ``free``)
+gives each exactly, its sheets set apart where they end on a wall; an input closed or asked closed never takes
+that path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from poses import posed, random_pose, turned
+
+from fastmesh.evaluation.primitives import point_cloud
+from fastmesh.faces.meshops import distance_to_triangles, edge_face_counts, point_triangle_distance
+from fastmesh.params import GenerateParams
+from fastmesh.pipeline import Pipeline
+from fastmesh.shapes.shape import Shape
+
+
+def quads(corners: list[list[int]]) -> np.ndarray:
+    """Two triangles per quad (a, b, c, d), wound as the quad."""
+    return np.array([[a, b, c] for a, b, c, d in corners] + [[a, c, d] for a, b, c, d in corners])
+
+
+def _frame(rng: np.random.Generator) -> dict:
+    """A frame's measures: half sides (w, h), rim width r, depth t, and a panel or recess p back from the front."""
+    w, h = rng.uniform(0.3, 0.5, 2)
+    r, t = rng.uniform(0.05, 0.12), rng.uniform(0.05, 0.15)
+    return {"w": w, "h": h, "r": r, "t": t, "p": rng.uniform(0.25, 0.75) * t}
+
+
+def _ring(x: float, b: float, a: float) -> list[list[float]]:
+    """Four corners at depth x, half sides (b, a), counter-clockwise about +x."""
+    return [[x, sy * b, sz * a] for sy, sz in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+
+
+def _solid(vertices: np.ndarray, quad_list: list[list[int]]) -> np.ndarray:
+    """The faces of a closed solid given as quads, wound outward (trimesh orients a watertight mesh)."""
+    mesh = trimesh.Trimesh(vertices, quads(quad_list), process=False)
+    assert mesh.is_watertight
+    trimesh.repair.fix_normals(mesh)
+    return np.asarray(mesh.faces)
+
+
+def _band(lo: int, hi: int) -> list[list[int]]:
+    """The four quads between ring ``lo`` and ring ``hi`` (4 corners each, in order)."""
+    return [[lo + k, lo + (k + 1) % 4, hi + (k + 1) % 4, hi + k] for k in range(4)]
+
+
+def framed_panel(rng: np.random.Generator) -> Shape:
+    """A frame (half sides w, h, rim r, depth t) open at the back (x = 0), its front at x = t, and a panel in its
+    hole p back from the front whose four edges end on the inner walls: the panel a sheet of its own, facing front."""
+    m = _frame(rng)
+    a, b = m["w"] - m["r"], m["h"] - m["r"]
+    v = np.array(_ring(0, m["h"], m["w"]) + _ring(m["t"], m["h"], m["w"]) + _ring(0, b, a) + _ring(m["t"], b, a)
+                 + _ring(m["t"] - m["p"], b, a))
+    solid = _solid(v, _band(0, 4) + _band(8, 12) + _band(4, 12) + _band(0, 8))  # the frame as a solid ring ...
+    ring = solid[~(v[solid][:, :, 0] == 0).all(1)]  # ... without its back
+    return Shape(vertices=v, faces=np.vstack([ring, [[16, 17, 18], [16, 18, 19]]]))
+
+
+def recessed_block(rng: np.random.Generator) -> Shape:
+    """The frame of :func:`framed_panel` closed: a block with a recess p deep in its front, its floor the panel."""
+    m = _frame(rng)
+    a, b = m["w"] - m["r"], m["h"] - m["r"]
+    v = np.array(_ring(0, m["h"], m["w"]) + _ring(m["t"], m["h"], m["w"]) + _ring(m["t"] - m["p"], b, a)
+                 + _ring(m["t"], b, a))
+    return Shape(vertices=v, faces=_solid(v, _band(0, 4) + _band(8, 12) + _band(4, 12) + [[0, 3, 2, 1],
+                                                                                        [8, 9, 10, 11]]))
+
+
+def shelf(rng: np.random.Generator) -> Shape:
+    """A box of sides (w, h, d) open at the front (z = d) with one to three boards across it, each a sheet from the
+    back wall to the opening at a height of its own, ending on the back and side walls, facing up."""
+    w, h, d = rng.uniform(0.3, 1.0, 3)
+    heights = np.sort(rng.uniform(0.15, 0.85, rng.integers(1, 4))) * h
+    heights = heights[np.diff(np.r_[0.0, heights]) > 0.1 * h]  # boards apart
+    v = np.array([[x, yy, z] for z in (0.0, d) for x, yy in ((0, 0), (w, 0), (w, h), (0, h))]
+                 + [[x, y, z] for y in heights for x, z in ((0, 0), (w, 0), (w, d), (0, d))], dtype=np.float64)
+    f = quads([[0, 3, 2, 1], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]
+              + [[8 + 4 * k, 11 + 4 * k, 10 + 4 * k, 9 + 4 * k] for k in range(len(heights))])
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    turn = np.einsum("ij,ij->i", n, v[f].mean(1) - [w / 2, h / 2, d / 2]) < 0  # the walls away from the centre
+    board = np.isin(v[f][:, :, 1], heights).all(1)
+    turn[board] = n[board, 1] < 0  # the boards up
+    f[turn] = f[turn][:, ::-1]
+    return Shape(vertices=v, faces=f)
+
+
+FAMILIES = {"framed_panel": framed_panel, "shelf": shelf}
+
+
+@pytest.mark.parametrize("family", sorted(FAMILIES))
+def test_sheets_that_end_inside_the_box_come_back_exact(family):
+    """Six of each in random poses: rebuilt from the planes (no token), on the truth both ways within 0.1 % of its
+    size, its corners each on one of the truth's, the truth's own count of faces, edge-manifold, wound one way, each
+    face facing as the truth's face under it."""
+    rng = np.random.default_rng(41)
+    pipe = Pipeline.random("tiny", seed=0)
+    for i in range(6):
+        truth = FAMILIES[family](rng)
+        pose = random_pose(rng)
+        cloud = point_cloud(truth, seed=i)
+        cloud = Shape(vertices=posed(cloud.vertices, pose), normals=turned(cloud.normals, pose))
+        corners = posed(truth.vertices, pose)
+        res = pipe.generate(cloud, GenerateParams(seed=0, max_vertices=24))
+        assert res.info["result_from"] == "planes" and res.tokens == 0, (family, i)
+        size = np.ptp(corners, axis=0).max()
+        samples = trimesh.Trimesh(res.vertices, res.faces, process=False).sample(4000, seed=i)
+        assert distance_to_triangles(samples, corners, truth.faces).max() < 1e-3 * size
+        assert distance_to_triangles(cloud.vertices, res.vertices, res.faces).max() < 1e-3 * size
+        assert np.linalg.norm(res.vertices[:, None] - corners[None], axis=-1).min(1).max() < 1e-3 * size
+        assert np.linalg.norm(corners[:, None] - res.vertices[None], axis=-1).min(1).max() < 1e-3 * size
+        assert len(res.faces) == len(truth.faces)  # the walls not cut where the sheets end on them
+        assert edge_face_counts(res.faces).max() <= 2 and res.quality["non_manifold_edges"] == 0
+        result = trimesh.Trimesh(res.vertices, res.faces, process=False)
+        assert result.is_winding_consistent
+        true = trimesh.Trimesh(corners, truth.faces, process=False)
+        centres, tris = result.triangles_center, true.triangles
+        gaps = point_triangle_distance(np.repeat(centres, len(tris), axis=0), np.tile(tris, (len(centres), 1, 1)))
+        under = gaps.reshape(len(centres), len(tris)).argmin(1)  # the truth's face under each of the result's
+        assert (np.einsum("ij,ij->i", result.face_normals, true.face_normals[under]) > 0.99).all()
+
+
+def test_a_closed_or_asked_closed_input_never_takes_the_free_open_path():
+    """A block with a recess (the frame closed at the back) comes back closed from its planes; a framed panel asked
+    closed=true comes back closed, not from the open planes."""
+    rng = np.random.default_rng(3)
+    pipe = Pipeline.random("tiny", seed=0)
+    for i in range(3):
+        block = recessed_block(rng)
+        res = pipe.generate(point_cloud(block, seed=i), GenerateParams(seed=0, max_vertices=24))
+        assert res.info["closed_decision"]["close"] and res.quality["watertight"]
+        assert res.info["result_from"] == "planes" and len(res.faces) == len(block.faces)
+    asked = pipe.generate(point_cloud(framed_panel(rng), seed=0), GenerateParams(seed=0, max_vertices=24,
+                                                                               closed="true"))
+    assert asked.info["closed_decision"]["close"] and asked.quality["boundary_edges"] == 0

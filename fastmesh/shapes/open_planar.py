@@ -9,9 +9,9 @@ closed one; anything else gives None.
 
 An input the pipeline has found open (``closure.decide_closed``) may also stop inside its box, as artists build
 flat props from sheets: a fin or a flange that ends in the air, a panel set into a frame that ends on the frame's
-walls.  With ``free`` such an edge is kept where the points stop at it: none lies a little beyond it in its face's
-plane.  A sheet that ends on a wall shares no edge with it (:func:`_detached`), so that every edge keeps at most two
-faces.
+walls.  With ``free`` every open edge must be where the points reach and stop (:func:`_stops`), on a side of the box
+or not, and a sheet that ends on a wall shares no edge with it (:func:`_detached`), so that every edge keeps at most
+two faces.
 """
 
 from __future__ import annotations
@@ -23,10 +23,10 @@ from .planar import PlanarConfig, _explains, planar_mesh
 
 PARALLEL_COS = np.cos(np.radians(10))  # as ``planar.neighbour_planes``: planes closer than this never meet
 EDGE_SHARE = 0.3  # a plane's open edge on a box side spans at least this share of the plane's width along it
-# With ``free`` an open edge is kept where the points reach it and stop: at a quarter, half and three quarters of its
-# length, a point lies within half the cover radius of its face half a radius inside it, and none this far beyond it
-# in its face's plane (in cover radii): a plane that goes on past it has points about a third of a radius from any
-# such place, and a face cut off by a side of the box that the points do not reach has none.
+# With ``free`` an open edge is kept where the points reach it and stop: at PROBES places along it their nearest point
+# lies within REACHED cover radii on average (on the 16 open props of ``benchmarks/open_sheets.py`` 0.1-0.4; a face a
+# side of the box cut off a radius past its points: 1.0 and more), and none within half a radius of where its face's
+# plane goes on BEYOND radii past it (a plane that goes on past it has points about a third of a radius from there).
 BEYOND = 1.0
 PROBES = 8
 REACHED = 0.6
@@ -153,9 +153,10 @@ def _open_where_it_stops(vertices: np.ndarray, faces: np.ndarray, sides: np.ndar
 
 
 def _stops(points: np.ndarray, reach: float):
-    """``stops(vertices, faces, edges)``: whether the ``points`` (N, 3) stop at every one of ``edges`` (E, 2), each
-    an open edge as its face winds it: at a quarter, half and three quarters of it, a point within half of ``reach``
-    of its face half a ``reach`` inside it, and none of its face's plane ``BEYOND`` x ``reach`` past it."""
+    """``stops(vertices, faces, edges)``: whether the ``points`` (N, 3) reach and stop at every one of ``edges`` (E,
+    2), each an open edge as its face winds it: at ``PROBES`` places along it, their nearest within ``REACHED`` x
+    ``reach`` on average, and none within half a ``reach`` of where its face's plane goes ``BEYOND`` x ``reach``
+    past it."""
     tree = cKDTree(points)
 
     def stops(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray) -> bool:

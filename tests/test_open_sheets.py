@@ -108,14 +108,14 @@ def test_sheets_that_end_inside_the_box_come_back_exact(family):
         res = pipe.generate(cloud, GenerateParams(seed=0, max_vertices=24))
         assert res.info["result_from"] == "planes" and res.tokens == 0, (family, i)
         size = np.ptp(corners, axis=0).max()
-        samples = trimesh.Trimesh(res.vertices, res.faces, process=False).sample(4000, seed=i)
+        result = trimesh.Trimesh(res.vertices, res.faces, process=False)
+        samples = result.sample(4000, seed=i)
         assert distance_to_triangles(samples, corners, truth.faces).max() < 1e-3 * size
         assert distance_to_triangles(cloud.vertices, res.vertices, res.faces).max() < 1e-3 * size
         assert np.linalg.norm(res.vertices[:, None] - corners[None], axis=-1).min(1).max() < 1e-3 * size
         assert np.linalg.norm(corners[:, None] - res.vertices[None], axis=-1).min(1).max() < 1e-3 * size
         assert len(res.faces) == len(truth.faces)  # the walls not cut where the sheets end on them
         assert edge_face_counts(res.faces).max() <= 2 and res.quality["non_manifold_edges"] == 0
-        result = trimesh.Trimesh(res.vertices, res.faces, process=False)
         assert result.is_winding_consistent
         true = trimesh.Trimesh(corners, truth.faces, process=False)
         centres, tris = result.triangles_center, true.triangles

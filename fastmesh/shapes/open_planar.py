@@ -144,25 +144,23 @@ def _open_where_it_stops(vertices: np.ndarray, faces: np.ndarray, sides: np.ndar
     if (count > 2).any() or not (count == 1).any():
         return False
     if stops is not None:  # every open edge, on a side or not: a side the points do not reach cuts nothing
-        key = len(vertices) * np.sort(e, axis=1)[:, 0] + np.sort(e, axis=1)[:, 1]
-        rims = edges[count == 1]
-        return stops(vertices, faces, e[np.isin(key, len(vertices) * rims[:, 0] + rims[:, 1])])
+        key = np.sort(e, axis=1) @ [len(vertices), 1]
+        rows = np.nonzero(np.isin(key, edges[count == 1] @ [len(vertices), 1]))[0]  # row r: a side of face r // 3
+        return stops(vertices, faces[rows // 3], e[rows])
     ends = vertices[edges[count == 1]]  # (B, 2, 3)
     off = np.abs(ends @ sides[:, :3].T - sides[:, 3])  # (B, 2, S)
     return bool((off.max(1) < tol).any(1).all())
 
 
 def _stops(points: np.ndarray, reach: float):
-    """``stops(vertices, faces, edges)``: whether the ``points`` (N, 3) reach and stop at every one of ``edges`` (E,
-    2), each an open edge as its face winds it: at ``PROBES`` places along it, their nearest within ``REACHED`` x
-    ``reach`` on average, and none within half a ``reach`` of where its face's plane goes ``BEYOND`` x ``reach``
-    past it."""
+    """``stops(vertices, f, edges)``: whether the ``points`` (N, 3) reach and stop at every one of ``edges`` (E, 2),
+    each an open edge as its face of ``f`` (E, 3) winds it: at ``PROBES`` places along it, their nearest within
+    ``REACHED`` x ``reach`` on average, and none within half a ``reach`` of where its face's plane goes ``BEYOND`` x
+    ``reach`` past it."""
     tree = cKDTree(points)
 
-    def stops(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray) -> bool:
-        owner = {(int(a), int(b)): i for i, f in enumerate(faces) for a, b in zip(f, np.roll(f, -1), strict=True)}
+    def stops(vertices: np.ndarray, f: np.ndarray, edges: np.ndarray) -> bool:
         a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
-        f = faces[[owner[(int(p), int(q))] for p, q in edges]]
         n = np.cross(vertices[f[:, 1]] - vertices[f[:, 0]], vertices[f[:, 2]] - vertices[f[:, 0]])
         out = np.cross(b - a, n)  # in the face's plane, away from it: the face winds counter-clockwise about n
         out /= np.linalg.norm(out, axis=1, keepdims=True)
@@ -200,7 +198,7 @@ def _detached(vertices: np.ndarray, faces: np.ndarray, tol: float, length: float
                     for t in (0.25, 0.5, 0.75)):
                 continue
         else:
-            wall = [(a, b) for a, b in ((0, 1), (0, 2), (1, 2)) if len(own) == 3 and n[own[a]] @ n[own[b]] > 1 - 1e-6]
+            wall = [(i, k) for i, k in ((0, 1), (0, 2), (1, 2)) if len(own) == 3 and n[own[i]] @ n[own[k]] > 1 - 1e-6]
             if not wall:
                 continue
             sheet = int(own[3 - sum(wall[0])])

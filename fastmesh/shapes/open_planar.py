@@ -8,13 +8,16 @@ where every open edge lies on such a side and the surface and the points explain
 closed one; anything else gives None.
 
 An input the pipeline has found open (``closure.decide_closed``) may also stop inside its box, as artists build
-flat props from sheets: a fin or a flange that ends in the air, a panel set into a frame that ends on the frame's
-walls.  With ``free`` every open edge must be where the points reach and stop (:func:`_stops`), on a side of the box
-or not, and a sheet that ends on a wall shares no edge with it (:func:`_detached`), so that every edge keeps at most
-two faces.
+flat props from sheets: a fin or a flange that ends in the air, a board short of a shelf's opening, a panel set into
+a frame that ends on the frame's walls.  With ``free`` each plane's faces end where its own points stop
+(:func:`_stop_lines`: along or across the line of one of its neighbours, or along a side of the box in a frame along
+the shape's walls), every open edge must be where the points reach and stop (:func:`_stops`), and a sheet that ends
+on a wall shares no edge with it (:func:`_detached`), so that every edge keeps at most two faces.
 """
 
 from __future__ import annotations
+
+from functools import partial
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -22,11 +25,18 @@ from scipy.spatial import cKDTree
 from .planar import PlanarConfig, _explains, planar_mesh
 
 PARALLEL_COS = np.cos(np.radians(10))  # as ``planar.neighbour_planes``: planes closer than this never meet
-EDGE_SHARE = 0.3  # a plane's open edge on a box side spans at least this share of the plane's width along it
+EDGE_SHARE = 0.3  # a plane's open edge spans at least this share of the plane's width along it
+# A line where a sheet stops (``_stop_lines``) that lies within ALIKE cover radii of a side of the box or of another's
+# plane is that plane (the points' furthest on each sheet lie a fraction of their spacing short of the edge they
+# share; two boards of a shelf stop a radius or more apart).  Lines within this angle of each other run alike; a
+# plane within it of an axis: the frame is along the shape's walls.
+ALIKE_COS = np.cos(np.radians(2))
+ALIKE = 0.25
 # With ``free`` an open edge is kept where the points reach it and stop: at PROBES places along it their nearest point
-# lies within REACHED cover radii on average (on the 16 open props of ``benchmarks/open_sheets.py`` 0.1-0.4; a face a
-# side of the box cut off a radius past its points: 1.0 and more), and none within half a radius of where its face's
-# plane goes on BEYOND radii past it (a plane that goes on past it has points about a third of a radius from there).
+# lies within REACHED cover radii on average (on the framed panels and shelves of ``benchmarks/open_sheets.py``
+# 0.1-0.4; a face a side of the box cut off a radius past its points: 1.0 and more), and none within half a radius
+# of where its face's plane goes on BEYOND radii past it (a plane that goes on past it has points about a third of a
+# radius from there).
 BEYOND = 1.0
 PROBES = 8
 REACHED = 0.6
@@ -50,7 +60,7 @@ def open_polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig =
     (V, 3) float64 vertices and (F, 3) int64 faces, edge-manifold and consistently oriented, with at least one
     open edge and every open edge on a side of the points' bounding box (or where they stop); or None.
     """
-    made = planar_mesh(points, normals, cfg, cut=_cut_at_box)
+    made = planar_mesh(points, normals, cfg, cut=partial(_cut_at_box, free=free))
     if made is None:
         return None
     vertices, faces, pts, reach, sides = made
@@ -63,15 +73,111 @@ def open_polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig =
     return vertices, faces
 
 
-def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near: list[set[int]], reach: float
-                ) -> tuple[np.ndarray | None, list[list[int]] | None]:
+def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near: list[set[int]], reach: float,
+                free: bool = False) -> tuple[np.ndarray | None, list[list[int]] | None]:
     """``planar.planar_mesh``'s ``cut``: the box sides no plane lies on, and for each plane those where it stops
-    (``_open_sides``)."""
+    (``_open_sides``); with ``free``, for each plane the lines where its own points stop (``_stop_lines``), inside
+    the box or on a side of it, each a plane across it, one plane for the lines that lie on one (``_shared``)."""
     sides = box_sides(points, planes, labels, reach)
-    if not len(sides):
-        return None, None
-    return sides, [_open_sides(planes[k], sides, planes[sorted(near[k])], points[labels == k], reach)
-                   for k in range(len(planes))]
+    if not free:
+        if not len(sides):
+            return None, None
+        return sides, [_open_sides(planes[k], sides, planes[sorted(near[k])], points[labels == k], reach)
+                       for k in range(len(planes))]
+    # The box's sides count only in a frame along the shape's walls: in a frame it is turned in, a side touches the
+    # shape at a corner, at an angle to its edges.
+    if not (np.abs(planes[:, :3]) > ALIKE_COS).any():
+        sides = sides[:0]
+    found = [_stop_lines(planes[k], planes[sorted(near[k])], sides, points[labels == k], reach)
+             for k in range(len(planes))]
+    owner = np.repeat(np.arange(len(planes)), [len(lines) for lines, _ in found])
+    sides, which = _shared(sides, np.vstack([np.zeros((0, 4)), *[x for x, _ in found]]),
+                           np.vstack([np.zeros((0, 2, 3)), *[x for _, x in found]]), planes[owner], reach)
+    return sides, [sorted(set(which[owner == k].tolist())) for k in range(len(planes))]
+
+
+def _shared(sides: np.ndarray, lines: np.ndarray, spans: np.ndarray, sheets: np.ndarray, reach: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The box ``sides`` (S, 4) and the planes of ``lines`` (L, 4; each across its sheet of ``sheets`` (L, 4)), a line
+    made one with a side or a line before it that crosses its sheet and holds both ends of its ``spans`` (L, 2, 3)
+    within ``ALIKE`` x ``reach`` (the front edges of a shelf's walls all stop at its opening; a flange and a
+    sloping wall both stop on the box's floor): (S + M, 4) planes, the sides first, and (L,) which one each line
+    became.  Corners where two such sheets meet then come from the same planes."""
+    out = list(sides)
+    which = np.zeros(len(lines), dtype=np.int64)
+    for i, (line, ends, sheet) in enumerate(zip(lines, spans, sheets, strict=True)):
+        off = np.array([np.abs(ends @ o[:3] - o[3]).max() if abs(o[:3] @ sheet[:3]) < PARALLEL_COS else np.inf
+                        for o in out]).reshape(-1)
+        if not len(off) or off.min() >= ALIKE * reach:
+            out.append(line)
+            off = np.r_[off, 0.0]
+        which[i] = int(off.argmin())  # the nearest: a line on a box's edge lies on two sides
+    return np.array(out).reshape(-1, 4), which
+
+
+def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, points: np.ndarray, reach: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(L, 4) planes across ``plane`` (each at right angles to it) along the lines where its ``points`` stop: a board
+    short of a shelf's opening, a ledge standing out of a wall, a wall at its box's open side, a flange ending in the
+    air, and (L, 2, 3) the ends of the stretch of each the points follow.  An artist's sheet ends along a line
+    parallel or at right angles to one of its other edges, or along a side of its box.  So each line runs along or
+    across the line of one of its ``neighbours`` (K, 4) or along the line of one of the box's ``sides`` (S, 4), at
+    the points' furthest across it; it is kept where the points follow it (:func:`_followed`) and the stretch they
+    follow lies on no neighbour's line (where a real edge ends the plane) nor a line kept before (:func:`_lies_on`).
+    """
+    n = plane[:3]
+    out: list[np.ndarray] = []
+    spans: list[np.ndarray] = []
+    for i, other in enumerate(np.vstack([neighbours, sides])):
+        u = np.cross(n, other[:3])
+        if np.linalg.norm(u) < np.sin(np.radians(10)):
+            continue
+        u /= np.linalg.norm(u)
+        along = np.cross(n, u)  # the edge along the other's line; across it (at right angles) for a neighbour
+        for w in (along, -along, u, -u) if i < len(neighbours) else (along, -along):
+            across = points @ w
+            # the points' furthest lies short of their edge by about the width of the band within a reach of it
+            # over the points in that band (uniform samples): the edge there
+            line = np.r_[w, across.max() + reach / max(int((across > across.max() - reach).sum()), 1)]
+            span = _followed(points, line, n, reach)
+            if span is not None and not _lies_on(n, span, np.vstack([neighbours, *out]), reach):
+                out.append(line)
+                spans.append(span)
+    return np.array(out).reshape(-1, 4), np.array(spans).reshape(-1, 2, 3)
+
+
+def _lies_on(n: np.ndarray, ends: np.ndarray, others: np.ndarray, reach: float) -> bool:
+    """Whether both ``ends`` (2, 3), in the plane of normal ``n`` (3,), lie near the line where it meets one of
+    ``others`` (K, 4): within ``reach`` of it (in that plane) where that line runs at an angle to theirs (the points'
+    furthest across a direction a few degrees off an edge only touch that edge), within ``ALIKE`` x ``reach`` where
+    it runs along it within ``ALIKE_COS`` (a panel set back from an open side a little: the walls go on past it)."""
+    cross = np.cross(n, others[:, :3])
+    sine = np.linalg.norm(cross, axis=1)
+    crossing = sine > np.sin(np.radians(10))
+    off = np.abs(ends @ others[crossing, :3].T - others[crossing, 3]) / sine[crossing]  # (2, K)
+    d = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
+    alike = np.abs(cross[crossing] @ d) / sine[crossing] > ALIKE_COS
+    return bool((off < np.where(alike, ALIKE, 1.0) * reach).all(0).any())
+
+
+def _followed(points: np.ndarray, line: np.ndarray, n: np.ndarray, reach: float) -> np.ndarray | None:
+    """(2, 3) the ends of the stretch of ``line`` (4,; a plane across the plane of normal ``n`` (3,) that the
+    ``points`` lie on, its normal pointing away from them) along which they stop, or None: those within ``reach`` of
+    it span ``EDGE_SHARE`` of the points' width along it at least, and come within half a ``reach`` of it in the
+    first and the last quarter of that span, not only where the line touches a corner of the points at an angle to
+    their edge."""
+    u = np.cross(n, line[:3])
+    u /= np.linalg.norm(u)
+    off = line[3] - points @ line[:3]
+    band = off < reach
+    along = points[band] @ u
+    if band.sum() < 3 or np.ptp(along) < max(EDGE_SHARE * np.ptp(points @ u), reach):
+        return None
+    quarter = np.minimum(((along - along.min()) / np.ptp(along) * 4).astype(int), 3)
+    if not (np.bincount(quarter, off[band] < 0.5 * reach, minlength=4)[[0, 3]] > 0).all():
+        return None  # (a stretch may have gaps: legs standing on one line)
+    ends = points[band][[along.argmin(), along.argmax()]]
+    return ends + np.outer(line[3] - ends @ line[:3], line[:3])  # onto the line, in the points' plane
 
 
 def box_sides(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, reach: float) -> np.ndarray:

@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 from .planar import PlanarConfig, _explains, planar_mesh
 
 PARALLEL_COS = np.cos(np.radians(10))  # as ``planar.neighbour_planes``: planes closer than this never meet
+PARALLEL_SINE = np.sin(np.radians(10))
 EDGE_SHARE = 0.3  # a plane's open edge spans at least this share of the plane's width along it
 # A line where a sheet stops (``_stop_lines``) that lies within ALIKE cover radii of a side of the box or of another's
 # plane is that plane (the points' furthest on each sheet lie a fraction of their spacing short of the edge they
@@ -130,7 +131,7 @@ def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, po
     spans: list[np.ndarray] = []
     for i, other in enumerate(np.vstack([neighbours, sides])):
         u = np.cross(n, other[:3])
-        if np.linalg.norm(u) < np.sin(np.radians(10)):
+        if np.linalg.norm(u) < PARALLEL_SINE:
             continue
         u /= np.linalg.norm(u)
         along = np.cross(n, u)  # the edge along the other's line; across it (at right angles) for a neighbour
@@ -153,7 +154,7 @@ def _lies_on(n: np.ndarray, ends: np.ndarray, others: np.ndarray, reach: float) 
     it runs along it within ``ALIKE_COS`` (a panel set back from an open side a little: the walls go on past it)."""
     cross = np.cross(n, others[:, :3])
     sine = np.linalg.norm(cross, axis=1)
-    crossing = sine > np.sin(np.radians(10))
+    crossing = sine > PARALLEL_SINE
     off = np.abs(ends @ others[crossing, :3].T - others[crossing, 3]) / sine[crossing]  # (2, K)
     d = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
     alike = np.abs(cross[crossing] @ d) / sine[crossing] > ALIKE_COS
@@ -236,7 +237,7 @@ def _along(plane: np.ndarray, side: np.ndarray, near: np.ndarray, others: np.nda
     p = np.linalg.solve(np.array([n, side[:3], u]), np.array([plane[3], side[3], u @ near]))
     w = np.cross(n, others[:, :3])
     sine = np.linalg.norm(w, axis=1)
-    parallel = np.linalg.norm(np.cross(u, w / np.maximum(sine, 1e-12)[:, None]), axis=1) < np.sin(np.radians(10))
+    parallel = np.linalg.norm(np.cross(u, w / np.maximum(sine, 1e-12)[:, None]), axis=1) < PARALLEL_SINE
     return bool((parallel & (np.abs(others[:, :3] @ p - others[:, 3]) < reach * sine)).any())
 
 

@@ -91,36 +91,43 @@ def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near
         sides = sides[:0]
     found = [_stop_lines(planes[k], planes[sorted(near[k])], sides, points[labels == k], reach)
              for k in range(len(planes))]
-    owner = np.repeat(np.arange(len(planes)), [len(lines) for lines, _ in found])
-    sides, which = _shared(sides, np.vstack([np.zeros((0, 4)), *[x for x, _ in found]]),
-                           np.vstack([np.zeros((0, 2, 3)), *[x for _, x in found]]), planes[owner], reach)
+    owner = np.repeat(np.arange(len(planes)), [len(lines) for lines, _, _ in found])
+    lines, spans, bands = (np.vstack([np.zeros((0, *shape)), *[x[i] for x in found]])
+                           for i, shape in enumerate(((4,), (2, 3), (4,))))
+    sides, which = _shared(sides, lines, spans, bands, planes[owner], reach)
     return sides, [sorted(set(which[owner == k].tolist())) for k in range(len(planes))]
 
 
-def _shared(sides: np.ndarray, lines: np.ndarray, spans: np.ndarray, sheets: np.ndarray, reach: float
-            ) -> tuple[np.ndarray, np.ndarray]:
+def _shared(sides: np.ndarray, lines: np.ndarray, spans: np.ndarray, bands: np.ndarray, sheets: np.ndarray,
+            reach: float) -> tuple[np.ndarray, np.ndarray]:
     """The box ``sides`` (S, 4) and the planes of ``lines`` (L, 4; each across its sheet of ``sheets`` (L, 4)), a line
     made one with a side or a line before it that crosses its sheet and holds both ends of its ``spans`` (L, 2, 3)
     within ``ALIKE`` x ``reach`` (the front edges of a shelf's walls all stop at its opening; a flange and a
     sloping wall both stop on the box's floor): (S + M, 4) planes, the sides first, and (L,) which one each line
-    became.  Corners where two such sheets meet then come from the same planes."""
-    out = list(sides)
+    became.  Corners where two such sheets meet then come from the same planes.  A plane made of lines facing alike
+    lies where all their points put the edge (``bands`` (L, 4): each line's furthest point and band, ``_edge``)."""
+    out, pooled = list(sides), {}
     which = np.zeros(len(lines), dtype=np.int64)
-    for i, (line, ends, sheet) in enumerate(zip(lines, spans, sheets, strict=True)):
+    for i, (line, ends, band, sheet) in enumerate(zip(lines, spans, bands, sheets, strict=True)):
         off = np.array([np.abs(ends @ o[:3] - o[3]).max() if abs(o[:3] @ sheet[:3]) < PARALLEL_COS else np.inf
                         for o in out]).reshape(-1)
         if not len(off) or off.min() >= ALIKE * reach:
-            out.append(line)
+            out.append(line.copy())
             off = np.r_[off, 0.0]
-        which[i] = int(off.argmin())  # the nearest: a line on a box's edge lies on two sides
+        j = which[i] = int(off.argmin())  # the nearest: a line on a box's edge lies on two sides
+        if j >= len(sides) and out[j][:3] @ line[:3] > ALIKE_COS:
+            pooled.setdefault(j, []).append(band)
+            b = np.array(pooled[j])
+            out[j][3] = _edge(float((b[:, :3] @ out[j][:3]).max()), int(b[:, 3].sum()), reach)
     return np.array(out).reshape(-1, 4), which
 
 
 def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, points: np.ndarray, reach: float
-                ) -> tuple[np.ndarray, np.ndarray]:
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(L, 4) planes across ``plane`` (each at right angles to it) along the lines where its ``points`` stop: a board
     short of a shelf's opening, a ledge standing out of a wall, a wall at its box's open side, a flange ending in the
-    air, and (L, 2, 3) the ends of the stretch of each the points follow.  An artist's sheet ends along a line
+    air; (L, 2, 3) the ends of the stretch of each the points follow; (L, 4) the points' furthest across each and how
+    many lie within ``reach`` of it across the line (:func:`_edge`).  An artist's sheet ends along a line
     parallel or at right angles to one of its other edges, or along a side of its box.  So each line runs along or
     across the line of one of its ``neighbours`` (K, 4) or along the line of one of the box's ``sides`` (S, 4), at
     the points' furthest across it; it is kept where the points follow it (:func:`_followed`) and the stretch they
@@ -129,6 +136,7 @@ def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, po
     n = plane[:3]
     out: list[np.ndarray] = []
     spans: list[np.ndarray] = []
+    bands: list[np.ndarray] = []
     for i, other in enumerate(np.vstack([neighbours, sides])):
         u = np.cross(n, other[:3])
         if np.linalg.norm(u) < PARALLEL_SINE:
@@ -137,14 +145,21 @@ def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, po
         along = np.cross(n, u)  # the edge along the other's line; across it (at right angles) for a neighbour
         for w in (along, -along, u, -u) if i < len(neighbours) else (along, -along):
             across = points @ w
-            # the points' furthest lies short of their edge by about the width of the band within a reach of it
-            # over the points in that band (uniform samples): the edge there
-            line = np.r_[w, across.max() + reach / max(int((across > across.max() - reach).sum()), 1)]
+            band = int((across > across.max() - reach).sum())
+            line = np.r_[w, _edge(across.max(), band, reach)]
             span = _followed(points, line, n, reach)
             if span is not None and not _lies_on(n, span, np.vstack([neighbours, *out]), reach):
                 out.append(line)
                 spans.append(span)
-    return np.array(out).reshape(-1, 4), np.array(spans).reshape(-1, 2, 3)
+                bands.append(np.r_[points[across.argmax()], band])
+    return np.array(out).reshape(-1, 4), np.array(spans).reshape(-1, 2, 3), np.array(bands).reshape(-1, 4)
+
+
+def _edge(furthest: float, band: int, reach: float) -> float:
+    """Where an edge lies across its line's normal, from its points' ``furthest`` across it and the ``band`` of
+    points within ``reach`` of that: uniform samples end short of their edge by about the band's width over its
+    points."""
+    return furthest + reach / max(band, 1)
 
 
 def _lies_on(n: np.ndarray, ends: np.ndarray, others: np.ndarray, reach: float) -> bool:

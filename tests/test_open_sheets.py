@@ -1,7 +1,8 @@
 """Open flat props built as artists build them, from sheets that end inside their box: a panel set into a frame open
 at the back (the panel's edges end on the frame's inner walls), a shelf open at the front with boards inside (each
-ends on three walls and at the opening, or short of it, in the air) and a ledge standing out of a wall (three of its
-edges in the air).  Drawn at random (proportions, depths, any pose, millimetres to kilometres), as oriented points:
+ends on three walls and at the opening, or short of it, in the air), a ledge standing out of a wall (three of its
+edges in the air, the front one square or cut at an angle) and a gusset standing on a floor against a wall (its
+slope in the air).  Drawn at random (proportions, depths, any pose, millimetres to kilometres), as oriented points:
 the pipeline's open planes path (``open_planar.open_polyhedron`` with ``free``) gives each exactly, its sheets set
 apart where they end on a wall; an input closed or asked closed never takes that path."""
 
@@ -114,10 +115,51 @@ def ledge(rng: np.random.Generator) -> Shape:
     return Shape(vertices=v, faces=f)
 
 
-FAMILIES = {"framed_panel": framed_panel, "shelf": shelf, "short_shelf": short_shelf, "ledge": ledge}
-# A free edge (``short_shelf``'s boards' fronts, ``ledge``'s board) is where its points stop: 8,192 samples end a
-# fraction of their spacing short of it (about 1 / (density x its length)); elsewhere other planes' lines end a face.
-NEAR = {"short_shelf": 5e-3, "ledge": 5e-3}
+def _facing(v: np.ndarray, f: np.ndarray, want: np.ndarray) -> np.ndarray:
+    """``f`` (F, 3) with each face turned to face along its row of ``want`` (F, 3)."""
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    turn = np.einsum("ij,ij->i", n, want) < 0
+    f[turn] = f[turn][:, ::-1]
+    return f
+
+
+def slanted_ledge(rng: np.random.Generator) -> Shape:
+    """:func:`ledge` with its front edge cut at 10-40 degrees to the wall: an edge in the air along no other edge's
+    line nor at right angles to one."""
+    w, h = rng.uniform(0.5, 1.0, 2)
+    y = rng.uniform(0.3, 0.7) * h
+    a = rng.uniform(0.1, 0.4) * w
+    b = a + rng.uniform(0.3, 0.5) * w
+    d1 = rng.uniform(0.2, 0.6) * w
+    slope = np.tan(np.radians(rng.uniform(10, 40))) * (b - a)
+    d2 = d1 - slope if d1 - slope > 0.1 * w else d1 + slope
+    v = np.array([[0, 0, 0], [0, 0, w], [0, h, w], [0, h, 0], [0, y, a], [d1, y, a], [d2, y, b], [0, y, b]],
+                 dtype=np.float64)
+    f = quads([[0, 1, 2, 3], [4, 7, 6, 5]])  # rows: wall, board, wall, board
+    return Shape(vertices=v, faces=_facing(v, f, np.array([[1.0, 0, 0], [0, 1, 0], [1, 0, 0], [0, 1, 0]])))
+
+
+def gusset(rng: np.random.Generator) -> Shape:
+    """A floor (y = 0, facing up) and a wall (x = 0, facing +x) meeting along an edge, and a triangle standing on
+    both across that edge (at z = c, facing +z), its slope at 30-60 degrees to the floor: its third edge in the air,
+    at an angle to every other edge."""
+    length, height, width = rng.uniform(0.5, 1.0, 3)
+    c = rng.uniform(0.3, 0.7) * width
+    g = rng.uniform(0.3, 0.8) * length
+    k = g * np.tan(np.radians(rng.uniform(30, 60)))
+    g, k = (g, k) if k < 0.9 * height else (g * 0.9 * height / k, 0.9 * height)
+    v = np.array([[0, 0, 0], [length, 0, 0], [length, 0, width], [0, 0, width], [0, height, 0], [0, height, width],
+                  [0, 0, c], [g, 0, c], [0, k, c]], dtype=np.float64)
+    f = np.vstack([quads([[0, 1, 2, 3], [0, 3, 5, 4]]), [[6, 7, 8]]])  # rows: floor, wall, floor, wall, gusset
+    return Shape(vertices=v, faces=_facing(v, f, np.array([[0.0, 1, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0], [0, 0, 1]])))
+
+
+FAMILIES = {"framed_panel": framed_panel, "shelf": shelf, "short_shelf": short_shelf, "ledge": ledge,
+            "slanted_ledge": slanted_ledge, "gusset": gusset}
+# A free edge (``short_shelf``'s boards' fronts, the ledges' boards, the gusset's slope) is where its points stop:
+# 8,192 samples end a fraction of their spacing short of it (about 1 / (density x its length)); elsewhere other
+# planes' lines end a face.
+NEAR = {"short_shelf": 5e-3, "ledge": 5e-3, "slanted_ledge": 5e-3, "gusset": 5e-3}
 
 
 @pytest.mark.parametrize("family", sorted(FAMILIES))

@@ -10,9 +10,10 @@ closed one; anything else gives None.
 An input the pipeline has found open (``closure.decide_closed``) may also stop inside its box, as artists build
 flat props from sheets: a fin or a flange that ends in the air, a board short of a shelf's opening, a panel set into
 a frame that ends on the frame's walls.  With ``free`` each plane's faces end where its own points stop
-(:func:`_stop_lines`: along or across the line of one of its neighbours, or along a side of the box in a frame along
-the shape's walls), every open edge must be where the points reach and stop (:func:`_stops`), and a sheet that ends
-on a wall shares no edge with it (:func:`_detached`), so that every edge keeps at most two faces.
+(:func:`_stop_lines`: along or across the line of one of its neighbours, along a side of the box in a frame along
+the shape's walls, or along a straight stretch of its own outline), every open edge must be where the points reach
+and stop (:func:`_stops`), and a sheet that ends on a wall shares no edge with it (:func:`_detached`), so that every
+edge keeps at most two faces.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from functools import partial
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .outline_edges import outline_ways
 from .planar import PlanarConfig, _explains, planar_mesh
 
 PARALLEL_COS = np.cos(np.radians(10))  # as ``planar.neighbour_planes``: planes closer than this never meet
@@ -29,10 +31,13 @@ PARALLEL_SINE = np.sin(np.radians(10))
 EDGE_SHARE = 0.3  # a plane's open edge spans at least this share of the plane's width along it
 # A line where a sheet stops (``_stop_lines``) that lies within ALIKE cover radii of a side of the box or of another's
 # plane is that plane (the points' furthest on each sheet lie a fraction of their spacing short of the edge they
-# share; two boards of a shelf stop a radius or more apart).  Lines within this angle of each other run alike; a
-# plane within it of an axis: the frame is along the shape's walls.
+# share; two boards of a shelf stop a radius or more apart).  Lines within this angle of each other run alike.
 ALIKE_COS = np.cos(np.radians(2))
 ALIKE = 0.25
+# A frame is along the shape's walls where one of its planes lies within half a degree of an axis: an artist's frame
+# and the canonical one (``canonical.canonical_rotation``) hold them within a hundredth of a degree; a small plane a
+# degree or two off an axis in a turned frame lies so by chance.
+ALIGNED_COS = np.cos(np.radians(0.5))
 # With ``free`` an open edge is kept where the points reach it and stop: at PROBES places along it their nearest point
 # lies within REACHED cover radii on average (on the framed panels and shelves of ``benchmarks/open_sheets.py``
 # 0.1-0.4; a face a side of the box cut off a radius past its points: 1.0 and more), and none within half a radius
@@ -87,10 +92,12 @@ def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near
                        for k in range(len(planes))]
     # The box's sides count only in a frame along the shape's walls: in a frame it is turned in, a side touches the
     # shape at a corner, at an angle to its edges.
-    if not (np.abs(planes[:, :3]) > ALIKE_COS).any():
+    if not (np.abs(planes[:, :3]) > ALIGNED_COS).any():
         sides = sides[:0]
-    found = [_stop_lines(planes[k], planes[sorted(near[k])], sides, points[labels == k], reach)
-             for k in range(len(planes))]
+    held = np.bincount(labels[labels >= 0], minlength=len(planes))
+    # Neighbours of most points first: of two directions a degree apart, the surer plane's is taken.
+    found = [_stop_lines(planes[k], planes[sorted(near[k], key=lambda j: (-held[j], j))], sides, points[labels == k],
+                         reach) for k in range(len(planes))]
     owner = np.repeat(np.arange(len(planes)), [len(lines) for lines, _, _ in found])
     lines, spans, bands = (np.vstack([np.zeros((0, *shape)), *[x[i] for x in found]])
                            for i, shape in enumerate(((4,), (2, 3), (4,))))
@@ -127,31 +134,39 @@ def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, po
     """(L, 4) planes across ``plane`` (each at right angles to it) along the lines where its ``points`` stop: a board
     short of a shelf's opening, a ledge standing out of a wall, a wall at its box's open side, a flange ending in the
     air; (L, 2, 3) the ends of the stretch of each the points follow; (L, 4) the points' furthest across each and how
-    many lie within ``reach`` of it across the line (:func:`_edge`).  An artist's sheet ends along a line
-    parallel or at right angles to one of its other edges, or along a side of its box.  So each line runs along or
-    across the line of one of its ``neighbours`` (K, 4) or along the line of one of the box's ``sides`` (S, 4), at
-    the points' furthest across it; it is kept where the points follow it (:func:`_followed`) and the stretch they
-    follow lies on no neighbour's line (where a real edge ends the plane) nor a line kept before (:func:`_lies_on`).
+    many lie within ``reach`` of it across the line (:func:`_edge`).  An artist's sheet mostly ends along a line
+    parallel or at right angles to one of its other edges, or along a side of its box; else (a gusset's slope, a
+    plate's slanted end) along a straight stretch of its own outline.  So each line runs along or across the line of
+    one of its ``neighbours`` (K, 4), along the line of one of the box's ``sides`` (S, 4), or along a direction of
+    the points' outline 10 degrees off all of those (``outline_edges.outline_ways``), at the points' furthest across
+    it; it is kept where the points follow it (:func:`_followed`) and the stretch they follow lies on no neighbour's
+    line (where a real edge ends the plane) nor a line kept before (:func:`_lies_on`).
     """
     n = plane[:3]
     out: list[np.ndarray] = []
     spans: list[np.ndarray] = []
     bands: list[np.ndarray] = []
+    ways: list[np.ndarray] = []
     for i, other in enumerate(np.vstack([neighbours, sides])):
         u = np.cross(n, other[:3])
         if np.linalg.norm(u) < PARALLEL_SINE:
             continue
         u /= np.linalg.norm(u)
         along = np.cross(n, u)  # the edge along the other's line; across it (at right angles) for a neighbour
-        for w in (along, -along, u, -u) if i < len(neighbours) else (along, -along):
-            across = points @ w
-            band = int((across > across.max() - reach).sum())
-            line = np.r_[w, _edge(across.max(), band, reach)]
-            span = _followed(points, line, n, reach)
-            if span is not None and not _lies_on(n, span, np.vstack([neighbours, *out]), reach):
-                out.append(line)
-                spans.append(span)
-                bands.append(np.r_[points[across.argmax()], band])
+        # A side's direction a degree or two off a neighbour's is the canonical frame's rounding: the artist's is
+        # the neighbour's.
+        ways.extend(w for w in ((along, -along, u, -u) if i < len(neighbours) else (along, -along))
+                    if all(w @ o < ALIKE_COS for o in ways))
+    # A sheet cut at any angle (a gusset's slope, a plate's slanted end) stops along its own outline's direction.
+    for w in ways + [w for w in outline_ways(points, n, reach, ALIKE_COS) if all(w @ o < PARALLEL_COS for o in ways)]:
+        across = points @ w
+        band = int((across > across.max() - reach).sum())
+        line = np.r_[w, _edge(across.max(), band, reach)]
+        span = _followed(points, line, n, reach)
+        if span is not None and not _lies_on(n, span, np.vstack([neighbours, *out]), reach):
+            out.append(line)
+            spans.append(span)
+            bands.append(np.r_[points[across.argmax()], band])
     return np.array(out).reshape(-1, 4), np.array(spans).reshape(-1, 2, 3), np.array(bands).reshape(-1, 4)
 
 
@@ -278,7 +293,7 @@ def _stops(points: np.ndarray, reach: float):
     """``stops(vertices, f, edges)``: whether the ``points`` (N, 3) reach and stop at every one of ``edges`` (E, 2),
     each an open edge as its face of ``f`` (E, 3) winds it: at ``PROBES`` places along it, their nearest within
     ``REACHED`` x ``reach`` on average, and none within half a ``reach`` of where its face's plane goes ``BEYOND`` x
-    ``reach`` past it."""
+    ``reach`` past it, but at its two end places (a short edge ending on a wall has the wall's points there)."""
     tree = cKDTree(points)
 
     def stops(vertices: np.ndarray, f: np.ndarray, edges: np.ndarray) -> bool:
@@ -290,7 +305,7 @@ def _stops(points: np.ndarray, reach: float):
         on = (a[None] + t[:, None, None] * (b - a)[None]).reshape(-1, 3)  # (PROBES * E, 3), probe by probe
         out = np.tile(out, (PROBES, 1))
         reached = tree.query(on)[0].reshape(PROBES, -1).mean(0)
-        beyond = tree.query(on + BEYOND * reach * out)[0]
+        beyond = tree.query(on + BEYOND * reach * out)[0].reshape(PROBES, -1)[1:-1]
         return bool((reached < REACHED * reach).all() and (beyond > 0.5 * reach).all())
 
     return stops

@@ -38,6 +38,9 @@ ALIKE = 0.25
 # and the canonical one (``canonical.canonical_rotation``) hold them within a hundredth of a degree; a small plane a
 # degree or two off an axis in a turned frame lies so by chance.
 ALIGNED_COS = np.cos(np.radians(0.5))
+# A scan's sheets (its plane tolerance widened to its noise, ``planar``) stop and meet within this many tolerances
+# of where their lines are: the least of the distances above in a free mode's checks.
+NOISE_TOLERANCES = 2.0
 # With ``free`` an open edge is kept where the points reach it and stop: at PROBES places along it their nearest point
 # lies within REACHED cover radii on average (on the framed panels and shelves of ``benchmarks/open_sheets.py``
 # 0.1-0.4; a face a side of the box cut off a radius past its points: 1.0 and more), and none within half a radius
@@ -66,13 +69,13 @@ def open_polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig =
     (V, 3) float64 vertices and (F, 3) int64 faces, edge-manifold and consistently oriented, with at least one
     open edge and every open edge on a side of the points' bounding box (or where they stop); or None.
     """
-    made = planar_mesh(points, normals, cfg, cut=partial(_cut_at_box, free=free))
+    made = planar_mesh(points, normals, cfg, cut=partial(_cut_at_box, free=free, exact=cfg.tolerance))
     if made is None:
         return None
-    vertices, faces, pts, reach, sides = made
+    vertices, faces, pts, reach, sides, tolerance = made
     if free:
         vertices, faces = _detached(vertices, faces, cfg.tolerance, reach)
-    stops = _stops(pts, reach) if free else None
+    stops = _stops(pts, reach, tolerance - cfg.tolerance) if free else None
     if not _open_where_it_stops(vertices, faces, sides, cfg.tolerance, stops) or not _explains(vertices, faces, pts,
                                                                                                 reach):
         return None
@@ -80,10 +83,13 @@ def open_polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig =
 
 
 def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near: list[set[int]], reach: float,
-                free: bool = False) -> tuple[np.ndarray | None, list[list[int]] | None]:
+                tolerance: float, free: bool = False, exact: float = 0.0
+                ) -> tuple[np.ndarray | None, list[list[int]] | None]:
     """``planar.planar_mesh``'s ``cut``: the box sides no plane lies on, and for each plane those where it stops
     (``_open_sides``); with ``free``, for each plane the lines where its own points stop (``_stop_lines``), inside
-    the box or on a side of it, each a plane across it, one plane for the lines that lie on one (``_shared``)."""
+    the box or on a side of it, each a plane across it, one plane for the lines that lie on one (``_shared``); for
+    a scan (``tolerance`` at its noise wider than ``exact``), from each plane's points off its neighbours' lines
+    (:func:`_off_lines`), read no finer than ``NOISE_TOLERANCES`` times the tolerance."""
     sides = box_sides(points, planes, labels, reach)
     if not free:
         if not len(sides):
@@ -95,22 +101,40 @@ def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near
     if not (np.abs(planes[:, :3]) > ALIGNED_COS).any():
         sides = sides[:0]
     held = np.bincount(labels[labels >= 0], minlength=len(planes))
-    # Neighbours of most points first: of two directions a degree apart, the surer plane's is taken.
-    found = [_stop_lines(planes[k], planes[sorted(near[k], key=lambda j: (-held[j], j))], sides, points[labels == k],
-                         reach) for k in range(len(planes))]
+    # A scan (its tolerance wider than ``exact``'s) puts its points near a line two sheets meet on in either plane
+    # within its tolerance: a sheet's points stop up to that short of the line and scatter that far about it, and a
+    # strip of its neighbour's points runs on along the line past its own edges.
+    scan = tolerance > exact
+    gap = NOISE_TOLERANCES * tolerance if scan else 0.0
+    found = []
+    for k in range(len(planes)):
+        # Neighbours of most points first: of two directions a degree apart, the surer plane's is taken.
+        others = planes[sorted(near[k], key=lambda j: (-held[j], j))]
+        own = points[labels == k]
+        off = _off_lines(own, planes[k], others, tolerance) if scan else np.ones(len(own), dtype=bool)
+        if off.sum() >= 3:  # (a strip along its neighbours' lines keeps all of its points)
+            own = own[off]
+        found.append(_stop_lines(planes[k], others, sides, own, reach, gap))
     owner = np.repeat(np.arange(len(planes)), [len(lines) for lines, _, _ in found])
     lines, spans, bands = (np.vstack([np.zeros((0, *shape)), *[x[i] for x in found]])
                            for i, shape in enumerate(((4,), (2, 3), (4,))))
-    sides, which = _shared(sides, lines, spans, bands, planes[owner], reach)
+    sides, which = _shared(sides, lines, spans, bands, planes[owner], reach, gap)
     return sides, [sorted(set(which[owner == k].tolist())) for k in range(len(planes))]
 
 
+def _off_lines(points: np.ndarray, plane: np.ndarray, others: np.ndarray, tolerance: float) -> np.ndarray:
+    """(P,) whether each of a plane's ``points`` (P, 3) lies farther than ``tolerance`` from every plane of ``others``
+    (K, 4) that crosses ``plane`` (4,): off the lines where it meets them."""
+    crossing = others[np.abs(others[:, :3] @ plane[:3]) < PARALLEL_COS]
+    return (np.abs(points @ crossing[:, :3].T - crossing[:, 3]) > tolerance).all(1)
+
+
 def _shared(sides: np.ndarray, lines: np.ndarray, spans: np.ndarray, bands: np.ndarray, sheets: np.ndarray,
-            reach: float) -> tuple[np.ndarray, np.ndarray]:
+            reach: float, gap: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The box ``sides`` (S, 4) and the planes of ``lines`` (L, 4; each across its sheet of ``sheets`` (L, 4)), a line
     made one with a side or a line before it that crosses its sheet and holds both ends of its ``spans`` (L, 2, 3)
-    within ``ALIKE`` x ``reach`` (the front edges of a shelf's walls all stop at its opening; a flange and a
-    sloping wall both stop on the box's floor): (S + M, 4) planes, the sides first, and (L,) which one each line
+    within ``ALIKE`` x ``reach`` or ``gap`` (the front edges of a shelf's walls all stop at its opening; a flange
+    and a sloping wall both stop on the box's floor): (S + M, 4) planes, the sides first, and (L,) which one each line
     became.  Corners where two such sheets meet then come from the same planes.  A plane made of lines facing alike
     lies where all their points put the edge (``bands`` (L, 4): each line's furthest point and band, ``_edge``)."""
     out, pooled = list(sides), {}
@@ -118,7 +142,7 @@ def _shared(sides: np.ndarray, lines: np.ndarray, spans: np.ndarray, bands: np.n
     for i, (line, ends, band, sheet) in enumerate(zip(lines, spans, bands, sheets, strict=True)):
         off = np.array([np.abs(ends @ o[:3] - o[3]).max() if abs(o[:3] @ sheet[:3]) < PARALLEL_COS else np.inf
                         for o in out]).reshape(-1)
-        if not len(off) or off.min() >= ALIKE * reach:
+        if not len(off) or off.min() >= max(ALIKE * reach, gap):
             out.append(line.copy())
             off = np.r_[off, 0.0]
         j = which[i] = int(off.argmin())  # the nearest: a line on a box's edge lies on two sides
@@ -129,8 +153,8 @@ def _shared(sides: np.ndarray, lines: np.ndarray, spans: np.ndarray, bands: np.n
     return np.array(out).reshape(-1, 4), which
 
 
-def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, points: np.ndarray, reach: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, points: np.ndarray, reach: float,
+                gap: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(L, 4) planes across ``plane`` (each at right angles to it) along the lines where its ``points`` stop: a board
     short of a shelf's opening, a ledge standing out of a wall, a wall at its box's open side, a flange ending in the
     air; (L, 2, 3) the ends of the stretch of each the points follow; (L, 4) the points' furthest across each and how
@@ -140,7 +164,8 @@ def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, po
     one of its ``neighbours`` (K, 4), along the line of one of the box's ``sides`` (S, 4), or along a direction of
     the points' outline 10 degrees off all of those (``outline_edges.outline_ways``), at the points' furthest across
     it; it is kept where the points follow it (:func:`_followed`) and the stretch they follow lies on no neighbour's
-    line (where a real edge ends the plane) nor a line kept before (:func:`_lies_on`).
+    line (where a real edge ends the plane) nor a line kept before (:func:`_lies_on`); ``gap``: the least distance
+    those checks read as near (a scan's noise).
     """
     n = plane[:3]
     out: list[np.ndarray] = []
@@ -162,8 +187,8 @@ def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, po
         across = points @ w
         band = int((across > across.max() - reach).sum())
         line = np.r_[w, _edge(across.max(), band, reach)]
-        span = _followed(points, line, n, reach)
-        if span is not None and not _lies_on(n, span, np.vstack([neighbours, *out]), reach):
+        span = _followed(points, line, n, reach, gap)
+        if span is not None and not _lies_on(n, span, np.vstack([neighbours, *out]), reach, gap):
             out.append(line)
             spans.append(span)
             bands.append(np.r_[points[across.argmax()], band])
@@ -177,26 +202,28 @@ def _edge(furthest: float, band: int, reach: float) -> float:
     return furthest + reach / max(band, 1)
 
 
-def _lies_on(n: np.ndarray, ends: np.ndarray, others: np.ndarray, reach: float) -> bool:
+def _lies_on(n: np.ndarray, ends: np.ndarray, others: np.ndarray, reach: float, gap: float = 0.0) -> bool:
     """Whether both ``ends`` (2, 3), in the plane of normal ``n`` (3,), lie near the line where it meets one of
     ``others`` (K, 4): within ``reach`` of it (in that plane) where that line runs at an angle to theirs (the points'
     furthest across a direction a few degrees off an edge only touch that edge), within ``ALIKE`` x ``reach`` where
-    it runs along it within ``ALIKE_COS`` (a panel set back from an open side a little: the walls go on past it)."""
+    it runs along it within ``ALIKE_COS`` (a panel set back from an open side a little: the walls go on past it);
+    within ``gap`` at least."""
     cross = np.cross(n, others[:, :3])
     sine = np.linalg.norm(cross, axis=1)
     crossing = sine > PARALLEL_SINE
     off = np.abs(ends @ others[crossing, :3].T - others[crossing, 3]) / sine[crossing]  # (2, K)
     d = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
     alike = np.abs(cross[crossing] @ d) / sine[crossing] > ALIKE_COS
-    return bool((off < np.where(alike, ALIKE, 1.0) * reach).all(0).any())
+    return bool((off < np.maximum(np.where(alike, ALIKE, 1.0) * reach, gap)).all(0).any())
 
 
-def _followed(points: np.ndarray, line: np.ndarray, n: np.ndarray, reach: float) -> np.ndarray | None:
+def _followed(points: np.ndarray, line: np.ndarray, n: np.ndarray, reach: float, gap: float = 0.0
+              ) -> np.ndarray | None:
     """(2, 3) the ends of the stretch of ``line`` (4,; a plane across the plane of normal ``n`` (3,) that the
     ``points`` lie on, its normal pointing away from them) along which they stop, or None: those within ``reach`` of
-    it span ``EDGE_SHARE`` of the points' width along it at least, and come within half a ``reach`` of it in the
-    first and the last quarter of that span, not only where the line touches a corner of the points at an angle to
-    their edge."""
+    it span ``EDGE_SHARE`` of the points' width along it at least, and come within half a ``reach`` (or ``gap``) of it
+    in the first and the last quarter of that span, not only where the line touches a corner of the points at an
+    angle to their edge."""
     u = np.cross(n, line[:3])
     u /= np.linalg.norm(u)
     off = line[3] - points @ line[:3]
@@ -205,7 +232,7 @@ def _followed(points: np.ndarray, line: np.ndarray, n: np.ndarray, reach: float)
     if band.sum() < 3 or np.ptp(along) < max(EDGE_SHARE * np.ptp(points @ u), reach):
         return None
     quarter = np.minimum(((along - along.min()) / np.ptp(along) * 4).astype(int), 3)
-    if not (np.bincount(quarter, off[band] < 0.5 * reach, minlength=4)[[0, 3]] > 0).all():
+    if not (np.bincount(quarter, off[band] < max(0.5 * reach, gap), minlength=4)[[0, 3]] > 0).all():
         return None  # (a stretch may have gaps: legs standing on one line)
     ends = points[band][[along.argmin(), along.argmax()]]
     return ends + np.outer(line[3] - ends @ line[:3], line[:3])  # onto the line, in the points' plane
@@ -289,10 +316,11 @@ def _open_where_it_stops(vertices: np.ndarray, faces: np.ndarray, sides: np.ndar
     return bool((off.max(1) < tol).any(1).all())
 
 
-def _stops(points: np.ndarray, reach: float):
+def _stops(points: np.ndarray, reach: float, noise: float = 0.0):
     """``stops(vertices, f, edges)``: whether the ``points`` (N, 3) reach and stop at every one of ``edges`` (E, 2),
     each an open edge as its face of ``f`` (E, 3) winds it: at ``PROBES`` places along it, their nearest within
-    ``REACHED`` x ``reach`` on average, and none within half a ``reach`` of where its face's plane goes ``BEYOND`` x
+    ``REACHED`` x ``reach`` on average (and ``noise`` more: a scan's furthest point, which places the edge, lies
+    that much beyond the others), and none within half a ``reach`` of where its face's plane goes ``BEYOND`` x
     ``reach`` past it, but at its two end places (a short edge ending on a wall has the wall's points there)."""
     tree = cKDTree(points)
 
@@ -306,7 +334,7 @@ def _stops(points: np.ndarray, reach: float):
         out = np.tile(out, (PROBES, 1))
         reached = tree.query(on)[0].reshape(PROBES, -1).mean(0)
         beyond = tree.query(on + BEYOND * reach * out)[0].reshape(PROBES, -1)[1:-1]
-        return bool((reached < REACHED * reach).all() and (beyond > 0.5 * reach).all())
+        return bool((reached < REACHED * reach + noise).all() and (beyond > 0.5 * reach).all())
 
     return stops
 

@@ -70,20 +70,21 @@ def polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = Plan
     made = planar_mesh(points, normals, cfg)
     if made is None:
         return None
-    vertices, faces, pts, reach, _ = made
+    vertices, faces, pts, reach, _, _ = made
     return (vertices, faces) if _closed(faces) and _explains(vertices, faces, pts, reach) else None
 
 
 def planar_mesh(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, cut: Callable | None = None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray] | None:
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, float] | None:
     """The faces the planes of an oriented point cloud make, each plane's cut by its neighbours' lines (and by
     the planes ``cut`` adds), before any check of the whole: what :func:`polyhedron` and
     ``open_planar.open_polyhedron`` share.
 
-    ``cut(points, planes, labels, near, reach)`` returns (S, 4) more planes, without points, and for each plane
-    of ``planes`` the indices of those that end its faces; or (None, None) where there are none.  Returns the
-    vertices, faces, the points read (subsampled), the cover radius and the added planes; or None where a plane
-    has no faces it can close, or the corners are too many.
+    ``cut(points, planes, labels, near, reach, tolerance)`` returns (S, 4) more planes, without points, and for
+    each plane of ``planes`` the indices of those that end its faces; or (None, None) where there are none.
+    Returns the vertices, faces, the points read (subsampled), the cover radius, the added planes and the plane
+    tolerance at the points' noise (``cfg``'s, or wider for a scan); or None where a plane has no faces it can
+    close, or the corners are too many.
     """
     found = planes_found(points, normals, cfg)
     if found is None:
@@ -92,7 +93,7 @@ def planar_mesh(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, cut:
     reach = cfg.reach * spacing
     near, real, extra = neighbour_planes(pts, labels, planes, reach), len(planes), np.zeros((0, 4))
     if cut is not None:
-        extra, ends = cut(pts, planes, labels, near, reach)
+        extra, ends = cut(pts, planes, labels, near, reach, cfg.tolerance)
         if extra is None:
             return None
         near = [mine | {real + j for j in end} for mine, end in zip(near, ends, strict=True)]
@@ -113,7 +114,7 @@ def planar_mesh(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, cut:
     if len(vertices) > cfg.max_vertices:
         return None
     faces = _triangulate(vertices, planes, [(k, _distinct(index[ring])) for k, ring in loops], cfg.tolerance)
-    return None if faces is None else (vertices, faces, pts, reach, extra)
+    return None if faces is None else (vertices, faces, pts, reach, extra, cfg.tolerance)
 
 
 def planes_found(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig) -> tuple | None:

@@ -4,7 +4,8 @@ ends on three walls and at the opening, or short of it, in the air), a ledge sta
 edges in the air, the front one square or cut at an angle) and a gusset standing on a floor against a wall (its
 slope in the air).  Drawn at random (proportions, depths, any pose, millimetres to kilometres), as oriented points:
 the pipeline's open planes path (``open_planar.open_polyhedron`` with ``free``) gives each exactly, its sheets set
-apart where they end on a wall; an input closed or asked closed never takes that path."""
+apart where they end on a wall; scanned with noise as bare points, ledges and short shelves come back from their
+planes within a few noise levels; an input closed or asked closed never takes that path."""
 
 from __future__ import annotations
 

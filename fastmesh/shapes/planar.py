@@ -76,16 +76,14 @@ def polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = Plan
 
 def planar_mesh(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, cut: Callable | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, float] | None:
-    """The faces the planes of an oriented point cloud make, each plane's cut by its neighbours' lines (and by
-    the planes ``cut`` adds), before any check of the whole: what :func:`polyhedron` and
-    ``open_planar.open_polyhedron`` share.
+    """The faces the planes of an oriented point cloud make, each plane's cut by its neighbours' lines (and by the
+    planes ``cut`` adds), before any check of the whole: what :func:`polyhedron` and ``open_planar`` share.
 
     ``cut(points, planes, labels, near, reach, tolerance)`` returns (S, 4) more planes, without points, and for
     each plane of ``planes`` the indices of those that end its faces; or (None, None) where there are none.
     Returns the vertices, faces, the points read (subsampled), the cover radius, the added planes and the plane
     tolerance at the points' noise (``cfg``'s, or wider for a scan); or None where a plane has no faces it can
-    close, or the corners are too many.
-    """
+    close, or the corners are too many."""
     found = planes_found(points, normals, cfg)
     if found is None:
         return None

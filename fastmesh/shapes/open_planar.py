@@ -84,7 +84,7 @@ def open_polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig =
 
 
 def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near: list[set[int]], reach: float,
-                tolerance: float, free: bool = False, exact: float = 0.0
+                tolerance: float, free: bool = False, exact: float = PlanarConfig.tolerance
                 ) -> tuple[np.ndarray | None, list[list[int]] | None]:
     """``planar.planar_mesh``'s ``cut``: the box sides no plane lies on, and for each plane those where it stops
     (``_open_sides``); with ``free``, for each plane the lines where its own points stop (``_stop_lines``), inside

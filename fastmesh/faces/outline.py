@@ -22,11 +22,11 @@ from dataclasses import dataclass
 import manifold3d
 import numpy as np
 
+from ..shapes.arrangement import plane_basis
 from ..shapes.planar import signed_area
 from ..tokenizer.grid import CELL
 from .crossings import crossing_faces
 from .meshops import face_normals, face_sides, remove_unreferenced
-from .plane_arrangement import plane_basis
 
 # A face lower than this many tolerances (twice its area over its longest side) is a sliver, whose normal may tilt
 # further from its region's; no face joins a region with its normal MAX_TILT degrees or more from the region's

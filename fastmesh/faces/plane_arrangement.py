@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..shapes.arrangement import merge_points
+from ..shapes.arrangement import merge_points, plane_basis
 from ..shapes.planar import signed_area
 
 MAX_CELLS = 4000  # an arrangement of more cells is refused: too many planes crossing to be a prop's flat parts
@@ -90,13 +90,6 @@ def _ring(points: np.ndarray, normal: np.ndarray) -> np.ndarray | None:
         return None
     flat = (points - points.mean(0)) @ plane_basis(normal)
     return points[np.argsort(np.arctan2(flat[:, 1], flat[:, 0]))]
-
-
-def plane_basis(normal: np.ndarray) -> np.ndarray:
-    """(3, 2) two unit vectors spanning the plane of ``normal`` (u x v = normal)."""
-    u = np.cross(normal, [1.0, 0, 0] if abs(normal[0]) < 0.9 else [0, 1.0, 0])
-    u /= np.linalg.norm(u)
-    return np.c_[u, np.cross(normal, u)]
 
 
 def box_planes(points: np.ndarray) -> np.ndarray:

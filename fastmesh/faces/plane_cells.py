@@ -23,12 +23,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from ..shapes.arrangement import merge_points
+from ..shapes.arrangement import merge_points, plane_basis
 from ..shapes.planar import PlanarConfig, _closed, _distinct, _with_points_on_edges, planes_found
 from .cells import min_cut
 from .kitbash import flat_rebuild, flat_regions
 from .meshops import distance_to_triangles, remove_unreferenced, wound_alike
-from .plane_arrangement import GROWN, WELD_EPS, Polytope, facets, plane_arrangement, plane_basis, polygon_area
+from .plane_arrangement import GROWN, WELD_EPS, Polytope, facets, plane_arrangement, polygon_area
 from .winding import winding_numbers
 
 MAX_REGIONS = 256  # flat regions of the union (``kitbash.MAX_REGIONS``)
@@ -67,7 +67,7 @@ def cells_surface(planes: np.ndarray, pid: np.ndarray, rings: list[np.ndarray], 
     ----------
     planes : (K + 6, 4) float, the planes the facets lie on
     pid : (T,) int, each facet's plane; rings : T (m, 2) counter-clockwise rings in its plane
-        (``plane_arrangement.plane_basis``)
+        (``shapes.arrangement.plane_basis``)
     a, b : (T,) int, the cells below and beyond each facet's plane (-1: outside the box)
     inside : (C,) bool
     tol : float, corners this close are one vertex: planes fitted to samples cross a little apart where more than

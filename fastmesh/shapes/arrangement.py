@@ -152,3 +152,10 @@ def merge_points(points: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray
     sums = np.zeros((index.max() + 1, points.shape[1]))
     np.add.at(sums, index, points)
     return sums / np.bincount(index)[:, None], index
+
+
+def plane_basis(normal: np.ndarray) -> np.ndarray:
+    """(3, 2) two unit vectors spanning the plane of ``normal`` (u x v = normal)."""
+    u = np.cross(normal, [1.0, 0, 0] if abs(normal[0]) < 0.9 else [0, 1.0, 0])
+    u /= np.linalg.norm(u)
+    return np.c_[u, np.cross(normal, u)]

@@ -112,8 +112,8 @@ def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near
         # Neighbours of most points first: of two directions a degree apart, the surer plane's is taken.
         others = planes[sorted(near[k], key=lambda j: (-held[j], j))]
         own = points[labels == k]
-        off = _off_lines(own, planes[k], others, tolerance) if scan else np.ones(len(own), dtype=bool)
-        if off.sum() >= 3:  # (a strip along its neighbours' lines keeps all of its points)
+        off = _off_lines(own, planes[k], others, tolerance) if scan else None
+        if off is not None and off.sum() >= 3:  # (a strip along its neighbours' lines keeps all of its points)
             own = own[off]
         found.append(_stop_lines(planes[k], others, sides, own, reach, gap))
     owner = np.repeat(np.arange(len(planes)), [len(lines) for lines, _, _ in found])

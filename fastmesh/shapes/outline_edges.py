@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
+from .arrangement import plane_basis
+
 FIT_ROUNDS = 3  # fits of a hull edge's direction to the outermost points near it (a wedge-shaped band narrows)
 TILT_DEGREES = 3.0  # how far the supporting line is turned from that fit, either way (in steps of 0.05)
 
@@ -24,9 +26,7 @@ def outline_ways(points: np.ndarray, n: np.ndarray, reach: float, alike_cos: flo
     the points lie along all of its stretch (:func:`_straight`, not a hull edge across a notch), as the direction
     whose supporting line leaves the least room between the points and it (:func:`_supporting`).
     """
-    u = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
-    u /= np.linalg.norm(u)
-    basis = np.c_[u, np.cross(n, u)]
+    basis = plane_basis(n)
     flat = points @ basis
     try:
         hull = ConvexHull(flat)

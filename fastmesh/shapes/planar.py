@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .arrangement import Cell, chosen, merge_points, outline
+from .arrangement import Cell, chosen, merge_points, outline, plane_basis
 from .noise import fitted_normals, noise_level
 
 # A scan (``noise.noise_level`` reads its noise): its planes hold the points within NOISE_SIGMAS noise levels
@@ -257,9 +257,7 @@ def plane_faces(k: int, planes: np.ndarray, near: set[int], points: np.ndarray, 
     ``points`` cover (``chosen``; ``spacing``: the points' median distance to their 8th neighbour).  None where
     a face reaches the box around the points (no neighbour bounds it) or two boundaries touch at a corner."""
     n, d = planes[k, :3], planes[k, 3]
-    u = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
-    u /= np.linalg.norm(u)
-    basis = np.c_[u, np.cross(n, u)]  # (3, 2): u x v = n, so counter-clockwise in 2D is outward in 3D
+    basis = plane_basis(n)  # (3, 2): u x v = n, so counter-clockwise in 2D is outward in 3D
     flat = (points - n * d) @ basis
     margin = 0.2 + 4 * reach
     cells = [Cell.box(flat.min(0) - margin, flat.max(0) + margin)]
@@ -301,9 +299,7 @@ def _triangulate(vertices: np.ndarray, planes: np.ndarray, loops: list[tuple[int
     faces = []
     for k in sorted({k for k, _ in loops}):
         n = planes[k, :3]
-        u = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
-        u /= np.linalg.norm(u)
-        basis = np.c_[u, np.cross(n, u)]
+        basis = plane_basis(n)
         rings = [_with_points_on_edges(vertices, ring, tol) for kk, ring in loops if kk == k]
         flat = [vertices[r] @ basis for r in rings]
         areas = [signed_area(f) for f in flat]

@@ -130,7 +130,8 @@ def random_shape(kind: str, rng: np.random.Generator) -> Shape:
         random sides), ``prism`` (a convex polygon of 3-8 corners at random angles, extruded), ``cylinder``
         and ``cone`` (16 sides, radius and height at random; trimesh's, with cap centres); or of ``OPEN_KINDS``:
         ``tray`` (a box of random sides without its top), ``roof`` (a gable roof of random proportions, its
-        ridge off centre, without its floor); or of ``ROUND_KINDS`` (:func:`_round_shape`)
+        ridge off centre, without its floor); or of ``ROUND_KINDS`` (:func:`_round_shape`); or of ``SHALLOW_KINDS``
+        (:func:`_shallow_shape`)
     rng : numpy Generator
 
     Returns
@@ -145,6 +146,8 @@ def random_shape(kind: str, rng: np.random.Generator) -> Shape:
         return _open_shape(kind, rng)
     if kind in ROUND_KINDS:
         return _round_shape(kind, rng)
+    if kind in SHALLOW_KINDS:
+        return _shallow_shape(kind, rng)
     if kind == "box":
         return _from_trimesh(trimesh.creation.box(extents=rng.uniform(0.2, 1.0, 3)))
     if kind == "l_block":
@@ -167,12 +170,29 @@ def random_shape(kind: str, rng: np.random.Generator) -> Shape:
     if kind == "cone":
         return _from_trimesh(trimesh.creation.cone(radius=rng.uniform(0.1, 0.5), height=rng.uniform(0.2, 1.0),
                                                    sections=SIDES))
-    raise ValueError(f"unknown kind {kind!r}; one of {', '.join(RANDOM_KINDS + OPEN_KINDS + ROUND_KINDS)}")
+    kinds = RANDOM_KINDS + OPEN_KINDS + ROUND_KINDS + SHALLOW_KINDS
+    raise ValueError(f"unknown kind {kind!r}; one of {', '.join(kinds)}")
 
 
 RANDOM_KINDS = ("box", "l_block", "prism", "cylinder", "cone")
 OPEN_KINDS = ("tray", "roof")
 ROUND_KINDS = ("capsule", "tube", "torus", "ellipsoid")
+SHALLOW_KINDS = ("low_roof", "wedge")
+
+
+def _shallow_shape(kind: str, rng: np.random.Generator) -> Shape:
+    """A closed prism with two faces a few degrees from meeting flat or folding shut: a ``low_roof`` (a house of
+    random proportions whose two roof slopes rise 1-5 degrees each, the ridge off centre: 10 corners) or a
+    ``wedge`` (a ramp rising 2-10 degrees to a vertical back, 6 corners)."""
+    w, d = rng.uniform(0.5, 1.0), rng.uniform(0.2, 1.0)
+    if kind == "wedge":
+        rise = w * np.tan(np.radians(rng.uniform(2.0, 10.0)))
+        return prism(np.array([[0, 0], [w, 0], [w, rise]]), [[0, 1, 2]], np.array([[0, 1, 2]]), d)
+    h, ridge = rng.uniform(0.2, 1.0), w * rng.uniform(0.3, 0.7)
+    left, right = np.tan(np.radians(rng.uniform(1.0, 5.0, 2)))
+    top = h + min(ridge * left, (w - ridge) * right)  # the lower slope sets the ridge; the other end its eave
+    outline = np.array([[0, 0], [w, 0], [w, top - (w - ridge) * right], [ridge, top], [0, top - ridge * left]])
+    return prism(outline, [list(range(5))], np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4]]), d)
 
 
 def _round_shape(kind: str, rng: np.random.Generator) -> Shape:

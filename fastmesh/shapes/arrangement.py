@@ -1,10 +1,12 @@
-"""The line arrangement of one plane (:mod:`.planar`): convex cells cut by its neighbours' lines, which of them
-the plane's own points cover, and the outline of the covered ones."""
+"""The line arrangement of one plane (:mod:`.planar`): the planes that meet it, convex cells cut by their lines,
+which of them the plane's own points cover, and the outline of the covered ones."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+MEETING_DEGREES = 10.0  # planes closer to parallel than this meet only where their line is sure (``meeting_sine``)
 
 
 class Cell:
@@ -159,3 +161,28 @@ def plane_basis(normal: np.ndarray) -> np.ndarray:
     u = np.cross(normal, [1.0, 0, 0] if abs(normal[0]) < 0.9 else [0, 1.0, 0])
     u /= np.linalg.norm(u)
     return np.c_[u, np.cross(normal, u)]
+
+
+def neighbour_planes(points: np.ndarray, labels: np.ndarray, planes: np.ndarray, reach: float, tolerance: float
+                     ) -> list[set[int]]:
+    """For each plane, the planes that meet it: not parallel (:func:`meeting_sine` at ``tolerance``), with points
+    of both within ``reach`` of each other at three places or more."""
+    least = meeting_sine(tolerance, reach)
+    pairs = cKDTree(points).query_pairs(reach, output_type="ndarray")
+    a, b = labels[pairs[:, 0]], labels[pairs[:, 1]]
+    keep = (a >= 0) & (b >= 0) & (a != b)
+    found, count = np.unique(np.sort(np.c_[a[keep], b[keep]], axis=1), axis=0, return_counts=True)
+    near: list[set[int]] = [set() for _ in planes]
+    for (i, j), c in zip(found, count, strict=True):
+        if c >= 3 and np.linalg.norm(np.cross(planes[i, :3], planes[j, :3])) > least:
+            near[i].add(int(j))
+            near[j].add(int(i))
+    return near
+
+
+def meeting_sine(tolerance: float, reach: float) -> float:
+    """The least sine of the angle between two planes that meet along a line: a plane's offset, sure to within
+    ``tolerance``, moves their line by ``tolerance`` over the sine across it, and the line must be sure to within
+    half the cover radius ``reach`` (exact data: planes a degree apart, a low roof's or a thin wedge's), and
+    never finer than ``MEETING_DEGREES`` (a scan)."""
+    return min(np.sin(np.radians(MEETING_DEGREES)), 2 * tolerance / reach)

@@ -23,12 +23,15 @@ from functools import partial
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .arrangement import MEETING_DEGREES
 from .detach import detached
 from .outline_edges import outline_ways
 from .planar import PlanarConfig, _explains, planar_mesh
 
-PARALLEL_COS = np.cos(np.radians(10))  # as ``planar.neighbour_planes``: planes closer than this never meet
-PARALLEL_SINE = np.sin(np.radians(10))
+# A side of the box or a line across a sheet this near parallel to a plane does not cut it (its neighbours, which
+# meet it by ``arrangement.meeting_sine``, always do).
+PARALLEL_COS = np.cos(np.radians(MEETING_DEGREES))
+PARALLEL_SINE = np.sin(np.radians(MEETING_DEGREES))
 EDGE_SHARE = 0.3  # a plane's open edge spans at least this share of the plane's width along it
 # A line where a sheet stops (``_stop_lines``) that lies within ALIKE cover radii of a side of the box or of another's
 # plane is that plane (the points' furthest on each sheet lie a fraction of their spacing short of the edge they
@@ -112,7 +115,7 @@ def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near
         # Neighbours of most points first: of two directions a degree apart, the surer plane's is taken.
         others = planes[sorted(near[k], key=lambda j: (-held[j], j))]
         own = points[labels == k]
-        off = _off_lines(own, planes[k], others, tolerance) if scan else None
+        off = _off_lines(own, others, tolerance) if scan else None
         if off is not None and off.sum() >= 3:  # (a strip along its neighbours' lines keeps all of its points)
             own = own[off]
         found.append(_stop_lines(planes[k], others, sides, own, reach, gap))
@@ -123,11 +126,10 @@ def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near
     return sides, [sorted(set(which[owner == k].tolist())) for k in range(len(planes))]
 
 
-def _off_lines(points: np.ndarray, plane: np.ndarray, others: np.ndarray, tolerance: float) -> np.ndarray:
+def _off_lines(points: np.ndarray, others: np.ndarray, tolerance: float) -> np.ndarray:
     """(P,) whether each of a plane's ``points`` (P, 3) lies farther than ``tolerance`` from every plane of ``others``
-    (K, 4) that crosses ``plane`` (4,): off the lines where it meets them."""
-    crossing = others[np.abs(others[:, :3] @ plane[:3]) < PARALLEL_COS]
-    return (np.abs(points @ crossing[:, :3].T - crossing[:, 3]) > tolerance).all(1)
+    (K, 4), its neighbours: off the lines where it meets them."""
+    return (np.abs(points @ others[:, :3].T - others[:, 3]) > tolerance).all(1)
 
 
 def _shared(sides: np.ndarray, lines: np.ndarray, spans: np.ndarray, bands: np.ndarray, sheets: np.ndarray,
@@ -175,7 +177,7 @@ def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, po
     ways: list[np.ndarray] = []
     for i, other in enumerate(np.vstack([neighbours, sides])):
         u = np.cross(n, other[:3])
-        if np.linalg.norm(u) < PARALLEL_SINE:
+        if i >= len(neighbours) and np.linalg.norm(u) < PARALLEL_SINE:
             continue
         u /= np.linalg.norm(u)
         along = np.cross(n, u)  # the edge along the other's line; across it (at right angles) for a neighbour
@@ -205,13 +207,13 @@ def _edge(furthest: float, band: int, reach: float) -> float:
 
 def _lies_on(n: np.ndarray, ends: np.ndarray, others: np.ndarray, reach: float, gap: float = 0.0) -> bool:
     """Whether both ``ends`` (2, 3), in the plane of normal ``n`` (3,), lie near the line where it meets one of
-    ``others`` (K, 4): within ``reach`` of it (in that plane) where that line runs at an angle to theirs (the points'
-    furthest across a direction a few degrees off an edge only touch that edge), within ``ALIKE`` x ``reach`` where
-    it runs along it within ``ALIKE_COS`` (a panel set back from an open side a little: the walls go on past it);
-    within ``gap`` at least."""
+    ``others`` (K, 4; planes that meet it: its neighbours and lines across it): within ``reach`` of it (in that
+    plane) where that line runs at an angle to theirs (the points' furthest across a direction a few degrees off an
+    edge only touch that edge), within ``ALIKE`` x ``reach`` where it runs along it within ``ALIKE_COS`` (a panel set
+    back from an open side a little: the walls go on past it); within ``gap`` at least."""
     cross = np.cross(n, others[:, :3])
     sine = np.linalg.norm(cross, axis=1)
-    crossing = sine > PARALLEL_SINE
+    crossing = sine > 0
     off = np.abs(ends @ others[crossing, :3].T - others[crossing, 3]) / sine[crossing]  # (2, K)
     d = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
     alike = np.abs(cross[crossing] @ d) / sine[crossing] > ALIKE_COS

@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .arrangement import Cell, chosen, merge_points, outline, plane_basis
+from .arrangement import Cell, chosen, merge_points, neighbour_planes, outline, plane_basis
 from .noise import fitted_normals, noise_level
 
 # A scan (``noise.noise_level`` reads its noise): its planes hold the points within NOISE_SIGMAS noise levels
@@ -89,7 +89,7 @@ def planar_mesh(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, cut:
         return None
     pts, _, planes, labels, cfg, spacing = found
     reach = cfg.reach * spacing
-    near, real, extra = neighbour_planes(pts, labels, planes, reach), len(planes), np.zeros((0, 4))
+    near, real, extra = neighbour_planes(pts, labels, planes, reach, cfg.tolerance), len(planes), np.zeros((0, 4))
     if cut is not None:
         extra, ends = cut(pts, planes, labels, near, reach, cfg.tolerance)
         if extra is None:
@@ -233,21 +233,6 @@ def _grow(points, normals, free, n, d, tol, cos):
         d = float(n @ centre)
     members = free & (np.abs(points @ n - d) < tol) & (np.abs(normals @ n) > cos[1])
     return (n, d), members
-
-
-def neighbour_planes(points: np.ndarray, labels: np.ndarray, planes: np.ndarray, reach: float) -> list[set[int]]:
-    """For each plane, the planes that meet it: not parallel, with points of both within ``reach`` of each
-    other at three places or more."""
-    pairs = cKDTree(points).query_pairs(reach, output_type="ndarray")
-    a, b = labels[pairs[:, 0]], labels[pairs[:, 1]]
-    keep = (a >= 0) & (b >= 0) & (a != b)
-    found, count = np.unique(np.sort(np.c_[a[keep], b[keep]], axis=1), axis=0, return_counts=True)
-    near: list[set[int]] = [set() for _ in planes]
-    for (i, j), c in zip(found, count, strict=True):
-        if c >= 3 and abs(planes[i, :3] @ planes[j, :3]) < np.cos(np.radians(10)):
-            near[i].add(int(j))
-            near[j].add(int(i))
-    return near
 
 
 def plane_faces(k: int, planes: np.ndarray, near: set[int], points: np.ndarray, spacing: float, reach: float

@@ -125,20 +125,26 @@ def _facing(v: np.ndarray, f: np.ndarray, want: np.ndarray) -> np.ndarray:
     return f
 
 
-def slanted_ledge(rng: np.random.Generator) -> Shape:
-    """:func:`ledge` with its front edge cut at 10-40 degrees to the wall: an edge in the air along no other edge's
+def slanted_ledge(rng: np.random.Generator, degrees: tuple[float, float] = (10, 40)) -> Shape:
+    """:func:`ledge` with its front edge cut at 10-40 ``degrees`` to the wall: an edge in the air along no other edge's
     line nor at right angles to one."""
     w, h = rng.uniform(0.5, 1.0, 2)
     y = rng.uniform(0.3, 0.7) * h
     a = rng.uniform(0.1, 0.4) * w
     b = a + rng.uniform(0.3, 0.5) * w
     d1 = rng.uniform(0.2, 0.6) * w
-    slope = np.tan(np.radians(rng.uniform(10, 40))) * (b - a)
+    slope = np.tan(np.radians(rng.uniform(*degrees))) * (b - a)
     d2 = d1 - slope if d1 - slope > 0.1 * w else d1 + slope
     v = np.array([[0, 0, 0], [0, 0, w], [0, h, w], [0, h, 0], [0, y, a], [d1, y, a], [d2, y, b], [0, y, b]],
                  dtype=np.float64)
     f = quads([[0, 1, 2, 3], [4, 7, 6, 5]])  # rows: wall, board, wall, board
     return Shape(vertices=v, faces=_facing(v, f, np.array([[1.0, 0, 0], [0, 1, 0], [1, 0, 0], [0, 1, 0]])))
+
+
+def skewed_ledge(rng: np.random.Generator) -> Shape:
+    """:func:`slanted_ledge` with its front edge 3-9 degrees off parallel to the wall: a few degrees off its
+    neighbour's line, as a board cut not quite square."""
+    return slanted_ledge(rng, (3, 9))
 
 
 def gusset(rng: np.random.Generator) -> Shape:
@@ -157,11 +163,11 @@ def gusset(rng: np.random.Generator) -> Shape:
 
 
 FAMILIES = {"framed_panel": framed_panel, "shelf": shelf, "short_shelf": short_shelf, "ledge": ledge,
-            "slanted_ledge": slanted_ledge, "gusset": gusset}
+            "slanted_ledge": slanted_ledge, "skewed_ledge": skewed_ledge, "gusset": gusset}
 # A free edge (``short_shelf``'s boards' fronts, the ledges' boards, the gusset's slope) is where its points stop:
 # 8,192 samples end a fraction of their spacing short of it (about 1 / (density x its length)); elsewhere other
 # planes' lines end a face.
-NEAR = {"short_shelf": 5e-3, "ledge": 5e-3, "slanted_ledge": 5e-3, "gusset": 5e-3}
+NEAR = {"short_shelf": 5e-3, "ledge": 5e-3, "slanted_ledge": 5e-3, "skewed_ledge": 5e-3, "gusset": 5e-3}
 
 
 @pytest.mark.parametrize("family", sorted(FAMILIES))

@@ -11,7 +11,7 @@ from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.shapes.io import with_normals
 from fastmesh.shapes.orientation import oriented
-from fastmesh.shapes.planar import polyhedron
+from fastmesh.shapes.planar import PlanarConfig, planes_found, polyhedron
 from fastmesh.shapes.shape import Normalization, Shape
 
 
@@ -69,6 +69,40 @@ def test_faces_a_few_degrees_from_flat_or_shut_still_meet(kind):
         nearest = np.linalg.norm(vertices[:, None] - reference[None], axis=-1).min(1)
         exact += len(vertices) == len(reference) and nearest.max() < 1e-4
     assert exact >= 8, exact
+
+
+def _sheet_beside_a_box(rng: np.random.Generator) -> tuple[Shape, Shape]:
+    """A rectangle (y = 0, facing up) and a box of random sides turned about two axes beside it, crossing the
+    rectangle's plane a tenth of the size away from it."""
+    w, d = rng.uniform(0.3, 0.6, 2)
+    box = trimesh.creation.box(extents=rng.uniform(0.2, 0.4, 3))
+    box.apply_transform(trimesh.transformations.rotation_matrix(rng.uniform(0.3, 1.2), [1, 0, 0])
+                        @ trimesh.transformations.rotation_matrix(rng.uniform(0.3, 1.2), [0, 0, 1]))
+    box.apply_translation([w + 0.1 + box.extents[0] / 2, 0, d / 2])
+    sheet = np.array([[0, 0, 0], [w, 0, 0], [w, 0, d], [0, 0, d]], dtype=np.float64)
+    return Shape(vertices=sheet, faces=np.array([[0, 2, 1], [0, 3, 2]])), Shape(vertices=box.vertices,
+                                                                                  faces=box.faces)
+
+
+def test_a_plane_takes_no_points_of_another_part_that_crosses_it():
+    """A sheet with a turned box beside it whose faces cross the sheet's plane, in any pose: the points of the box's
+    faces along that crossing lie on the plane within its tolerance, their normals at an angle to it, and are not
+    the sheet's (a point whose normal disagrees joins a plane only beside points whose normals agree).  The sheet's
+    points come first, so its plane grows before the box's faces take theirs; before, 2-11 of the box's points on
+    each of 8 went to the sheet, and its outline ran out to the box."""
+    rng = np.random.default_rng(3)
+    for i in range(8):
+        sheet, box = _sheet_beside_a_box(rng)
+        turn = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
+        area = np.prod(np.ptp(sheet.vertices, 0)[[0, 2]])
+        share = area / (area + trimesh.Trimesh(box.vertices, box.faces).area)
+        parts = [point_cloud(part, n=int(8192 * f), seed=i) for part, f in ((sheet, share), (box, 1 - share))]
+        points = np.vstack([c.vertices for c in parts]) @ turn.T * (1000.0 if i % 2 else 1.0)
+        norm = Normalization.fit(points)
+        found = planes_found(norm.apply(points), np.vstack([c.normals for c in parts]) @ turn.T, PlanarConfig())
+        assert found is not None
+        labels, mine = found[3], np.arange(len(points)) < len(parts[0].vertices)
+        assert (labels[mine] == labels[0]).all() and (labels[~mine] != labels[0]).all(), i
 
 
 def test_flat_shapes_without_normals_come_back_from_their_planes():

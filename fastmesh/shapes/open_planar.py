@@ -165,10 +165,11 @@ def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, po
     parallel or at right angles to one of its other edges, or along a side of its box; else (a gusset's slope, a
     plate's slanted end) along a straight stretch of its own outline.  So each line runs along or across the line of
     one of its ``neighbours`` (K, 4), along the line of one of the box's ``sides`` (S, 4), or along a direction of
-    the points' outline 10 degrees off all of those (``outline_edges.outline_ways``), at the points' furthest across
-    it; it is kept where the points follow it (:func:`_followed`) and the stretch they follow lies on no neighbour's
-    line (where a real edge ends the plane) nor a line kept before (:func:`_lies_on`); ``gap``: the least distance
-    those checks read as near (a scan's noise).
+    the points' outline (``outline_edges.outline_ways``) 10 degrees off every line kept before it (a board cut a few
+    degrees off square: its neighbour's direction is not followed, its outline's is), at the points' furthest
+    across it; it is kept where the points follow it (:func:`_followed`) and the stretch they follow lies on no
+    neighbour's line (where a real edge ends the plane) nor a line kept before (:func:`_lies_on`); ``gap``: the
+    least distance those checks read as near (a scan's noise).
     """
     n = plane[:3]
     out: list[np.ndarray] = []
@@ -185,8 +186,14 @@ def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, po
         # the neighbour's.
         ways.extend(w for w in ((along, -along, u, -u) if i < len(neighbours) else (along, -along))
                     if all(w @ o < ALIKE_COS for o in ways))
-    # A sheet cut at any angle (a gusset's slope, a plate's slanted end) stops along its own outline's direction.
-    for w in ways + [w for w in outline_ways(points, n, reach, ALIKE_COS) if all(w @ o < PARALLEL_COS for o in ways)]:
+    # A sheet cut at any angle (a gusset's slope, a plate's slanted end) stops along its own outline's direction,
+    # tried after the neighbours' and the sides' (an outline fitted to an artist's edge a degree off its neighbour's
+    # direction gives way to it where that line is kept).
+    first = len(ways)
+    ways += [w for w in outline_ways(points, n, reach, ALIKE_COS) if all(w @ o < ALIKE_COS for o in ways)]
+    for i, w in enumerate(ways):
+        if i >= first and any(w @ o[:3] > PARALLEL_COS for o in out):
+            continue
         across = points @ w
         band = int((across > across.max() - reach).sum())
         line = np.r_[w, _edge(across.max(), band, reach)]

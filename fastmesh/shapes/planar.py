@@ -135,7 +135,7 @@ def _planes_at_noise(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig
     sigma = noise_level(points, normals)
     if NOISE_SIGMAS * sigma <= cfg.tolerance:
         found = detect_planes(points, normals, cfg)
-        return None if found is None else (*found, cfg)
+        return None if found is None else (found[0], _by_normal(points, normals, *found, cfg), cfg)
     cfg = replace(cfg, tolerance=NOISE_SIGMAS * sigma, normal_degrees=NOISY_DEGREES, inliers=NOISY_INLIERS)
     fitted, order = fitted_normals(points, normals)
     found = detect_planes(points, fitted, cfg, order)
@@ -216,6 +216,21 @@ def detect_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, or
     if (labels < 0).sum() > allowed or not planes:
         return None
     return np.array(planes), labels
+
+
+def _by_normal(points: np.ndarray, normals: np.ndarray, planes: np.ndarray, labels: np.ndarray, cfg: PlanarConfig
+               ) -> np.ndarray:
+    """(N,) ``labels`` with each point whose normal lies off its plane's (beyond ``cfg.normal_degrees``) moved to
+    another of ``planes`` (K, 4) that holds it (within ``cfg.tolerance``) and whose normal it shares: a part whose
+    face crosses a plane's extension elsewhere, its points along that line taken by the plane grown first, keeps
+    them (a point beside an edge whose estimated normal tilts stays where it is: no other plane holds it)."""
+    agree = np.abs(normals @ planes[:, :3].T) > np.cos(np.radians(cfg.normal_degrees))  # (N, K)
+    held = agree & (np.abs(points @ planes[:, :3].T - planes[:, 3]) < cfg.tolerance)
+    mine = labels >= 0
+    move = np.nonzero(mine & ~agree[np.arange(len(labels)), np.where(mine, labels, 0)] & held.any(1))[0]
+    out = labels.copy()
+    out[move] = held[move].argmax(1)
+    return out
 
 
 def _grow(points, normals, free, n, d, tol, cos):

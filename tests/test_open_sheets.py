@@ -5,7 +5,8 @@ edges in the air, the front one square or cut at an angle) and a gusset standing
 slope in the air).  Drawn at random (proportions, depths, any pose, millimetres to kilometres), as oriented points:
 the pipeline's open planes path (``open_planar.open_polyhedron`` with ``free``) gives each exactly, its sheets set
 apart where they end on a wall; scanned with noise as bare points, ledges and short shelves come back from their
-planes within a few noise levels; an input closed or asked closed never takes that path."""
+planes within a few noise levels; an input whose planes close, or asked closed, never takes that path; closed
+parts that carry sheets of their own (a fin on a box, a sign beside it) do."""
 
 from __future__ import annotations
 
@@ -215,6 +216,43 @@ def test_a_closed_or_asked_closed_input_never_takes_the_free_open_path():
     asked = pipe.generate(point_cloud(framed_panel(rng), seed=0), GenerateParams(seed=0, max_vertices=24,
                                                                                closed="true"))
     assert asked.info["closed_decision"]["close"] and asked.quality["boundary_edges"] == 0
+
+
+def _box_and_sheet(rng: np.random.Generator, fin: bool) -> Shape:
+    """A box of random sides and a rectangle: with ``fin`` standing on the box's top (its bottom edge on the top,
+    the rest in the air), else beside the box, apart from it, turned about the vertical."""
+    a, b, c = rng.uniform(0.4, 1.0, 3)
+    box = trimesh.creation.box(extents=(a, b, c))
+    length, height = rng.uniform(0.3, 0.8) * a, rng.uniform(0.2, 0.6)
+    x, z = rng.uniform(-a / 2, a / 2 - length), rng.uniform(-0.3, 0.3) * c
+    sheet = np.array([[x, b / 2, z], [x + length, b / 2, z], [x + length, b / 2 + height, z], [x, b / 2 + height, z]])
+    if not fin:  # stood on the ground beside the box, turned about the vertical
+        turn = trimesh.transformations.rotation_matrix(rng.uniform(0, np.pi), [0, 1, 0])[:3, :3]
+        sheet = sheet @ turn.T
+        sheet += [a / 2 + 0.1 - sheet[:, 0].min(), -b / 2 - sheet[:, 1].min(), 0]  # a tenth of the size apart
+    return Shape(vertices=np.vstack([box.vertices, sheet]), faces=np.vstack([box.faces, [[8, 9, 10], [8, 10, 11]]]))
+
+
+@pytest.mark.parametrize("fin", [True, False])
+def test_a_closed_part_with_a_sheet_of_its_own_comes_back_from_its_planes(fin):
+    """A box with a fin on its top, or a sign standing beside it, as points in any pose, mm to km: most points lie on
+    the closed box, so the input is found closed, but its planes do not close; their open surface, where the sheet's
+    points stop, is the truth's 14 faces (before: the model's)."""
+    rng = np.random.default_rng(5 + fin)
+    pipe = Pipeline.random("tiny", seed=0)
+    for i in range(4):
+        truth, pose = _box_and_sheet(rng, fin), random_pose(rng)
+        cloud = point_cloud(truth, seed=i)
+        res = pipe.generate(Shape(vertices=posed(cloud.vertices, pose), normals=turned(cloud.normals, pose)),
+                            GenerateParams(seed=0))
+        assert res.info["result_from"] == "planes" and len(res.faces) == len(truth.faces), (fin, i)
+        corners = posed(truth.vertices, pose)
+        near = 5e-3 * np.ptp(corners, axis=0).max()
+        samples = trimesh.Trimesh(res.vertices, res.faces, process=False).sample(4000, seed=i)
+        assert distance_to_triangles(samples, corners, truth.faces).max() < near
+        assert distance_to_triangles(posed(cloud.vertices, pose), res.vertices, res.faces).max() < near
+        assert edge_face_counts(res.faces).max() <= 2
+        assert trimesh.Trimesh(res.vertices, res.faces, process=False).is_winding_consistent
 
 
 # Scanned with noise, a sheet's edges and the lines where sheets meet lie within a few noise levels of the truth's.

@@ -143,8 +143,9 @@ def planar(req: Request, open_: bool = False, turn: np.ndarray | None = None
            ) -> tuple[np.ndarray, np.ndarray, str] | None:
     """The closed polyhedron of a piecewise-planar input (``planar.polyhedron``: exact corners, whatever
     the pose), or with ``open_`` its open surface whose open edges lie on its bounding box in its own frame or,
-    turned by ``turn`` (3, 3), in its canonical one (``open_planar.open_polyhedron``); in the input's frame, with
-    where it comes from ("planes"); or a low-poly mesh input of the same shape, welded, where it has at most
+    turned by ``turn`` (3, 3), in its canonical one (``open_planar.open_polyhedron``; also where the points stop
+    inside the box, where the input was found open or its closed parts carry sheets of their own); in the input's
+    frame, with where it comes from ("planes"); or a low-poly mesh input of the same shape, welded, where it has at most
     ``LOW_POLY_SLACK`` times the rebuild's faces ("input": a cylinder's caps keep their centres).  Planes the corners
     path cannot close or open give the cells of their arrangement (``plane_cells.plane_cells``).  A closed mesh
     input of flat parts that touch or overlap gives their union rebuilt from its planes (``kitbash.kitbash_union``;
@@ -160,9 +161,11 @@ def planar(req: Request, open_: bool = False, turn: np.ndarray | None = None
             points, normals = frame.samples(PLANAR_SAMPLES, 0)
         if not open_:  # the corners, else the cells of planes the corners cannot close (a step's overhang, legs)
             found = polyhedron(points, normals) or plane_cells(points, normals)
-        else:  # open where the points stop on their box (or anywhere, where the input is open), in their own
-            # frame or the canonical one
+        else:  # open where the points stop on their box (or anywhere, where the input is open or its closed
+            # parts carry sheets), in their own frame or the canonical one
             found = _framed(partial(open_polyhedron, free=not req.close), points, normals, turn)
+            if found is None and req.close:  # closed parts with sheets of their own (a fin, a sign) ending in the air
+                found = _framed(partial(open_polyhedron, free=True), points, normals, turn)
             if found is None and not req.close:  # a closed input's cells were weighed closed already
                 found = _framed(partial(plane_cells, open_=True), points, normals, turn)
                 found = found if found is not None and (edge_face_counts(found[1]) == 1).any() else None  # open

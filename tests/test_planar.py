@@ -87,9 +87,9 @@ def _sheet_beside_a_box(rng: np.random.Generator) -> tuple[Shape, Shape]:
 def test_a_plane_takes_no_points_of_another_part_that_crosses_it():
     """A sheet with a turned box beside it whose faces cross the sheet's plane, in any pose: the points of the box's
     faces along that crossing lie on the plane within its tolerance, their normals at an angle to it, and are not
-    the sheet's (a point whose normal disagrees joins a plane only beside points whose normals agree).  The sheet's
-    points come first, so its plane grows before the box's faces take theirs; before, 2-11 of the box's points on
-    each of 8 went to the sheet, and its outline ran out to the box."""
+    the sheet's (a point on two planes goes to the one whose normal it shares).  The sheet's points come first, so
+    its plane grows before the box's faces; before, 2-11 of the box's points on each of 8 went to the sheet, and its
+    outline ran out to the box."""
     rng = np.random.default_rng(3)
     for i in range(8):
         sheet, box = _sheet_beside_a_box(rng)

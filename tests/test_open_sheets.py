@@ -237,17 +237,19 @@ def _box_and_sheet(rng: np.random.Generator, fin: bool) -> Shape:
 def test_a_closed_part_with_a_sheet_of_its_own_comes_back_from_its_planes(fin):
     """A box with a fin on its top, or a sign standing beside it, as points in any pose, mm to km: most points lie on
     the closed box, so the input is found closed, but its planes do not close; their open surface, where the sheet's
-    points stop, is the truth's 14 faces (before: the model's)."""
-    rng = np.random.default_rng(5 + fin)
+    points stop, is the truth's 14 faces (before: the model's), within 0.3 % of it both ways.  A sign apart from the
+    box takes its edges' directions from the box's planes too, though none meets it (the ground under it, the box's
+    walls): from its own outline alone, 5 of these 8 signs came back 0.6-1.1 % off at a corner of their foot."""
+    rng = np.random.default_rng(6 if fin else 91)
     pipe = Pipeline.random("tiny", seed=0)
-    for i in range(4):
+    for i in range(4 if fin else 8):
         truth, pose = _box_and_sheet(rng, fin), random_pose(rng)
         cloud = point_cloud(truth, seed=i)
         res = pipe.generate(Shape(vertices=posed(cloud.vertices, pose), normals=turned(cloud.normals, pose)),
                             GenerateParams(seed=0))
         assert res.info["result_from"] == "planes" and len(res.faces) == len(truth.faces), (fin, i)
         corners = posed(truth.vertices, pose)
-        near = 5e-3 * np.ptp(corners, axis=0).max()
+        near = 3e-3 * np.ptp(corners, axis=0).max()
         samples = trimesh.Trimesh(res.vertices, res.faces, process=False).sample(4000, seed=i)
         assert distance_to_triangles(samples, corners, truth.faces).max() < near
         assert distance_to_triangles(posed(cloud.vertices, pose), res.vertices, res.faces).max() < near

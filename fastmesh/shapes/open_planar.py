@@ -118,7 +118,8 @@ def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near
         off = _off_lines(own, others, tolerance) if scan else None
         if off is not None and off.sum() >= 3:  # (a strip along its neighbours' lines keeps all of its points)
             own = own[off]
-        found.append(_stop_lines(planes[k], others, sides, own, reach, gap))
+        distant = planes[[j for j in range(len(planes)) if j != k and j not in near[k]]]
+        found.append(_stop_lines(planes[k], others, np.vstack([sides, distant]), own, reach, gap))
     owner = np.repeat(np.arange(len(planes)), [len(lines) for lines, _, _ in found])
     lines, spans, bands = (np.vstack([np.zeros((0, *shape)), *[x[i] for x in found]])
                            for i, shape in enumerate(((4,), (2, 3), (4,))))
@@ -164,7 +165,8 @@ def _stop_lines(plane: np.ndarray, neighbours: np.ndarray, sides: np.ndarray, po
     many lie within ``reach`` of it across the line (:func:`_edge`).  An artist's sheet mostly ends along a line
     parallel or at right angles to one of its other edges, or along a side of its box; else (a gusset's slope, a
     plate's slanted end) along a straight stretch of its own outline.  So each line runs along or across the line of
-    one of its ``neighbours`` (K, 4), along the line of one of the box's ``sides`` (S, 4), or along a direction of
+    one of its ``neighbours`` (K, 4), along the line of one of ``sides`` (S, 4: the box's, and the shape's planes
+    that do not meet it, as the ground under a sign standing apart), or along a direction of
     the points' outline (``outline_edges.outline_ways``) 10 degrees off every line kept before it (a board cut a few
     degrees off square: its neighbour's direction is not followed, its outline's is), at the points' furthest
     across it; it is kept where the points follow it (:func:`_followed`) and the stretch they follow lies on no

@@ -127,8 +127,8 @@ def _facing(v: np.ndarray, f: np.ndarray, want: np.ndarray) -> np.ndarray:
 
 
 def slanted_ledge(rng: np.random.Generator, degrees: tuple[float, float] = (10, 40)) -> Shape:
-    """:func:`ledge` with its front edge cut at 10-40 ``degrees`` to the wall: an edge in the air along no other edge's
-    line nor at right angles to one."""
+    """:func:`ledge` with its front edge cut at an angle to the wall drawn from ``degrees`` (10-40): an edge in the
+    air along no other edge's line nor at right angles to one."""
     w, h = rng.uniform(0.5, 1.0, 2)
     y = rng.uniform(0.3, 0.7) * h
     a = rng.uniform(0.1, 0.4) * w

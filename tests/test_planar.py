@@ -48,10 +48,10 @@ def test_random_flat_shapes_come_back_as_their_own_corners_closed(kind):
 def test_faces_a_few_degrees_from_flat_or_shut_still_meet(kind):
     """Low roofs whose slopes rise 1-5 degrees (faces 2-10 degrees from flat across the ridge) and wedges of 2-10
     degrees (faces that far from folding shut), any pose, from millimetres to kilometres: their own corners, closed,
-    outward (planes meet down to ``arrangement.meeting_sine``; at 10 degrees none of these came back from the corners,
-    only from the cells of their planes).  A wedge's back
-    and a roof's eave wall are a few point spacings high: where the samples leave no points of two faces within a
-    cover radius of each other at their short edge, that edge is not found, so 8 of 10 are asked for."""
+    outward (planes meet down to ``arrangement.meeting_sine``; at 10 degrees none of these came back from the
+    corners, only from the cells of their planes).  A wedge's back and a roof's eave wall are a few point spacings
+    high: where the samples leave no points of two faces within a cover radius of each other at their short edge,
+    that edge is not found, so 8 of 10 are asked for."""
     rng = np.random.default_rng(11)
     exact = 0
     for i in range(10):

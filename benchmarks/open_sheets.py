@@ -54,14 +54,19 @@ def main() -> None:
             truth = FAMILIES[family](rng)
             pose = random_pose(rng)
             res = pipe.generate(_input(truth, pose, i, noise, scans), GenerateParams(seed=0))
-            v, f, corners = res.vertices, res.faces, posed(truth.vertices, pose)
-            size = float(np.ptp(corners, axis=0).max())
-            both = max(distance_to_triangles(trimesh.Trimesh(a, b, process=False).sample(4000, seed=0), c, d).max()
-                       for (a, b), (c, d) in (((v, f), (corners, truth.faces)), ((corners, truth.faces), (v, f))))
-            print(f"{family} {i}: {len(f)} faces ({res.info['result_from']}) for the truth's {len(truth.faces)}, "
-                  f"edges of 3+ faces {int((edge_face_counts(f) > 2).sum())}, wound against neighbours "
-                  f"{winding(v, f)['misoriented_edges']} edges, distance both ways {100 * both / size:.3f} %",
+            print(row(f"{family} {i}", res.info["result_from"], res, posed(truth.vertices, pose), truth.faces),
                   flush=True)
+
+
+def row(label: str, source: str, res, corners: np.ndarray, faces: np.ndarray) -> str:
+    """One prop's line: its faces from ``source`` against the truth's (``corners``, ``faces``), edges of more than
+    two faces, faces wound against their neighbours, the largest exact distance between them both ways in %."""
+    v, f = res.vertices, res.faces
+    both = max(distance_to_triangles(trimesh.Trimesh(a, b, process=False).sample(4000, seed=0), c, d).max()
+               for (a, b), (c, d) in (((v, f), (corners, faces)), ((corners, faces), (v, f))))
+    return (f"{label}: {len(f)} faces ({source}) for the truth's {len(faces)}, edges of 3+ faces "
+            f"{int((edge_face_counts(f) > 2).sum())}, wound against neighbours {winding(v, f)['misoriented_edges']} "
+            f"edges, distance both ways {100 * both / float(np.ptp(corners, axis=0).max()):.3f} %")
 
 
 if __name__ == "__main__":

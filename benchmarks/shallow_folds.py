@@ -9,6 +9,9 @@ from a result vertex to the truth's nearest corner, in % of the size (the corner
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
@@ -16,32 +19,24 @@ from scipy.spatial import cKDTree
 from fastmesh.evaluation.primitives import point_cloud, posed, random_shape
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
-from fastmesh.shapes.shape import Shape
 
-
-def _opened(shape: Shape, kind: str) -> Shape:
-    """A low roof without its floor (the face facing -y), a wedge without its two ends (the faces facing +-z)."""
-    mesh = trimesh.Trimesh(shape.vertices, shape.faces, process=False)
-    n = mesh.face_normals
-    keep = n[:, 1] > -0.5 if kind == "low_roof" else np.abs(n[:, 2]) < 0.5
-    mesh = trimesh.Trimesh(mesh.vertices, mesh.faces[keep])
-    mesh.remove_unreferenced_vertices()
-    return Shape(vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from test_open_planar import opened  # noqa: E402
 
 
 def main() -> None:
     pipe = Pipeline.from_pretrained(device="cpu", threads=1)
     for kind in ("low_roof", "wedge"):
-        for opened in (False, True):
+        for is_open in (False, True):
             rng = np.random.default_rng(17)
             for i in range(8):
                 truth = random_shape(kind, rng)
-                truth = posed(_opened(truth, kind) if opened else truth, rng, millimetres=i % 2 == 1)
+                truth = posed(opened(truth, kind) if is_open else truth, rng, millimetres=i % 2 == 1)
                 res = pipe.generate(point_cloud(truth, seed=i), GenerateParams(seed=0))
                 size = float(np.ptp(truth.vertices, axis=0).max())
                 off = cKDTree(truth.vertices).query(res.vertices)[0].max() / size
                 wound = trimesh.Trimesh(res.vertices, res.faces, process=False).is_winding_consistent
-                print(f"{kind}{' open' if opened else ''} {i}: {len(res.faces)} faces ({res.info['result_from']}) "
+                print(f"{kind}{' open' if is_open else ''} {i}: {len(res.faces)} faces ({res.info['result_from']}) "
                       f"for the truth's {len(truth.faces)}, wound one way {wound}, vertices off the truth's "
                       f"corners {100 * off:.3f} %", flush=True)
 

@@ -13,11 +13,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import trimesh
+from open_sheets import row
 
 from fastmesh.evaluation.primitives import point_cloud
-from fastmesh.faces.defects import winding
-from fastmesh.faces.meshops import distance_to_triangles, edge_face_counts
 from fastmesh.params import GenerateParams
 from fastmesh.pipeline import Pipeline
 from fastmesh.shapes.shape import Shape
@@ -36,15 +34,9 @@ def main() -> None:
             cloud = point_cloud(truth, seed=i)
             res = pipe.generate(Shape(vertices=posed(cloud.vertices, pose), normals=turned(cloud.normals, pose)),
                                 GenerateParams(seed=0))
-            v, f, corners = res.vertices, res.faces, posed(truth.vertices, pose)
-            both = max(distance_to_triangles(trimesh.Trimesh(a, b, process=False).sample(4000, seed=0), c, d).max()
-                       for (a, b), (c, d) in (((v, f), (corners, truth.faces)), ((corners, truth.faces), (v, f))))
-            decided = res.info["closed_decision"]
-            print(f"{'fin' if fin else 'sign'} {i}: {len(f)} faces ({res.info['result_from']}, decided "
-                  f"{decided['reason']}) for the truth's {len(truth.faces)}, edges of 3+ faces "
-                  f"{int((edge_face_counts(f) > 2).sum())}, wound against neighbours "
-                  f"{winding(v, f)['misoriented_edges']} edges, distance both ways "
-                  f"{100 * both / float(np.ptp(corners, axis=0).max()):.3f} %", flush=True)
+            source = f"{res.info['result_from']}, decided {res.info['closed_decision']['reason']}"
+            print(row(f"{'fin' if fin else 'sign'} {i}", source, res, posed(truth.vertices, pose), truth.faces),
+                  flush=True)
 
 
 if __name__ == "__main__":

@@ -1,10 +1,11 @@
 """Open flat props built from sheets that end inside their box, through the shipped pipeline (CPU, seed 0):
-tests/test_open_sheets.py's families (a panel set into a frame open at the back; a shelf open at the front with
-one to three boards, reaching its opening or short of it; a ledge standing out of a wall, its front square, cut at
-an angle or skewed a few degrees off square; a gusset standing on a floor against a wall), 8 of each, any pose,
-millimetres to kilometres, as oriented points, or with ``--noise`` scanned as bare points.  Per prop: where the result
-comes from, its faces against the truth's, edges of more than two faces, faces wound against their neighbours, and
-the largest exact distance between result and truth both ways, in % of the size.
+tests/test_open_sheets.py's families (a panel set into a frame open at the back; a shelf open at the front with one
+to three boards, reaching its opening or short of it; a ledge standing out of a wall, its front square, cut at an
+angle, skewed a few degrees off square or its board warped (folded 1.5-5 degrees along a diagonal); a gusset
+standing on a floor against a wall), 8 of each, any pose, millimetres to kilometres, as oriented points, or with
+``--noise`` scanned as bare points. Per prop: where the result comes from, its faces against the truth's, edges of
+more than two faces, faces wound against their neighbours, and the largest exact distance between result and truth
+both ways, in % of the size.
 
     python benchmarks/open_sheets.py
     python benchmarks/open_sheets.py --noise 0.003

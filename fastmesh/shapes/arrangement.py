@@ -7,6 +7,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 MEETING_DEGREES = 10.0  # planes closer to parallel than this meet only where their line is sure (``meeting_sine``)
+# A line placed where a sheet's points stop is sure to about this share of a cover radius (``snapped``): at half a
+# radius two walls' bottom corners of a house without its floor, each placed on its own wall's line, moved to their
+# middle and one came out further off (``benchmarks/shallow_folds.py``).
+PLACED_SNAP = 0.35
 
 
 class Cell:
@@ -164,19 +168,19 @@ def plane_basis(normal: np.ndarray) -> np.ndarray:
 
 
 def neighbour_planes(points: np.ndarray, labels: np.ndarray, planes: np.ndarray, reach: float, tolerance: float
-                     ) -> list[set[int]]:
+                     ) -> list[dict[int, int]]:
     """For each plane, the planes that meet it: not parallel (:func:`meeting_sine` at ``tolerance``), with points
-    of both within ``reach`` of each other at three places or more."""
+    of both within ``reach`` of each other at three places or more; each with that count (their contact: the length
+    they meet along, where a plane that only touches it at a corner counts a few)."""
     least = meeting_sine(tolerance, reach)
     pairs = cKDTree(points).query_pairs(reach, output_type="ndarray")
     a, b = labels[pairs[:, 0]], labels[pairs[:, 1]]
     keep = (a >= 0) & (b >= 0) & (a != b)
     found, count = np.unique(np.sort(np.c_[a[keep], b[keep]], axis=1), axis=0, return_counts=True)
-    near: list[set[int]] = [set() for _ in planes]
+    near: list[dict[int, int]] = [{} for _ in planes]
     for (i, j), c in zip(found, count, strict=True):
         if c >= 3 and np.linalg.norm(np.cross(planes[i, :3], planes[j, :3])) > least:
-            near[i].add(int(j))
-            near[j].add(int(i))
+            near[i][int(j)] = near[j][int(i)] = int(c)
     return near
 
 
@@ -186,3 +190,32 @@ def meeting_sine(tolerance: float, reach: float) -> float:
     half the cover radius ``reach`` (exact data: planes a degree apart, a low roof's or a thin wedge's), and
     never finer than ``MEETING_DEGREES`` (a scan)."""
     return min(np.sin(np.radians(MEETING_DEGREES)), 2 * tolerance / reach)
+
+
+def snapped(corners: np.ndarray, meets: np.ndarray, placed: int, radius: float) -> np.ndarray:
+    """(N, 3) ``corners`` with each one whose lines include a placed plane (an index ``placed`` or more: a line
+    where a sheet's points stop, a side of their box) moved onto a corner within ``radius`` that lies on the same
+    two other planes and on fewer placed ones (to the middle of the two where they are alike), nearest pairs first.
+    ``meets`` (N, 3): each corner's face plane, then the two planes whose lines cross there.  Both lie on the line
+    of the two planes they share, so a corner that moves along it stays on its face's plane."""
+    out = np.array(corners, dtype=np.float64)
+    count = (meets >= placed).sum(1)
+    pairs = cKDTree(out).query_pairs(radius, output_type="ndarray")
+    pairs = pairs[np.argsort(np.linalg.norm(out[pairs[:, 0]] - out[pairs[:, 1]], axis=1), kind="stable")]
+    moved = np.zeros(len(out), dtype=bool)
+    for i, j in pairs:
+        own = set(meets[i].tolist()), set(meets[j].tolist())
+        shared = own[0] & own[1]
+        if len(shared) != 2 or min(map(len, own)) < 3 or moved[i] or moved[j]:
+            continue
+        # Which may move: a corner whose face plane is on the shared line and whose third plane is placed.
+        free = [c for c, mine in zip((i, j), own, strict=True)
+                if meets[c, 0] in shared and max(mine - shared) >= placed]
+        if count[i] != count[j]:
+            free = [c for c in free if count[c] == max(count[i], count[j])]
+        if not free:
+            continue
+        target = out[[i, j]].mean(0) if len(free) == 2 else out[j if free[0] == i else i]
+        out[free] = target
+        moved[free] = True
+    return out

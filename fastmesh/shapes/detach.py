@@ -21,30 +21,53 @@ def detached(vertices: np.ndarray, faces: np.ndarray, tol: float, length: float)
     offset = np.einsum("ij,ij->i", n, vertices[faces[:, 0]])
     e = np.sort(np.c_[faces.ravel(), faces[:, [1, 2, 0]].ravel()], axis=1)
     edges, inverse, count = np.unique(e, axis=0, return_inverse=True, return_counts=True)
-    ends = set()  # (vertex, a face of the sheet that ends there)
+    ends = {}  # (vertex, a face of the sheet that ends there): a face of the wall
     for j in np.nonzero(count != 2)[0]:
         own = np.nonzero(inverse.ravel() == j)[0] // 3
         if count[j] == 1:
             sheet, (a, b) = int(own[0]), vertices[edges[j]]
-            if np.linalg.norm(b - a) < length or not all(
-                    (_on_faces(vertices, faces, n, offset, a + t * (b - a), tol) & (n @ n[sheet] < 1 - 1e-6)).any()
-                    for t in (0.25, 0.5, 0.75)):
+            on = [_on_faces(vertices, faces, n, offset, a + t * (b - a), tol) & (n @ n[sheet] < 1 - 1e-6)
+                  for t in (0.25, 0.5, 0.75)]
+            if np.linalg.norm(b - a) < length or not all(x.any() for x in on):
                 continue
+            wall = int(on[1].argmax())
         else:
-            wall = [(i, k) for i, k in ((0, 1), (0, 2), (1, 2)) if len(own) == 3 and n[own[i]] @ n[own[k]] > 1 - 1e-6]
-            if not wall:
+            pair = [(i, k) for i, k in ((0, 1), (0, 2), (1, 2)) if len(own) == 3 and n[own[i]] @ n[own[k]] > 1 - 1e-6]
+            if not pair:
                 continue
-            sheet = int(own[3 - sum(wall[0])])
-        ends |= {(int(v), sheet) for v in edges[j]}
+            sheet, wall = int(own[3 - sum(pair[0])]), int(own[pair[0][0]])
+        ends |= {(int(v), sheet): wall for v in edges[j]}
     out, faces = list(vertices), faces.copy()
-    for v, sheet in sorted(ends):
-        fan = (faces == v).any(1) & (n @ n[sheet] > 1 - 1e-6) & (np.abs(offset - offset[sheet]) < tol)
+    for (v, sheet), wall in sorted(ends.items()):
+        fan = _fan(faces, v, sheet, (np.abs(n @ n[wall]) > 1 - 1e-6) & (np.abs(offset - offset[wall]) < tol))
         if fan.any():
             faces[fan] = np.where(faces[fan] == v, len(out), faces[fan])
             out.append(out[v])
     faces = _straightened(np.array(out), faces, sorted({v for v, _ in ends}))
     used = np.unique(faces)
     return np.array(out)[used], np.searchsorted(used, faces)
+
+
+def _fan(faces: np.ndarray, v: int, sheet: int, wall: np.ndarray) -> np.ndarray:
+    """(F,) the faces about vertex ``v`` that the sheet holding face ``sheet`` makes there: those reached from it
+    across edges at ``v`` that two faces share, none of them on the wall (``wall`` (F,): the faces in its plane).
+    A sheet folded a few degrees (a low-poly quad whose corners are not in one plane) is one sheet."""
+    ring = np.nonzero((faces == v).any(1) & ~wall)[0]
+    count = {}
+    for i in np.nonzero((faces == v).any(1))[0]:
+        for w in faces[i]:
+            count[int(w)] = count.get(int(w), 0) + (w != v)
+    reached, todo = {sheet}, [sheet]
+    while todo:
+        i = todo.pop()
+        for j in ring:
+            shared = set(faces[i].tolist()) & set(faces[j].tolist()) - {v}
+            if j not in reached and len(shared) == 1 and count[shared.pop()] == 2:
+                reached.add(int(j))
+                todo.append(int(j))
+    out = np.zeros(len(faces), dtype=bool)
+    out[list(reached)] = True
+    return out
 
 
 def _on_faces(vertices: np.ndarray, faces: np.ndarray, n: np.ndarray, offset: np.ndarray, point: np.ndarray,

@@ -86,7 +86,7 @@ def open_polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig =
     return vertices, faces
 
 
-def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near: list[set[int]], reach: float,
+def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near: list[dict[int, int]], reach: float,
                 tolerance: float, free: bool = False, exact: float = PlanarConfig.tolerance
                 ) -> tuple[np.ndarray | None, list[list[int]] | None]:
     """``planar.planar_mesh``'s ``cut``: the box sides no plane lies on, and for each plane those where it stops
@@ -104,7 +104,6 @@ def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near
     # shape at a corner, at an angle to its edges.
     if not (np.abs(planes[:, :3]) > ALIGNED_COS).any():
         sides = sides[:0]
-    held = np.bincount(labels[labels >= 0], minlength=len(planes))
     # A scan (its tolerance wider than ``exact``'s) puts its points near a line two sheets meet on in either plane
     # within its tolerance: a sheet's points stop up to that short of the line and scatter that far about it, and a
     # strip of its neighbour's points runs on along the line past its own edges.
@@ -112,8 +111,9 @@ def _cut_at_box(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, near
     gap = NOISE_TOLERANCES * tolerance if scan else 0.0
     found = []
     for k in range(len(planes)):
-        # Neighbours of most points first: of two directions a degree apart, the surer plane's is taken.
-        others = planes[sorted(near[k], key=lambda j: (-held[j], j))]
+        # Neighbours it meets along the most first: of two directions a degree apart (a sheet folded a little,
+        # one half along the wall, the other touching it at a corner), the line it runs along is taken.
+        others = planes[sorted(near[k], key=lambda j: (-near[k][j], j))]
         own = points[labels == k]
         off = _off_lines(own, others, tolerance) if scan else None
         if off is not None and off.sum() >= 3:  # (a strip along its neighbours' lines keeps all of its points)

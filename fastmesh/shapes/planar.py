@@ -14,13 +14,13 @@ points do not decide) gives None, and the networks make the mesh.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .arrangement import Cell, chosen, merge_points, neighbour_planes, outline, plane_basis
+from .arrangement import PLACED_SNAP, Cell, chosen, merge_points, neighbour_planes, outline, plane_basis, snapped
 from .noise import fitted_normals, noise_level
 
 # A scan (``noise.noise_level`` reads its noise): its planes hold the points within NOISE_SIGMAS noise levels
@@ -94,21 +94,24 @@ def planar_mesh(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, cut:
         extra, ends = cut(pts, planes, labels, near, reach, cfg.tolerance)
         if extra is None:
             return None
-        near = [mine | {real + j for j in end} for mine, end in zip(near, ends, strict=True)]
+        near = [mine | dict.fromkeys((real + j for j in end), 0) for mine, end in zip(near, ends, strict=True)]
         planes = np.vstack([planes, extra])
-    corners, loops = [], []
+    corners, meets, loops = [], [], []
     for k in range(real):
         faces = plane_faces(k, planes, near[k], pts[labels == k], spacing, reach)
         if faces is None:
             return None
-        for ring in faces:
+        for ring, lines in faces:
             loops.append((k, [len(corners) + i for i in range(len(ring))]))
             corners.extend(ring)
+            meets.extend(np.c_[np.full(len(lines), k), lines])
     if not corners or len(corners) > 8 * cfg.max_vertices:
         return None
-    # Planes fitted to samples cross a little apart where many meet (a cone's apex): corners within the plane
-    # tolerance are one vertex.
-    vertices, index = merge_points(np.array(corners), cfg.tolerance)
+    # A corner on a line placed where the points stop is sure only to a fraction of a cover radius: near a corner
+    # of the same two planes it is that corner.  Planes fitted to samples cross a little apart where many meet (a
+    # cone's apex): corners within the plane tolerance are one vertex.
+    corners = snapped(np.array(corners), np.array(meets), real, PLACED_SNAP * reach)
+    vertices, index = merge_points(corners, cfg.tolerance)
     if len(vertices) > cfg.max_vertices:
         return None
     faces = _triangulate(vertices, planes, [(k, _distinct(index[ring])) for k, ring in loops], cfg.tolerance)
@@ -220,16 +223,17 @@ def detect_planes(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig, or
 
 def _by_normal(points: np.ndarray, normals: np.ndarray, planes: np.ndarray, labels: np.ndarray, cfg: PlanarConfig
                ) -> np.ndarray:
-    """(N,) ``labels`` with each point whose normal lies off its plane's (beyond ``cfg.normal_degrees``) moved to
-    another of ``planes`` (K, 4) that holds it (within ``cfg.tolerance``) and whose normal it shares: a part whose
-    face crosses a plane's extension elsewhere, its points along that line taken by the plane grown first, keeps
-    them (a point beside an edge whose estimated normal tilts stays where it is: no other plane holds it)."""
+    """(N,) ``labels`` with each point on the nearest of ``planes`` (K, 4) that hold it (within ``cfg.tolerance``)
+    and whose normal it shares (within ``cfg.normal_degrees``), where one does: a part whose face crosses a plane's
+    extension elsewhere, its points along that line taken by the plane grown first, keeps them; of two halves of a
+    quad folded a degree or two, each keeps its points in the strip along the fold that both hold (a third of a
+    cover radius wide at 1.5 degrees), so that their faces meet on their line."""
     agree = np.abs(normals @ planes[:, :3].T) > np.cos(np.radians(cfg.normal_degrees))  # (N, K)
-    held = agree & (np.abs(points @ planes[:, :3].T - planes[:, 3]) < cfg.tolerance)
-    mine = labels >= 0
-    move = np.nonzero(mine & ~agree[np.arange(len(labels)), np.where(mine, labels, 0)] & held.any(1))[0]
+    off = np.abs(points @ planes[:, :3].T - planes[:, 3])
+    held = agree & (off < cfg.tolerance)
+    move = np.nonzero((labels >= 0) & held.any(1))[0]
     out = labels.copy()
-    out[move] = held[move].argmax(1)
+    out[move] = np.where(held[move], off[move], np.inf).argmin(1)
     return out
 
 
@@ -250,12 +254,13 @@ def _grow(points, normals, free, n, d, tol, cos):
     return (n, d), members
 
 
-def plane_faces(k: int, planes: np.ndarray, near: set[int], points: np.ndarray, spacing: float, reach: float
-                ) -> list[np.ndarray] | None:
-    """The outlines of plane ``k``'s faces as (L, 3) corner rings in 3D, each corner where plane k meets two of
-    ``near``: the boundary of the cells of the arrangement of the lines where plane k meets them that its own
-    ``points`` cover (``chosen``; ``spacing``: the points' median distance to their 8th neighbour).  None where
-    a face reaches the box around the points (no neighbour bounds it) or two boundaries touch at a corner."""
+def plane_faces(k: int, planes: np.ndarray, near: Collection[int], points: np.ndarray, spacing: float, reach: float
+                ) -> list[tuple[np.ndarray, np.ndarray]] | None:
+    """The outlines of plane ``k``'s faces as (L, 3) corner rings in 3D, each with (L, 2) the two planes of
+    ``near`` whose lines meet at each corner: the boundary of the cells of the arrangement of the lines where plane
+    k meets them that its own ``points`` cover (``chosen``; ``spacing``: the points' median distance to their 8th
+    neighbour).  None where a face reaches the box around the points (no neighbour bounds it) or two boundaries
+    touch at a corner."""
     n, d = planes[k, :3], planes[k, 3]
     basis = plane_basis(n)  # (3, 2): u x v = n, so counter-clockwise in 2D is outward in 3D
     flat = (points - n * d) @ basis
@@ -275,11 +280,11 @@ def plane_faces(k: int, planes: np.ndarray, near: set[int], points: np.ndarray, 
         if min(lines) < 0:  # an edge of the box around the points: no plane ends this face
             return None
         # A corner's 2D point is where two lines cross, so lifted it lies on plane k and both neighbours.
-        corners = [ring[i][0] for i in range(len(ring))
-                   if _turns(ring[i - 1][0], ring[i][0], ring[(i + 1) % len(ring)][0])]
-        if len(corners) < 3:  # a ring without area (cells along one line)
+        turns = [i for i in range(len(ring)) if _turns(ring[i - 1][0], ring[i][0], ring[(i + 1) % len(ring)][0])]
+        if len(turns) < 3:  # a ring without area (cells along one line)
             return None
-        out.append(n * d + np.array(corners) @ basis.T)
+        corners = np.array([ring[i][0] for i in turns])
+        out.append((n * d + corners @ basis.T, np.array([[lines[i - 1], lines[i]] for i in turns])))
     return out
 
 

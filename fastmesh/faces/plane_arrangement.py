@@ -32,10 +32,13 @@ class Polytope:
 
     def __init__(self, faces: list[tuple[int, int, np.ndarray]]):
         self.faces = faces
+        self._corners: np.ndarray | None = None
 
     def corners(self) -> np.ndarray:
-        """(C, 3) the cell's distinct corners."""
-        return merge_points(np.vstack([ring for _, _, ring in self.faces]), SPLIT_EPS)[0]
+        """(C, 3) the cell's distinct corners, found once (every plane asks every cell whether its points reach it)."""
+        if self._corners is None:
+            self._corners = merge_points(np.vstack([ring for _, _, ring in self.faces]), SPLIT_EPS)[0]
+        return self._corners
 
     def split(self, k: int, plane: np.ndarray) -> tuple[Polytope, Polytope] | None:
         """The parts of the cell below and beyond plane ``k`` ((4,): n, d), or None where it does not cut it."""
@@ -208,16 +211,39 @@ def _plane_facets(k: int, flat: list[tuple[int, int, np.ndarray]], mine: np.ndar
     plane's points ``mine`` (M, 2) cover at ``density`` taken off."""
     out = []
     beyond = [(j, f) for j, s, f in flat if s < 0]
+    if not beyond:
+        return out
+    low, high = np.array([g.min(0) for _, g in beyond]), np.array([g.max(0) for _, g in beyond])
     for i, f in ((i, f) for i, s, f in flat if s > 0):
-        lo, hi = f.min(0), f.max(0)
-        for j, g in beyond:
-            if (g.min(0) >= hi).any() or (g.max(0) <= lo).any():  # their boxes apart: no overlap to clip
-                continue
+        near = np.nonzero(~((low >= f.max(0)).any(1) | (high <= f.min(0)).any(1)))[0]  # their boxes overlap
+        rings = [beyond[c][1] for c in near]
+        for c in near[~_apart(f, rings)] if len(near) else near:
+            j, g = beyond[c]
             common = _convex_overlap(f, g)
             if common is not None:
                 covered = _count_inside(mine, common) / density
                 out.append((i, j, k, common, max(polygon_area(common) - covered, 0.0)))
     return out
+
+
+def _apart(f: np.ndarray, rings: list[np.ndarray]) -> np.ndarray:
+    """(R,) whether the counter-clockwise convex polygon ``f`` (m, 2) and each of ``rings`` (counter-clockwise
+    convex (k, 2)) lie on either side of an edge of one of them, touching at most: their overlap has no area and
+    :func:`_convex_overlap` gives None, so it need not clip them (most pairs of a plane's faces whose boxes
+    overlap).  The signed distances are :func:`_convex_overlap`'s own."""
+    size = max(len(g) for g in rings)
+    corners, edges = np.zeros((len(rings), size, 2)), np.zeros((len(rings), size, 2))
+    valid = np.zeros((len(rings), size), dtype=bool)
+    for r, g in enumerate(rings):
+        corners[r, :len(g)], edges[r, :len(g)], valid[r, :len(g)] = g, np.roll(g, -1, axis=0) - g, True
+    # f's corners against each ring's edges: (R, K, m), > 0 outside
+    t = -(edges[..., :1] * (f[:, 1] - corners[..., 1:]) - edges[..., 1:] * (f[:, 0] - corners[..., :1]))
+    beyond_ring = ((np.where(np.abs(t) < 1e-15, 0.0, t) >= 0).all(2) & valid).any(1)
+    # each ring's corners against f's edges: (R, m, K)
+    e = np.roll(f, -1, axis=0) - f
+    t = -(e[:, :1] * (corners[:, None, :, 1] - f[:, 1:]) - e[:, 1:] * (corners[:, None, :, 0] - f[:, :1]))
+    beyond_f = ((np.where(np.abs(t) < 1e-15, 0.0, t) >= 0) | ~valid[:, None, :]).all(2).any(1)
+    return beyond_ring | beyond_f
 
 
 def polygon_area(flat: np.ndarray) -> float:

@@ -6,17 +6,11 @@ together through the pipeline): a sheet folded where it ends on a wall is set ap
 from __future__ import annotations
 
 import numpy as np
+from test_open_sheets import _facing
 
 from fastmesh.faces.meshops import edge_face_counts
 from fastmesh.shapes.arrangement import snapped
 from fastmesh.shapes.detach import detached
-
-
-def _facing(v: np.ndarray, f: np.ndarray, want: np.ndarray) -> np.ndarray:
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    f = f.copy()
-    f[n @ want < 0] = f[n @ want < 0][:, ::-1]
-    return f
 
 
 def _wall_and_warped_board() -> tuple[np.ndarray, np.ndarray]:
@@ -27,7 +21,8 @@ def _wall_and_warped_board() -> tuple[np.ndarray, np.ndarray]:
                   [0, 0.5, 0.3], [0, 0.5, 0.7], [0.4, 0.5, 0.7], [0.4, 0.5 + 0.4 * np.tan(np.radians(3)), 0.3]])
     wall = np.array([[0, 1, 5], [0, 5, 4], [4, 5, 2], [4, 2, 3], [0, 4, 3], [1, 2, 5]])
     board = np.array([[4, 5, 6], [4, 6, 7]])
-    return v, np.vstack([_facing(v, wall, np.array([1.0, 0, 0])), _facing(v, board, np.array([0, 1.0, 0]))])
+    faces = np.vstack([wall, board])
+    return v, _facing(v, faces, np.r_[np.tile([1.0, 0, 0], (6, 1)), np.tile([0, 1.0, 0], (2, 1))])
 
 
 def test_a_board_folded_where_it_ends_on_a_wall_is_set_apart_as_one_sheet():

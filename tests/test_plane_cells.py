@@ -223,7 +223,7 @@ def test_the_arrangements_shortcuts_give_what_the_slow_way_gives(monkeypatch):
              for noise in (0.0, 0.003)]
     fast = [[_rebuilt(scan, lambda p, n, o=open_: plane_cells(p, n, open_=o))[1] for open_ in (False, True)]
             for scan in scans]
-    monkeypatch.setattr(plane_arrangement, "_apart", lambda f, rings: np.zeros(len(rings), dtype=bool))
+    monkeypatch.setattr(plane_arrangement, "_apart", lambda f, corners, *_: np.zeros(len(corners), dtype=bool))
     monkeypatch.setattr(plane_arrangement.Polytope, "corners", lambda self: merge_points(
         np.vstack([ring for _, _, ring in self.faces]), plane_arrangement.SPLIT_EPS)[0])
     slow = [[_rebuilt(scan, lambda p, n, o=open_: plane_cells(p, n, open_=o))[1] for open_ in (False, True)]

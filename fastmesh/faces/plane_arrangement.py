@@ -214,10 +214,12 @@ def _plane_facets(k: int, flat: list[tuple[int, int, np.ndarray]], mine: np.ndar
     if not beyond:
         return out
     low, high = np.array([g.min(0) for _, g in beyond]), np.array([g.max(0) for _, g in beyond])
+    packed = _packed([g for _, g in beyond])
     for i, f in ((i, f) for i, s, f in flat if s > 0):
         near = np.nonzero(~((low >= f.max(0)).any(1) | (high <= f.min(0)).any(1)))[0]  # their boxes overlap
-        rings = [beyond[c][1] for c in near]
-        for c in near[~_apart(f, rings)] if len(near) else near:
+        if not len(near):
+            continue
+        for c in near[~_apart(f, *(a[near] for a in packed))]:
             j, g = beyond[c]
             common = _convex_overlap(f, g)
             if common is not None:
@@ -226,16 +228,22 @@ def _plane_facets(k: int, flat: list[tuple[int, int, np.ndarray]], mine: np.ndar
     return out
 
 
-def _apart(f: np.ndarray, rings: list[np.ndarray]) -> np.ndarray:
-    """(R,) whether the counter-clockwise convex polygon ``f`` (m, 2) and each of ``rings`` (counter-clockwise
-    convex (k, 2)) lie on either side of an edge of one of them, touching at most: their overlap has no area and
-    :func:`_convex_overlap` gives None, so it need not clip them (most pairs of a plane's faces whose boxes
-    overlap).  The signed distances are :func:`_convex_overlap`'s own."""
+def _packed(rings: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rings (k, 2) of different lengths as (R, K, 2) corners, (R, K, 2) edges (each corner to the next) and
+    (R, K) which of them are the ring's (the rest padding), for :func:`_apart`."""
     size = max(len(g) for g in rings)
     corners, edges = np.zeros((len(rings), size, 2)), np.zeros((len(rings), size, 2))
     valid = np.zeros((len(rings), size), dtype=bool)
     for r, g in enumerate(rings):
         corners[r, :len(g)], edges[r, :len(g)], valid[r, :len(g)] = g, np.roll(g, -1, axis=0) - g, True
+    return corners, edges, valid
+
+
+def _apart(f: np.ndarray, corners: np.ndarray, edges: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(R,) whether the counter-clockwise convex polygon ``f`` (m, 2) and each of R counter-clockwise convex rings
+    (:func:`_packed`) lie on either side of an edge of one of them, touching at most: their overlap has no area and
+    :func:`_convex_overlap` gives None, so it need not clip them (most pairs of a plane's faces whose boxes
+    overlap).  The signed distances are :func:`_convex_overlap`'s own."""
     # f's corners against each ring's edges: (R, K, m), > 0 outside
     t = -(edges[..., :1] * (f[:, 1] - corners[..., 1:]) - edges[..., 1:] * (f[:, 0] - corners[..., :1]))
     beyond_ring = ((np.where(np.abs(t) < 1e-15, 0.0, t) >= 0).all(2) & valid).any(1)

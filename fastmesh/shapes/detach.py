@@ -52,9 +52,10 @@ def _fan(faces: np.ndarray, v: int, sheet: int, wall: np.ndarray) -> np.ndarray:
     """(F,) the faces about vertex ``v`` that the sheet holding face ``sheet`` makes there: those reached from it
     across edges at ``v`` that two faces share, none of them on the wall (``wall`` (F,): the faces in its plane).
     A sheet folded a few degrees (a low-poly quad whose corners are not in one plane) is one sheet."""
-    ring = np.nonzero((faces == v).any(1) & ~wall)[0]
+    around = (faces == v).any(1)
+    ring = np.nonzero(around & ~wall)[0]
     count = {}
-    for i in np.nonzero((faces == v).any(1))[0]:
+    for i in np.nonzero(around)[0]:
         for w in faces[i]:
             count[int(w)] = count.get(int(w), 0) + (w != v)
     reached, todo = {sheet}, [sheet]

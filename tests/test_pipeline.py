@@ -97,7 +97,11 @@ def test_a_turned_shape_is_also_made_in_its_canonical_frame(pipe, monkeypatch):
         calls.append(rotation)
         return made(shape, rotation, *args)
 
+    from fastmesh.pipeline import result as step8
+
     monkeypatch.setattr(pipe, "_frame", spy)
+    # A dense box would be simplified within its own faces (test_flat), with no frame made.
+    monkeypatch.setattr(step8, "flat_faced", lambda req: None)
     box = trimesh.creation.box(extents=(3.0, 2.0, 1.0)).subdivide().subdivide()  # 192 faces: no low-poly input
     turn = trimesh.transformations.rotation_matrix(0.6, [1.0, 2.0, 3.0])
     turned = box.copy()

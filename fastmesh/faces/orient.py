@@ -1,12 +1,12 @@
 """Consistent, outward windings: each face's flip fixed along a spanning forest of the face graph; open pieces
-turned to face the input (:func:`face_input`)."""
+turned to face the input (:func:`face_input`); a mesh's pieces stored inside out turned (:func:`outward_pieces`)."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .meshops import open_sides, piece_labels
+from .meshops import face_sides, open_sides, piece_labels
 
 # A face's side is read from this many input samples nearest its centroid (:func:`sides_asked`)...
 SIDE_SAMPLES = 8
@@ -42,6 +42,40 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray, outward: bool = True) 
         v = np.asarray(vertices, dtype=np.float64)
         inv = _volumes(v, f, label, v[np.unique(f)].mean(0))[label] < 0
         f[inv] = f[inv][:, ::-1]
+    return f
+
+
+def outward_pieces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``faces`` with each piece wound one way whose signed volume about its centroid is negative reversed: a mesh
+    stored inside out (as many game formats keep theirs) shows a renderer the backs of its faces.  Exact for a
+    closed piece, and read as :func:`orient_faces` reads it for an open one that encloses a volume (a body open at
+    the neck); a sheet (``SHEET_VOLUME``) and a piece with an edge in three faces or two faces wound against each
+    other stay as they are: their side is not theirs to tell.  A closed piece inside another (a cavity, which no
+    renderer shows) is turned outward too, as :func:`orient_faces` turns it.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+    faces : (F, 3) int
+
+    Returns
+    -------
+    (F, 3) int64 faces, same order, the turned pieces' reversed
+    """
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3).copy()
+    if len(f) == 0:
+        return f
+    v = np.asarray(vertices, dtype=np.float64)
+    fa, _, same_dir = _face_pairs(f, len(v))
+    label = piece_labels(f)
+    tri = v[f]
+    area_normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    keep = _sheets(v, f, label, area_normal)
+    keep[label[fa[same_dir]]] = True
+    _, inverse, count = np.unique(np.sort(face_sides(f), axis=1), axis=0, return_inverse=True, return_counts=True)
+    keep[np.tile(label, 3)[count[inverse.reshape(-1)] > 2]] = True
+    turn = (~keep & (_volumes(v, f, label, _centres(v, f, label)[label]) < 0))[label]
+    f[turn] = f[turn][:, ::-1]
     return f
 
 
@@ -130,13 +164,18 @@ def _sheets(v: np.ndarray, f: np.ndarray, label: np.ndarray, area_normal: np.nda
     n = label.max() + 1
     open_piece = np.zeros(n, dtype=bool)
     open_piece[np.tile(label, 3)[open_sides(f)]] = True
+    volume = _volumes(v, f, label, _centres(v, f, label)[label])
+    area = np.bincount(label, np.linalg.norm(area_normal, axis=1), n) / 2
+    return open_piece & (np.abs(volume) < SHEET_VOLUME * area**1.5)
+
+
+def _centres(v: np.ndarray, f: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """(pieces, 3) the mean of each piece's face corners (faces ``f`` (F, 3) labelled ``label`` (F,))."""
+    n = label.max() + 1
     centre = np.zeros((n, 3))
     corner = np.repeat(label, 3)
     np.add.at(centre, corner, v[f].reshape(-1, 3))
-    centre /= np.maximum(np.bincount(corner, minlength=n), 1)[:, None]
-    volume = _volumes(v, f, label, centre[label])
-    area = np.bincount(label, np.linalg.norm(area_normal, axis=1), n) / 2
-    return open_piece & (np.abs(volume) < SHEET_VOLUME * area**1.5)
+    return centre / np.maximum(np.bincount(corner, minlength=n), 1)[:, None]
 
 
 def _volumes(v: np.ndarray, f: np.ndarray, label: np.ndarray, about: np.ndarray) -> np.ndarray:

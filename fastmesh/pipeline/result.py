@@ -25,7 +25,7 @@ from ..faces.facecount import hold_count
 from ..faces.flat import simplify_flat
 from ..faces.kitbash import kitbash_union
 from ..faces.meshops import edge_face_counts, remove_unreferenced, triangle_areas, weld
-from ..faces.orient import face_input
+from ..faces.orient import face_input, outward_pieces
 from ..faces.pieces import drop_strays, far_limit, pull_in, split_pinches, thin_crowded_edges
 from ..faces.plane_cells import plane_cells
 from ..faces.redistribute import redistribute
@@ -129,14 +129,15 @@ def unsplit(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def low_poly(shape: Shape, faces: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """A mesh input, welded, when it has at most ``faces`` faces and is a surface (no edge in three faces):
-    a result never has more faces than a low-poly input unless a count is asked for."""
+    """A mesh input, welded, its pieces stored inside out turned (``orient.outward_pieces``), when it has at most
+    ``faces`` faces and is a surface (no edge in three faces): a result never has more faces than a low-poly input
+    unless a count is asked for."""
     if shape.faces is None or len(shape.faces) > 4 * faces:  # too many to become few by welding: not weighed
         return None
     v, f = weld(shape.vertices, shape.faces)
     if len(f) == 0 or len(f) > faces or edge_face_counts(f).max() > 2:
         return None
-    return remove_unreferenced(v, f)[:2]
+    return remove_unreferenced(v, outward_pieces(v, f))[:2]
 
 
 def planar(req: Request, open_: bool = False, turn: np.ndarray | None = None
@@ -191,13 +192,13 @@ def flat_faced(req: Request) -> tuple[np.ndarray, np.ndarray, str] | None:
     """A mesh input made of flat faces simplified within a fraction of a cell of its own surface
     (``flat.simplify_flat``), in the input's frame, with where it comes from ("simplified"); None where it is not
     one, or the result must be closed and the input is not.  Its vertices are the input's, its openings and pieces
-    the input's."""
+    the input's, its pieces stored inside out turned (``orient.outward_pieces``)."""
     shape = req.shape
     if shape.faces is None or (req.close and not req.sealed):
         return None
     with stage("faces", req.timings):
         found = simplify_flat(req.frame.unit, shape.faces)
-    return None if found is None else (req.frame.norm.invert(found[0]), found[1], "simplified")
+    return None if found is None else (req.frame.norm.invert(found[0]), outward_pieces(*found), "simplified")
 
 
 def decimated(req: Request, vertices: np.ndarray, faces: np.ndarray, config: TriangleConfig

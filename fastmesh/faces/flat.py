@@ -47,7 +47,7 @@ class FlatConfig:
     max_faces : the simplified mesh is kept only with at most this many faces
     max_input_faces : a larger input is not tried (the collapses run in Python: 0.2-4 s for the 17 flat ones of
         about 20,000 faces in the held-out mesh inputs, 6-9 s for a box split into a grid of 15,000, 11-21 s for
-        a box with round parts split into 60,000-100,000)
+        a box with round parts split into 58,000-104,000)
     """
 
     flat_share: float = 0.5
@@ -106,8 +106,8 @@ def simplify_flat(vertices: np.ndarray, faces: np.ndarray, cfg: FlatConfig = Fla
         last, gap = gap, _gap(v, f, out_v, out_f)
         if gap <= cfg.max_gap:
             return out_v, out_f
-        # Not made again where the bound is not what strays (the gap did not shrink: a lossless collapse across a
-        # gap between parts) or where half the bound would pass the cap (it about doubles a curved part's faces).
+        # Not made again where the bound is not what strays (the gap did not shrink) or where half the bound would
+        # pass the cap (it about doubles a curved part's faces).
         if gap >= last or 2 * len(out_f) > cfg.max_faces:
             return None
     return None

@@ -28,6 +28,14 @@ def pipe() -> Pipeline:
     return Pipeline.random(seed=0)
 
 
+@pytest.fixture(autouse=True)
+def _no_flat_path(monkeypatch):
+    """The dense turned box would be simplified within its own faces (test_flat) with no frame decoded."""
+    from fastmesh.pipeline import result as step8
+
+    monkeypatch.setattr(step8, "flat_faced", lambda req: None)
+
+
 def _sphere(scale: float = 3.0) -> Shape:
     m = trimesh.creation.icosphere(3)  # 1,280 faces: more than a tiny network's result (no low-poly input)
     return Shape(vertices=np.asarray(m.vertices) * scale + [10.0, -4.0, 2.0], faces=np.asarray(m.faces))

@@ -1,8 +1,9 @@
 """The shipped pipeline gives the meshes it gave when ``tests/data/same_meshes.npz`` was written: the same
 tokens and faces (exactly: the same oriented triangles) and vertices (to ``ROUNDING``) on
 fixed seeds, over varied inputs (``gpu_inputs.varied``: point clouds with and without a face-count target,
-artist meshes, a posed primitive; and a turned 64-sided cylinder, which is generated in two frames and kept in
-the turned one).  A change meant to make the pipeline
+artist meshes, a posed primitive; and a turned 64-sided cylinder, its corners moved by a thousandth of its height
+as a scan's are (no face flat with its neighbours, so the networks make it), which is generated in two frames and
+kept in the turned one).  A change meant to make the pipeline
 faster, or to move its code, must leave every one of them as it is.
 
 Rewrite the file only for a change meant to change results, and say so in its commit::
@@ -37,8 +38,8 @@ def inputs() -> list[tuple[str, object, GenerateParams]]:
     """(name, shape, params) of each pinned run."""
     chosen = [varied(12, seed=9)[i] for i in PICKED]
     cylinder = trimesh.creation.cylinder(0.3, 0.8, sections=64)
-    turned = posed(Shape(vertices=np.asarray(cylinder.vertices), faces=np.asarray(cylinder.faces)),
-                   np.random.default_rng(7))
+    moved = np.asarray(cylinder.vertices) + np.random.default_rng(0).normal(scale=1e-3, size=cylinder.vertices.shape)
+    turned = posed(Shape(vertices=moved, faces=np.asarray(cylinder.faces)), np.random.default_rng(7))
     chosen.append(("cylinder64-turned", turned, GenerateParams(seed=2)))
     return chosen
 

@@ -37,7 +37,7 @@ def mixed_prop(rng: np.random.Generator) -> Shape:
 
 
 def dense(shape: Shape, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """``shape`` split into faces of sides under 2.5-5 % of its size (10,000-40,000 faces), as a CAD export or a
+    """``shape`` split into faces of sides under 2.5-5 % of its size (10,000-60,000 faces), as a CAD export or a
     remesh gives it."""
     size = float(np.ptp(shape.vertices, axis=0).max())
     return trimesh.remesh.subdivide_to_size(shape.vertices, shape.faces, rng.uniform(0.025, 0.05) * size)

@@ -81,13 +81,18 @@ def crowded_edges(faces: np.ndarray) -> np.ndarray:
     return keys[counts > 2]
 
 
-def open_sides(faces: np.ndarray) -> np.ndarray:
-    """(3F,) bool, per side of :func:`face_sides`: its edge is in no other face (an open edge)."""
+def side_counts(faces: np.ndarray) -> np.ndarray:
+    """(3F,) int64, per side of :func:`face_sides`: how many of ``faces`` (F, 3) use its edge."""
     sides = np.sort(face_sides(faces), axis=1)
     if len(sides) == 0:
-        return np.zeros(0, dtype=bool)
+        return np.zeros(0, dtype=np.int64)
     _, inverse, count = np.unique(sides, axis=0, return_inverse=True, return_counts=True)
-    return count[inverse.reshape(-1)] == 1
+    return count[inverse.reshape(-1)]
+
+
+def open_sides(faces: np.ndarray) -> np.ndarray:
+    """(3F,) bool, per side of :func:`face_sides`: its edge is in no other face (an open edge)."""
+    return side_counts(faces) == 1
 
 
 def wound_alike(faces: np.ndarray) -> bool:

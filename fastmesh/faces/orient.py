@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .meshops import face_sides, open_sides, piece_labels
+from .meshops import open_sides, piece_labels, side_counts
 
 # A face's side is read from this many input samples nearest its centroid (:func:`sides_asked`)...
 SIDE_SAMPLES = 8
@@ -70,11 +70,12 @@ def outward_pieces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     label = piece_labels(f)
     tri = v[f]
     area_normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    keep = _sheets(v, f, label, area_normal)
+    count = side_counts(f)
+    volume = _volumes(v, f, label, _centres(v, f, label)[label])
+    keep = _sheets(label, area_normal, volume, count == 1)
     keep[label[fa[same_dir]]] = True
-    _, inverse, count = np.unique(np.sort(face_sides(f), axis=1), axis=0, return_inverse=True, return_counts=True)
-    keep[np.tile(label, 3)[count[inverse.reshape(-1)] > 2]] = True
-    turn = (~keep & (_volumes(v, f, label, _centres(v, f, label)[label]) < 0))[label]
+    keep[np.tile(label, 3)[count > 2]] = True
+    turn = (~keep & (volume < 0))[label]
     f[turn] = f[turn][:, ::-1]
     return f
 
@@ -155,16 +156,18 @@ def face_input(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, norm
     n = label.max() + 1
     nearest = cKDTree(np.asarray(points, dtype=np.float64)).query(tri.mean(1))[1]
     vote = np.bincount(label, np.einsum("fd,fd->f", area_normal, np.asarray(normals)[nearest]), n)
-    return np.where(((vote < 0) & _sheets(v, f, label, area_normal))[label][:, None], f[:, ::-1], f)
+    volume = _volumes(v, f, label, _centres(v, f, label)[label])
+    return np.where(((vote < 0) & _sheets(label, area_normal, volume, open_sides(f)))[label][:, None], f[:, ::-1], f)
 
 
-def _sheets(v: np.ndarray, f: np.ndarray, label: np.ndarray, area_normal: np.ndarray) -> np.ndarray:
-    """(pieces,) bool: the pieces with an open edge whose signed volume about their vertices' centroid is under
-    ``SHEET_VOLUME`` times their area to the power 3/2."""
+def _sheets(label: np.ndarray, area_normal: np.ndarray, volume: np.ndarray, open_side: np.ndarray) -> np.ndarray:
+    """(pieces,) bool: the pieces (faces labelled ``label`` (F,), twice their areas along their normals
+    ``area_normal`` (F, 3)) with an open edge (``open_side`` (3F,), per side of ``meshops.face_sides``) whose signed
+    volume about their vertices' centroid (``volume`` (pieces,)) is under ``SHEET_VOLUME`` times their area to the
+    power 3/2."""
     n = label.max() + 1
     open_piece = np.zeros(n, dtype=bool)
-    open_piece[np.tile(label, 3)[open_sides(f)]] = True
-    volume = _volumes(v, f, label, _centres(v, f, label)[label])
+    open_piece[np.tile(label, 3)[open_side]] = True
     area = np.bincount(label, np.linalg.norm(area_normal, axis=1), n) / 2
     return open_piece & (np.abs(volume) < SHEET_VOLUME * area**1.5)
 

@@ -1,11 +1,13 @@
-"""Consistent, outward windings: each face's flip fixed along a spanning forest of the face graph; open pieces
-turned to face the input (:func:`face_input`); a mesh's pieces stored inside out turned (:func:`outward_pieces`)."""
+"""Consistent, outward windings: each face's flip fixed along a spanning forest of the face graph
+(``shapes.windings``); open pieces turned to face the input (:func:`face_input`); a mesh's pieces stored inside out
+turned (:func:`outward_pieces`)."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..shapes.windings import face_pairs, winding_flips
 from .meshops import open_sides, piece_labels, side_counts
 
 # A face's side is read from this many input samples nearest its centroid (:func:`sides_asked`)...
@@ -21,10 +23,9 @@ SHEET_VOLUME = 0.002
 def orient_faces(vertices: np.ndarray, faces: np.ndarray, outward: bool = True) -> np.ndarray:
     """Consistent winding across edges shared by exactly two faces, then each part outward.
 
-    A breadth-first spanning forest of the face graph (one traversal from a virtual root
-    linked to every part) fixes each face's flip relative to its part's root; the flips
-    accumulate along the tree by pointer jumping (vectorised, O(F log depth)).  Edges with
-    more than two faces do not constrain winding.  With ``outward``, a part whose signed
+    A spanning forest of the face graph fixes each face's flip relative to its part's root
+    (``shapes.windings.winding_flips``; edges with more than two faces do not constrain
+    winding).  With ``outward``, a part whose signed
     volume about the vertex centroid is negative is flipped (exact for closed parts, a
     heuristic for open ones).
 
@@ -35,8 +36,7 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray, outward: bool = True) 
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3).copy()
     if len(f) == 0:
         return f
-    fa, fb, same_dir = _face_pairs(f, len(vertices))
-    flip, label = _flips(fa, fb, same_dir, len(f))
+    flip, label = winding_flips(*face_pairs(f, len(vertices)), len(f))
     f[flip] = f[flip][:, ::-1]
     if outward:
         v = np.asarray(vertices, dtype=np.float64)
@@ -66,7 +66,7 @@ def outward_pieces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     if len(f) == 0:
         return f
     v = np.asarray(vertices, dtype=np.float64)
-    fa, _, same_dir = _face_pairs(f, len(v))
+    fa, _, same_dir = face_pairs(f, len(v))
     label = piece_labels(f)
     tri = v[f]
     area_normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -78,55 +78,6 @@ def outward_pieces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     turn = (~keep & (volume < 0))[label]
     f[turn] = f[turn][:, ::-1]
     return f
-
-
-def _face_pairs(f: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The pairs of faces (fa, fb: (P,) int64) on each edge of exactly two distinct faces of ``f`` (F, 3), and
-    (P,) bool whether they run the edge the same way (then one of the two must flip)."""
-    he = np.stack([f, np.roll(f, -1, axis=1)], axis=2).reshape(-1, 2)  # half-edges (3F, 2), face = index // 3
-    key = np.sort(he, axis=1) @ np.array([n_vertices, 1])
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    start = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
-    count = np.diff(np.r_[start, len(ks)])
-    two = start[count == 2]
-    h1, h2 = order[two], order[two + 1]
-    fa, fb = h1 // 3, h2 // 3
-    same_dir = he[h1, 0] == he[h2, 0]  # equal directions: one of the two must flip
-    ok = fa != fb
-    return fa[ok], fb[ok], same_dir[ok]
-
-
-def _flips(fa: np.ndarray, fb: np.ndarray, same_dir: np.ndarray, nf: int) -> tuple[np.ndarray, np.ndarray]:
-    """(nf,) bool which faces flip so that every pair agrees with its part's root where a spanning forest of
-    the pairs reaches, and (nf,) the part (connected component of the face graph) of each face."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import breadth_first_order, connected_components
-
-    g = sp.coo_matrix((np.ones(len(fa)), (fa, fb)), shape=(nf + 1, nf + 1)).tocsr()
-    _, label = connected_components(g[:nf, :nf], directed=False)
-    roots = np.unique(label, return_index=True)[1]
-    g = g + sp.coo_matrix((np.ones(len(roots)), (np.full(len(roots), nf), roots)), shape=(nf + 1, nf + 1)).tocsr()
-    _, pred = breadth_first_order(g, nf, directed=False, return_predecessors=True)
-    pred = pred[:nf]
-    # Parity of each tree edge (pred[i], i), looked up among the shared-edge pairs.
-    pair_key = np.r_[fa * nf + fb, fb * nf + fa]
-    pair_val = np.r_[same_dir, same_dir]
-    srt = np.argsort(pair_key)
-    pair_key, pair_val = pair_key[srt], pair_val[srt]
-    is_root = pred == nf
-    q = np.where(is_root, 0, pred) * nf + np.arange(nf)
-    pos = np.minimum(np.searchsorted(pair_key, q), max(len(pair_key) - 1, 0))
-    flip = np.where(is_root, False, pair_val[pos] if len(pair_key) else False)
-    # Pointer jumping: invariant flip[i] = parity from i to ptr[i]; stop once every ptr is a root.
-    ptr = np.where(is_root, np.arange(nf), pred)
-    while True:
-        nxt = ptr[ptr]
-        if (nxt == ptr).all():
-            break
-        flip = flip ^ flip[ptr]
-        ptr = nxt
-    return flip, label
 
 
 def face_input(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, normals: np.ndarray) -> np.ndarray:

@@ -1,5 +1,6 @@
 """The noise of a scan, read from its points: how far they lie off the planes of their neighbours where the
-surface itself is flat at that scale (``planar`` holds a scan's planes at its own noise)."""
+surface itself is flat at that scale (``planar`` holds a scan's planes at its own noise, and keeps those as flat
+as it: :func:`flat_only`)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,9 @@ NOISE_FAR = 48
 NOISE_PROBES = 1024  # the median over this many varies by about 2 %
 CURVED_GROWTH = 1.6
 SIDE_COS = 0.5  # neighbours whose normals turn by more than 60 degrees lie on another side (``noise_level``)
+# A scan's plane lies off its points by at most this many noise levels in RMS (:func:`flat_only`; a flat side: 1.0
+# to 1.25; a facet over a noisy cylinder: 1.7 or more).
+FLAT_RMS = 1.4
 
 
 def noise_level(points: np.ndarray, normals: np.ndarray | None = None) -> float:
@@ -72,3 +76,31 @@ def fitted_normals(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray,
     fitted = vectors[:, :, 0]
     return (fitted * np.where(np.einsum("ij,ij->i", fitted, normals) < 0, -1.0, 1.0)[:, None],
             np.argsort(low[:, 0], kind="stable"))
+
+
+def flat_only(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, sigma: float, inliers: float
+              ) -> tuple[np.ndarray, np.ndarray] | None:
+    """A noisy scan's planes (K, 4) (``planar``'s), each fitted again to all the points it took (the seed's fit
+    saw only those whose normals agreed), and the plane of each point (N,), without those whose points lie off
+    them by an RMS above ``FLAT_RMS`` times the noise ``sigma``: a facet laid over a curved scan holds its points within
+    the tolerance too, but spread over its whole width (the sag of the curve), not as the noise spreads them; so
+    does a sliver grown from a few points beyond the noise along an edge.  None where, without them, more than
+    ``1 - inliers`` of the points are unexplained (a curved scan)."""
+    planes = np.array([refit(points[labels == k], plane) for k, plane in enumerate(planes)])
+    mine = labels >= 0
+    off = np.abs(np.einsum("ij,ij->i", points[mine], planes[labels[mine], :3]) - planes[labels[mine], 3])
+    count = np.bincount(labels[mine], minlength=len(planes))
+    rms = np.sqrt(np.bincount(labels[mine], weights=off**2, minlength=len(planes)) / np.maximum(count, 1))
+    flat = rms <= FLAT_RMS * sigma
+    if (~mine).sum() + count[~flat].sum() > len(points) * (1 - inliers) or not flat.any():
+        return None
+    renumber = np.cumsum(flat) - 1
+    return planes[flat], np.where(mine & flat[np.maximum(labels, 0)], renumber[np.maximum(labels, 0)], -1)
+
+
+def refit(points: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """(4,) the least-squares plane of ``points`` (M, 3), its normal on the side of ``plane``'s (4,)."""
+    centre = points.mean(0)
+    n = np.linalg.svd(points - centre, full_matrices=False)[2][-1]
+    n = n if n @ plane[:3] >= 0 else -n
+    return np.r_[n, n @ centre]

@@ -27,6 +27,7 @@ from .arrangement import MEETING_DEGREES
 from .detach import detached
 from .outline_edges import outline_ways
 from .planar import PlanarConfig, _explains, planar_mesh
+from .windings import agreeing
 
 # A side of the box or a line across a sheet this near parallel to a plane does not cut it (its neighbours, which
 # meet it by ``arrangement.meeting_sine``, always do).
@@ -79,6 +80,10 @@ def open_polyhedron(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig =
     vertices, faces, pts, reach, sides, tolerance = made
     if free:
         vertices, faces = detached(vertices, faces, cfg.tolerance, reach)
+    # Each plane's faces are wound by its points' normals; a scan's are signed only where its points enclose a
+    # volume (``orientation.outward``), so one wall of a frame open at the back may face into the frame.  The
+    # surface's own edges say which way its faces wind, and most of its area which side it faces.
+    faces = agreeing(vertices, faces)
     stops = _stops(pts, reach, tolerance - cfg.tolerance) if free else None
     if not _open_where_it_stops(vertices, faces, sides, cfg.tolerance, stops) or not _explains(vertices, faces, pts,
                                                                                                 reach):

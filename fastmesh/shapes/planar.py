@@ -21,17 +21,21 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .arrangement import PLACED_SNAP, Cell, chosen, merge_points, neighbour_planes, outline, plane_basis, snapped
-from .noise import fitted_normals, noise_level
+from .noise import fitted_normals, flat_only, noise_level
 
 # A scan (``noise.noise_level`` reads its noise): its planes hold the points within NOISE_SIGMAS noise levels
 # (3.5: all but 0.05 % of Gaussian noise), seeded by normals within NOISY_DEGREES, explaining all but NOISY_INLIERS
 # of them (a dense scan's samples between its noisy vertices spread by less than the vertices do, so a few near the
-# vertices lie beyond the noise read from the samples), and each plane's points lie off it by at most FLAT_RMS noise
-# levels in RMS (a flat side: 1.0 to 1.25; a facet over a noisy cylinder: 1.7 or more).
+# vertices lie beyond the noise read from the samples), and each plane's points lie off it by at most
+# ``noise.FLAT_RMS`` noise levels in RMS.
 NOISE_SIGMAS = 3.5
 NOISY_DEGREES = 15.0
 NOISY_INLIERS = 0.99
-FLAT_RMS = 1.4
+# A plane grown on a scan takes every free point within its tolerance whose fitted normal is not square to it
+# (``PlanarConfig.loose_degrees``), so a panel set into a frame takes a strip of each wall it cuts across.  Each point
+# then goes to the nearest plane holding it whose normal its fitted normal lies within HOLD_DEGREES of
+# (``_by_normal``): fitted normals tilt by up to 45 degrees within a few points of an edge; a wall's lie 90 off.
+HOLD_DEGREES = 45.0
 
 
 @dataclass(frozen=True)
@@ -134,7 +138,8 @@ def _planes_at_noise(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig
                      ) -> tuple[np.ndarray, np.ndarray, PlanarConfig] | None:
     """:func:`detect_planes` at the points' own noise: the planes, the plane of each point, and the tolerances
     they were found with (``cfg``'s, or for a scan whose noise exceeds them those of ``NOISE_SIGMAS`` noise
-    levels, its normals fitted to its neighbours and only the planes as flat as the noise: :func:`_flat_only`)."""
+    levels, its normals fitted to its neighbours, each point on the plane its fitted normal agrees with
+    (``HOLD_DEGREES``) and only the planes as flat as the noise: ``noise.flat_only``)."""
     sigma = noise_level(points, normals)
     if NOISE_SIGMAS * sigma <= cfg.tolerance:
         found = detect_planes(points, normals, cfg)
@@ -142,36 +147,11 @@ def _planes_at_noise(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig
     cfg = replace(cfg, tolerance=NOISE_SIGMAS * sigma, normal_degrees=NOISY_DEGREES, inliers=NOISY_INLIERS)
     fitted, order = fitted_normals(points, normals)
     found = detect_planes(points, fitted, cfg, order)
-    found = None if found is None else _flat_only(points, *found, sigma, cfg)
-    return None if found is None else (*found, cfg)
-
-
-def _flat_only(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, sigma: float, cfg: PlanarConfig
-               ) -> tuple[np.ndarray, np.ndarray] | None:
-    """A noisy scan's planes (K, 4), each fitted again to all the points it took (the seed's fit saw only those
-    whose normals agreed), and the plane of each point (N,), without those whose points lie off them by an RMS
-    above ``FLAT_RMS`` times the noise ``sigma``: a facet laid over a curved scan holds its points within
-    the tolerance too, but spread over its whole width (the sag of the curve), not as the noise spreads them; so
-    does a sliver grown from a few points beyond the noise along an edge.  None where, without them, more than
-    ``1 - cfg.inliers`` of the points are unexplained (a curved scan)."""
-    planes = np.array([_refit(points[labels == k], plane) for k, plane in enumerate(planes)])
-    mine = labels >= 0
-    off = np.abs(np.einsum("ij,ij->i", points[mine], planes[labels[mine], :3]) - planes[labels[mine], 3])
-    count = np.bincount(labels[mine], minlength=len(planes))
-    rms = np.sqrt(np.bincount(labels[mine], weights=off**2, minlength=len(planes)) / np.maximum(count, 1))
-    flat = rms <= FLAT_RMS * sigma
-    if (~mine).sum() + count[~flat].sum() > len(points) * (1 - cfg.inliers) or not flat.any():
+    if found is None:
         return None
-    renumber = np.cumsum(flat) - 1
-    return planes[flat], np.where(mine & flat[np.maximum(labels, 0)], renumber[np.maximum(labels, 0)], -1)
-
-
-def _refit(points: np.ndarray, plane: np.ndarray) -> np.ndarray:
-    """(4,) the least-squares plane of ``points`` (M, 3), its normal on the side of ``plane``'s (4,)."""
-    centre = points.mean(0)
-    n = np.linalg.svd(points - centre, full_matrices=False)[2][-1]
-    n = n if n @ plane[:3] >= 0 else -n
-    return np.r_[n, n @ centre]
+    labels = _by_normal(points, fitted, *found, replace(cfg, normal_degrees=HOLD_DEGREES))
+    found = flat_only(points, found[0], labels, sigma, cfg.inliers)
+    return None if found is None else (*found, cfg)
 
 
 def _distinct(ring: np.ndarray) -> np.ndarray:

@@ -138,3 +138,19 @@ def test_the_pipeline_rebuilds_noisy_scanned_boxes_from_their_planes():
         assert res.info["result_from"] == "planes" and res.tokens == 0
         assert len(res.faces) == 12 and res.quality["watertight"]
         assert np.linalg.norm(res.vertices[:, None] - mesh.vertices[None], axis=-1).min(1).max() < 0.005 * size
+
+
+def test_a_scans_plane_left_without_points_goes():
+    """A plane whose points all went to other planes (``planar._by_normal``) is dropped, not refitted to nothing;
+    the planes that hold points come back refitted."""
+    from fastmesh.shapes.noise import flat_only
+
+    rng = np.random.default_rng(3)
+    floor = np.c_[rng.uniform(0, 1, (300, 2)), rng.normal(0, 1e-3, 300)]
+    wall = np.c_[rng.normal(0, 1e-3, 300), rng.uniform(0, 1, (300, 2))]
+    planes = np.array([[0, 0, 1.0, 0], [1.0, 0, 0, 0], [0, 1.0, 0, 0.5]])  # the third holds no point
+    for labels in (np.r_[np.zeros(300, int), np.ones(300, int)], np.r_[np.zeros(300, int), np.ones(298, int), 2, 2]):
+        found = flat_only(np.vstack([floor, wall]), planes, labels, 1e-3, 0.99)
+        assert found is not None and len(found[0]) == 2
+        assert np.allclose(np.abs(found[0][:, :3]), np.eye(3)[[2, 0]], atol=0.01)
+        assert (found[1][:300] == 0).all() and (found[1][300:598] == 1).all()

@@ -82,16 +82,17 @@ def flat_only(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, sigma:
               ) -> tuple[np.ndarray, np.ndarray] | None:
     """A noisy scan's planes (K, 4) (``planar``'s), each fitted again to all the points it took (the seed's fit
     saw only those whose normals agreed), and the plane of each point (N,), without those whose points lie off
-    them by an RMS above ``FLAT_RMS`` times the noise ``sigma``: a facet laid over a curved scan holds its points within
-    the tolerance too, but spread over its whole width (the sag of the curve), not as the noise spreads them; so
-    does a sliver grown from a few points beyond the noise along an edge.  None where, without them, more than
+    them by an RMS above ``FLAT_RMS`` times the noise ``sigma``: a facet laid over a curved scan holds its points
+    within the tolerance too, but spread over its whole width (the sag of the curve), not as the noise spreads them; so
+    does a sliver grown from a few points beyond the noise along an edge.  A plane left with fewer than three points
+    (the others held by other planes, ``planar._by_normal``) goes too.  None where, without them, more than
     ``1 - inliers`` of the points are unexplained (a curved scan)."""
-    planes = np.array([refit(points[labels == k], plane) for k, plane in enumerate(planes)])
     mine = labels >= 0
-    off = np.abs(np.einsum("ij,ij->i", points[mine], planes[labels[mine], :3]) - planes[labels[mine], 3])
     count = np.bincount(labels[mine], minlength=len(planes))
+    planes = np.array([refit(points[labels == k], plane) if count[k] >= 3 else plane for k, plane in enumerate(planes)])
+    off = np.abs(np.einsum("ij,ij->i", points[mine], planes[labels[mine], :3]) - planes[labels[mine], 3])
     rms = np.sqrt(np.bincount(labels[mine], weights=off**2, minlength=len(planes)) / np.maximum(count, 1))
-    flat = rms <= FLAT_RMS * sigma
+    flat = (rms <= FLAT_RMS * sigma) & (count >= 3)
     if (~mine).sum() + count[~flat].sum() > len(points) * (1 - inliers) or not flat.any():
         return None
     renumber = np.cumsum(flat) - 1

@@ -4,6 +4,8 @@ planes need; curved scans at the same noise do not."""
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 import pytest
 import trimesh
@@ -154,3 +156,29 @@ def test_a_scans_plane_left_without_points_goes():
         assert found is not None and len(found[0]) == 2
         assert np.allclose(np.abs(found[0][:, :3]), np.eye(3)[[2, 0]], atol=0.01)
         assert (found[1][:300] == 0).all() and (found[1][300:598] == 1).all()
+
+
+def test_a_plane_seeded_at_an_edge_gives_its_points_back():
+    """Eight short shelves scanned with 0.3 % noise as bare points, in random poses: each comes back open from its
+    planes with the truth's faces, within 1.5 % of its size both ways.  Seeded before a short board's own points, a
+    plane parallel to a wall and a tolerance or two off it takes the strip between them, then the board's points
+    near the wall (one of these eight came back so without ``planar._regrown``); grown again largest first, it
+    gathers too few points and goes.  (Of 96 shelves drawn so in 12 draws, one is still refused.)"""
+    from poses import posed as pose_points
+    from poses import random_pose
+    from test_open_sheets import NOISE, NOISY_NEAR, short_shelf
+
+    from fastmesh.shapes.open_planar import open_polyhedron
+
+    rng = np.random.default_rng(8)
+    for i in range(8):
+        truth, pose = short_shelf(rng), random_pose(rng)
+        size = float(np.ptp(truth.vertices, axis=0).max())
+        points = point_cloud(truth, seed=i).vertices + rng.normal(0, NOISE * size, (8192, 3))
+        scan = with_normals(Shape(vertices=pose_points(points, pose)))
+        norm, found = _rebuilt(scan, partial(open_polyhedron, free=True))
+        assert found is not None and len(found[1]) == len(truth.faces), i
+        corners = norm.apply(pose_points(truth.vertices, pose))
+        for (va, fa), (vb, fb) in ((found, (corners, truth.faces)), ((corners, truth.faces), found)):
+            samples = trimesh.Trimesh(va, fa, process=False).sample(4000, seed=i)
+            assert distance_to_triangles(samples, vb, fb).max() < NOISY_NEAR, i

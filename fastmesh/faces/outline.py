@@ -22,8 +22,7 @@ from dataclasses import dataclass
 import manifold3d
 import numpy as np
 
-from ..shapes.arrangement import plane_basis
-from ..shapes.planar import signed_area
+from ..shapes.arrangement import plane_basis, signed_area
 from ..tokenizer.grid import CELL
 from .crossings import crossing_faces
 from .meshops import face_normals, face_sides, remove_unreferenced

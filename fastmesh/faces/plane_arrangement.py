@@ -15,8 +15,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..shapes.arrangement import merge_points, plane_basis
-from ..shapes.planar import signed_area
+from ..shapes.arrangement import merge_points, plane_basis, signed_area
 
 MAX_CELLS = 4000  # an arrangement of more cells is refused: too many planes crossing to be a prop's flat parts
 GROWN = 0.05  # the cells' box: the points' box grown by this (unit frame) on every side

@@ -219,3 +219,18 @@ def snapped(corners: np.ndarray, meets: np.ndarray, placed: int, radius: float) 
         out[free] = target
         moved[free] = True
     return out
+
+
+def signed_area(flat: np.ndarray) -> float:
+    """The area of a polygon (m, 2) by the shoelace formula: positive wound counter-clockwise."""
+    x, y = flat.T
+    return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
+
+
+def inside_ring(point: np.ndarray, ring: np.ndarray) -> bool:
+    """Whether a 2D point lies inside a ring (even-odd rule)."""
+    x, y = ring.T
+    x2, y2 = np.roll(x, -1), np.roll(y, -1)
+    crosses = (y > point[1]) != (y2 > point[1])
+    at = x + (point[1] - y) * (x2 - x) / np.where(y2 == y, 1.0, y2 - y)
+    return bool(np.sum(crosses & (point[0] < at)) % 2)

@@ -95,8 +95,14 @@ def flat_only(points: np.ndarray, planes: np.ndarray, labels: np.ndarray, sigma:
     flat = (rms <= FLAT_RMS * sigma) & (count >= 3)
     if (~mine).sum() + count[~flat].sum() > len(points) * (1 - inliers) or not flat.any():
         return None
-    renumber = np.cumsum(flat) - 1
-    return planes[flat], np.where(mine & flat[np.maximum(labels, 0)], renumber[np.maximum(labels, 0)], -1)
+    return kept_planes(planes, labels, flat)
+
+
+def kept_planes(planes: np.ndarray, labels: np.ndarray, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``planes`` (K, 4) where ``kept`` (K,) bool, and ``labels`` (N,) numbered among them (-1: none, or a plane
+    not kept)."""
+    renumber = np.where(kept, np.cumsum(kept) - 1, -1)
+    return planes[kept], np.where(labels >= 0, renumber[np.maximum(labels, 0)], -1)
 
 
 def refit(points: np.ndarray, plane: np.ndarray) -> np.ndarray:

@@ -20,8 +20,19 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .arrangement import PLACED_SNAP, Cell, chosen, merge_points, neighbour_planes, outline, plane_basis, snapped
-from .noise import fitted_normals, flat_only, noise_level
+from .arrangement import (
+    PLACED_SNAP,
+    Cell,
+    chosen,
+    inside_ring,
+    merge_points,
+    neighbour_planes,
+    outline,
+    plane_basis,
+    signed_area,
+    snapped,
+)
+from .noise import fitted_normals, flat_only, kept_planes, noise_level
 
 # A scan (``noise.noise_level`` reads its noise): its planes hold the points within NOISE_SIGMAS noise levels
 # (3.5: all but 0.05 % of Gaussian noise), seeded by normals within NOISY_DEGREES, explaining all but NOISY_INLIERS
@@ -149,9 +160,33 @@ def _planes_at_noise(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig
     found = detect_planes(points, fitted, cfg, order)
     if found is None:
         return None
-    labels = _by_normal(points, fitted, *found, replace(cfg, normal_degrees=HOLD_DEGREES))
-    found = flat_only(points, found[0], labels, sigma, cfg.inliers)
+    planes, labels = _regrown(points, fitted, *found, cfg)
+    labels = _by_normal(points, fitted, planes, labels, replace(cfg, normal_degrees=HOLD_DEGREES))
+    found = flat_only(points, planes, labels, sigma, cfg.inliers)
     return None if found is None else (*found, cfg)
+
+
+def _regrown(points: np.ndarray, normals: np.ndarray, planes: np.ndarray, labels: np.ndarray, cfg: PlanarConfig
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """``planes`` (K, 4) and ``labels`` (N,) without the planes that, grown again largest first over the points
+    (as :func:`detect_planes` grows them), gather under ``cfg.min_points`` and whose points go more to planes
+    across them than to planes along them; their points go to the plane that takes them then.  A scan's points near
+    an edge have fitted normals turned toward the other side: seeded there before a short board's own points, a
+    plane parallel to a wall and a tolerance or two off it takes the strip between them, and the board's points
+    it shares with the wall then (``_by_normal``).  A plane whose points a parallel one takes is that sheet's own
+    spread (a dense scan's samples lie wider than the noise read from them): it stays."""
+    cos = (np.cos(np.radians(cfg.normal_degrees)), np.cos(np.radians(cfg.loose_degrees)))
+    again = np.full(len(points), -1)
+    for k in np.argsort(-np.bincount(labels[labels >= 0], minlength=len(planes)), kind="stable"):
+        grown = _grow(points, normals, again < 0, planes[k, :3], planes[k, 3], cfg.tolerance, cos)
+        if grown is not None and grown[1].sum() >= cfg.min_points:
+            again[grown[1]] = k
+    mine = labels >= 0
+    along = np.abs(np.einsum("ij,ij->i", planes[labels[mine], :3], planes[again[mine], :3])) > cos[0]
+    taken = again[mine] >= 0
+    kept = np.isin(np.arange(len(planes)), again) | (
+        np.bincount(labels[mine], taken & along, len(planes)) >= np.bincount(labels[mine], taken & ~along, len(planes)))
+    return kept_planes(planes, np.where(kept[np.maximum(labels, 0)], labels, np.where(mine, again, -1)), kept)
 
 
 def _distinct(ring: np.ndarray) -> np.ndarray:
@@ -290,7 +325,7 @@ def _triangulate(vertices: np.ndarray, planes: np.ndarray, loops: list[tuple[int
         areas = [signed_area(f) for f in flat]
         outers = [i for i, a in enumerate(areas) if a > 0]
         for o in outers:
-            members = [o] + [h for h, a in enumerate(areas) if a < 0 and _inside(flat[h][0], flat[o])]
+            members = [o] + [h for h, a in enumerate(areas) if a < 0 and inside_ring(flat[h][0], flat[o])]
             coords = np.vstack([flat[i] for i in members])
             ends = np.cumsum([len(flat[i]) for i in members]).astype(np.uint32)
             tri = _split_needles(mapbox_earcut.triangulate_float64(coords, ends).reshape(-1, 3), coords)
@@ -339,21 +374,6 @@ def _with_points_on_edges(vertices: np.ndarray, ring: np.ndarray, tol: float) ->
         inside = np.nonzero((t > 1e-6) & (t < 1 - 1e-6) & (off < tol))[0]
         out.extend(inside[np.argsort(t[inside])])
     return np.array(out, dtype=np.int64)
-
-
-def signed_area(flat: np.ndarray) -> float:
-    """The area of a polygon (m, 2) by the shoelace formula: positive wound counter-clockwise."""
-    x, y = flat.T
-    return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
-
-
-def _inside(point: np.ndarray, ring: np.ndarray) -> bool:
-    """Whether a 2D point lies inside a ring (even-odd rule)."""
-    x, y = ring.T
-    x2, y2 = np.roll(x, -1), np.roll(y, -1)
-    crosses = (y > point[1]) != (y2 > point[1])
-    at = x + (point[1] - y) * (x2 - x) / np.where(y2 == y, 1.0, y2 - y)
-    return bool(np.sum(crosses & (point[0] < at)) % 2)
 
 
 def _closed(faces: np.ndarray) -> bool:

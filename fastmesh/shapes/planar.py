@@ -149,8 +149,8 @@ def _planes_at_noise(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig
                      ) -> tuple[np.ndarray, np.ndarray, PlanarConfig] | None:
     """:func:`detect_planes` at the points' own noise: the planes, the plane of each point, and the tolerances
     they were found with (``cfg``'s, or for a scan whose noise exceeds them those of ``NOISE_SIGMAS`` noise
-    levels, its normals fitted to its neighbours, each point on the plane its fitted normal agrees with
-    (``HOLD_DEGREES``) and only the planes as flat as the noise: ``noise.flat_only``)."""
+    levels, its normals fitted to its neighbours, planes grown at an edge dropped (:func:`_regrown`), each point on
+    the plane its fitted normal agrees with (``HOLD_DEGREES``), only the planes as flat as the noise: ``flat_only``)."""
     sigma = noise_level(points, normals)
     if NOISE_SIGMAS * sigma <= cfg.tolerance:
         found = detect_planes(points, normals, cfg)

@@ -148,6 +148,22 @@ def plane_arrangement(points: np.ndarray, labels: np.ndarray, planes: np.ndarray
     return cells, all_planes
 
 
+def refined(cells: list[Polytope], planes: np.ndarray, real: int, mixed: np.ndarray) -> list[Polytope] | None:
+    """The cells with each ``mixed`` one (C,) bool split by every one of the first ``real`` planes that crosses it:
+    a plane cuts only the cells its own points reach, so a small face whose plane was not found leaves a cell that
+    runs on past a step in the surface, part inside and part out; the planes crossing it may split it there.
+    None where the cells would then number more than ``MAX_CELLS``."""
+    out = []
+    for cell, split in zip(cells, mixed, strict=True):
+        parts = [cell]
+        for k in range(real) if split else ():
+            parts = [q for part in parts for q in (part.split(k, planes[k]) or (part,))]
+        out.extend(parts)
+        if len(out) > MAX_CELLS:
+            return None
+    return out
+
+
 def _reached(cell: Polytope, mine: np.ndarray, tree: cKDTree, planes: np.ndarray, reach: float) -> bool:
     """Whether ``MIN_SUPPORT`` of a plane's points ``mine`` (M, 3) lie in ``cell`` or within ``reach`` of it."""
     corners = cell.corners()

@@ -11,8 +11,10 @@ the cells its own points reach (:func:`.plane_arrangement.plane_arrangement`), w
 costs its volume times how far the input's generalized winding number there is from the label
 (``winding.winding_numbers``), each facet between two cells the part of its area its plane's points do not cover
 (:func:`.plane_arrangement.facets`); the least-cost labelling is a minimum cut (``cells.min_cut``, the face
-stage's) (:func:`labelled`). The facets between inside and outside cells are the surface: exact where cells meet
-(their corners come from the same planes), closed once the corners other facets put on an edge are inserted
+stage's) (:func:`labelled`); a cell whose winding number says it is part inside, part out (a step whose small
+face holds too few points for a plane, so that no plane stops there) is first split by every plane crossing it
+(:func:`.plane_arrangement.refined`). The facets between inside and outside cells are the surface: exact where
+cells meet (their corners come from the same planes), closed once the corners other facets put on an edge are inserted
 (:func:`_fans`), each flat region then triangulated from its outline (``kitbash.flat_rebuild``, as a kitbashed union
 is) (:func:`cells_surface`); kept only where it and the input lie within the planes path's tolerance of each other
 both ways (:func:`plane_cells`).
@@ -28,7 +30,7 @@ from ..shapes.planar import PlanarConfig, _closed, _distinct, _with_points_on_ed
 from .cells import min_cut
 from .kitbash import flat_rebuild, flat_regions
 from .meshops import distance_to_triangles, remove_unreferenced, wound_alike
-from .plane_arrangement import GROWN, WELD_EPS, Polytope, facets, plane_arrangement, polygon_area
+from .plane_arrangement import GROWN, WELD_EPS, Polytope, facets, plane_arrangement, polygon_area, refined
 from .winding import winding_numbers
 
 MAX_REGIONS = 256  # flat regions of the union (``kitbash.MAX_REGIONS``)
@@ -40,20 +42,27 @@ SMOOTH_SPACINGS = 2.0
 # points, the boxes that left out a bevel's chamfers 3-4 (4.5-6 % of the size off the truth).  The surface's own
 # samples need only lie within twice the reach of a point: the points do not cover it evenly.
 COVER_TOLERANCES = 2.0
+# A cell whose winding number lies within MIXED of a half is part inside, part out (a step whose small face has no
+# plane of its own left it whole): it is split by every plane that crosses it before the labelling.  On random
+# kitbashed props as points of their outside, 14 -> 21 of 48 rebuilt exactly (other draws: no change).
+MIXED = 0.3
 
 
-def labelled(cells: list[Polytope], points: np.ndarray, normals: np.ndarray, a: np.ndarray, b: np.ndarray,
-             cost: np.ndarray) -> np.ndarray:
-    """(C,) bool, the cells inside: the least-cost labelling (``cells.min_cut``), each cell costing its volume
-    times the share of the input's winding number (``points``, ``normals`` (N, 3); the mean at its centroid and
-    halfway to its corners) against the label, each facet between cells ``a`` and ``b`` (T,) ``cost`` (T,) where
-    they are labelled apart."""
+def cell_windings(cells: list[Polytope], points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(C,) the input's winding number (``points``, ``normals`` (N, 3)) in each cell, clipped to [0, 1]: the mean
+    at its centroid and halfway to its corners."""
     corners = [c.corners() for c in cells]
-    volume = np.array([ConvexHull(c).volume for c in corners])
     queries = np.vstack([np.vstack([c.mean(0), 0.5 * (c + c.mean(0))]) for c in corners])
     w = np.clip(winding_numbers(queries, points, normals), 0.0, 1.0)
     start = np.r_[0, np.cumsum([len(c) + 1 for c in corners])]
-    w = np.add.reduceat(w, start[:-1]) / np.diff(start)
+    return np.add.reduceat(w, start[:-1]) / np.diff(start)
+
+
+def labelled(cells: list[Polytope], w: np.ndarray, a: np.ndarray, b: np.ndarray, cost: np.ndarray) -> np.ndarray:
+    """(C,) bool, the cells inside: the least-cost labelling (``cells.min_cut``), each cell costing its volume
+    times the share of its winding number ``w`` (C,) (:func:`cell_windings`) against the label, each facet between
+    cells ``a`` and ``b`` (T,) ``cost`` (T,) where they are labelled apart."""
+    volume = np.array([ConvexHull(c.corners()).volume for c in cells])
     return min_cut(len(cells), volume * (1 - w), volume * w, a, b, cost)
 
 
@@ -226,8 +235,14 @@ def plane_cells(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = Pla
     if made is None:
         return None
     cells, all_planes = made
+    w = cell_windings(cells, pts, nrm)
+    mixed = np.abs(w - 0.5) < MIXED
+    # (An open input's winding number is about a half along its sheets: its cells are not split for it.)
+    finer = refined(cells, all_planes, len(planes), mixed) if mixed.any() and not open_ else None
+    if finer is not None:
+        cells, w = finer, cell_windings(finer, pts, nrm)
     a, b, pid, rings, uncovered = facets(cells, all_planes, len(planes), pts, labels, spacing)
-    inside = labelled(cells, pts, nrm, a, b, SMOOTH_SPACINGS * spacing * uncovered)
+    inside = labelled(cells, w, a, b, SMOOTH_SPACINGS * spacing * uncovered)
     if not inside.any():
         return None
     mesh = cells_surface(all_planes, pid, rings, a, b, inside, cfg.tolerance, open_)

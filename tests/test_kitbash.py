@@ -165,13 +165,13 @@ def _outside_points(parts: list[trimesh.Trimesh], n: int, rng: np.random.Generat
 
 
 def test_kitbashed_props_as_points_come_back_exact_or_not_at_all():
-    """Sixteen random props as 8,192 oriented points of their outside, any pose, millimetres to kilometres: most
-    rebuilt from their planes (the corners, else the cells of the arrangement), each one rebuilt on the true union
-    within 1e-5 of its size both ways.  A part's face too small for a plane of its own at that density (a step of
-    a fraction of the points' spacing) leaves the rest to the networks."""
+    """Sixteen random props as 8,192 oriented points of their outside, any pose, millimetres to kilometres: six or
+    more rebuilt from their planes (the corners, else the cells of the arrangement), each one closed, outward and
+    within the planes' tolerance of the true union both ways (where its points are: a face that none of them lies
+    on is not there to rebuild).  A part's face too small for a plane of its own at that density (a step of a
+    fraction of the points' spacing) leaves the rest to the networks."""
     rng = np.random.default_rng(4)
-    rebuilt = 0
-    TOLERANCE = PlanarConfig.tolerance
+    rebuilt, tolerance = 0, PlanarConfig.tolerance
     for i in range(16):
         parts = _posed(_random_prop(rng), rng, (1e-3, 1.0, 1e3)[i % 3])
         points, normals = _outside_points(parts, 8192, rng)
@@ -185,12 +185,12 @@ def test_kitbashed_props_as_points_come_back_exact_or_not_at_all():
         union = kitbash_union(norm.apply(vertices), faces)
         result = trimesh.Trimesh(*found, process=False)
         assert result.is_watertight and result.is_winding_consistent and result.volume > 0
-        assert distance_to_triangles(result.sample(4000, seed=0), *union).max() < TOLERANCE, i
+        assert distance_to_triangles(result.sample(4000, seed=0), *union).max() < tolerance, i
         # The union where the points are: a part's face that none of them lies on is not there to rebuild.
         samples = trimesh.Trimesh(*union, process=False).sample(4000, seed=0)
         spacing = float(np.median(cKDTree(unit).query(unit, k=9)[0][:, 8]))
         samples = samples[cKDTree(unit).query(samples)[0] < 0.5 * spacing]
-        assert distance_to_triangles(samples, *found).max() < TOLERANCE, i
+        assert distance_to_triangles(samples, *found).max() < tolerance, i
     assert rebuilt >= 6
 
 

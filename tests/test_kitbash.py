@@ -188,8 +188,9 @@ def test_kitbashed_props_as_points_come_back_exact_or_not_at_all():
         assert distance_to_triangles(result.sample(4000, seed=0), *union).max() < tolerance, i
         # The union where the points are: a part's face that none of them lies on is not there to rebuild.
         samples = trimesh.Trimesh(*union, process=False).sample(4000, seed=0)
-        spacing = float(np.median(cKDTree(unit).query(unit, k=9)[0][:, 8]))
-        samples = samples[cKDTree(unit).query(samples)[0] < 0.5 * spacing]
+        tree = cKDTree(unit)
+        spacing = float(np.median(tree.query(unit, k=9)[0][:, 8]))
+        samples = samples[tree.query(samples)[0] < 0.5 * spacing]
         assert distance_to_triangles(samples, *found).max() < tolerance, i
     assert rebuilt >= 6
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from ..shapes.arrangement import merge_points, plane_basis
+from ..shapes.arrangement import merge_points, plane_basis, signed_area
 from ..shapes.planar import PlanarConfig, _closed, _distinct, _with_points_on_edges, planes_found
 from .cells import min_cut
 from .kitbash import flat_rebuild, flat_regions
@@ -132,7 +132,7 @@ def _outward_facets(planes: np.ndarray, pid: np.ndarray, rings: list[np.ndarray]
         sign = 1.0 if ins_a[t] else -1.0
         n, d = planes[pid[t], :3], planes[pid[t], 3]
         ring = n * d + rings[t] @ plane_basis(n).T
-        if _signed(ring @ plane_basis(sign * n)) < 0:
+        if signed_area(ring @ plane_basis(sign * n)) < 0:
             ring = ring[::-1]
         key = (int(pid[t]), sign)
         rows.setdefault(key, len(rows))
@@ -198,12 +198,6 @@ def _onto(vertices: np.ndarray, faces: np.ndarray, plane: np.ndarray, planes: np
     np.add.at(quad, at, n[:, :, None] * n[:, None, :])
     np.add.at(rhs, at, n * miss[:, None])
     return vertices + np.einsum("nij,nj->ni", np.linalg.pinv(quad, rcond=1e-6, hermitian=True), rhs)
-
-
-def _signed(flat: np.ndarray) -> float:
-    """The signed area of a polygon (m, 2): positive where it winds counter-clockwise."""
-    x, y = flat.T
-    return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
 
 
 def plane_cells(points: np.ndarray, normals: np.ndarray, cfg: PlanarConfig = PlanarConfig(), open_: bool = False

@@ -61,8 +61,7 @@ class Cell:
         return int(((edge[None, :, 0] * rel[..., 1] - edge[None, :, 1] * rel[..., 0]) >= 0).all(1).sum())
 
     def area(self) -> float:
-        x, y = self.corners.T
-        return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
+        return signed_area(self.corners)
 
 
 def chosen(cells: list[Cell], flat: np.ndarray, spacing: float) -> np.ndarray:

@@ -2,9 +2,9 @@
 to our face count: 32 random props of 3-7 boxes that touch or overlap (tests/test_kitbash.py's family), any pose,
 millimetres to kilometres, each as 8,192 oriented points of its outside (what a scan sees: no face hidden inside
 another part).  Per prop, for ours and the anchor: faces (the true union's beside them), faces wound against their
-neighbours, the back faces 14 views see, the silhouette overlap and normal angle against the union, and the largest
-exact distance between the result and the union both ways, in % of the size.  Exact: within the planes path's
-tolerance (2e-4 of the size) both ways.
+neighbours, faces crossing another, the back faces 14 views see, the silhouette overlap and normal angle against
+the union, and the largest exact distance between the result and the union both ways, in % of the size.  Exact:
+within the planes path's tolerance (2e-4 of the size) both ways.
 
     python benchmarks/kitbash_points.py
 """
@@ -20,6 +20,7 @@ import trimesh
 
 from fastmesh.evaluation.baselines import poisson
 from fastmesh.evaluation.visible import visible_report
+from fastmesh.faces.crossings import crossing_faces
 from fastmesh.faces.defects import winding
 from fastmesh.faces.kitbash import kitbash_union
 from fastmesh.faces.meshops import distance_to_triangles
@@ -42,7 +43,8 @@ def measures(v: np.ndarray, f: np.ndarray, union: tuple[np.ndarray, np.ndarray],
     """One mesh's figures against the ``union``, and its distance both ways (a share of ``size``)."""
     seen = visible_report(v, f, union)
     off = both_ways(v, f, union, size)
-    return (f"{len(f)} faces, wound against neighbours {winding(v, f)['misoriented_edges']} edges, back faces seen "
+    return (f"{len(f)} faces, wound against neighbours {winding(v, f)['misoriented_edges']} edges, crossing "
+            f"{int(crossing_faces(v, f).sum())}, back faces seen "
             f"{100 * seen['back_face_share']:.1f} %, silhouette {seen['silhouette_iou']:.3f}, normal angle "
             f"{seen['normal_angle']:.1f} deg, distance both ways {100 * off:.3f} %"), off
 
